@@ -1,0 +1,247 @@
+//! `mvmp body ...` and `mvmp bench smplx`.
+use std::path::Path;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use burn::tensor::{Device, Tensor, TensorData};
+use nalgebra::{Matrix3, Vector3};
+
+use mvmp_geom::Camera;
+use mvmp_geom::io::write_atomic_with;
+use mvmp_geom::raster::{Frame, MeshRef, draw};
+use mvmp_smplx::export::{write_obj, write_ply};
+use mvmp_smplx::{BodyModel, ParamTensors, SmplxLayer, SmplxParams, Translation, standin_model};
+use npyz::WriterBuilder;
+
+/// The body model: a file when given, else the stand-in (seed 0) generated in memory.
+pub fn load_model(path: Option<&Path>) -> Result<BodyModel> {
+    match path {
+        Some(p) => Ok(BodyModel::load(p)?),
+        None => Ok(standin_model(0)),
+    }
+}
+
+pub fn make_standin(out: &Path, seed: u64) -> Result<()> {
+    let model = standin_model(seed);
+    model
+        .write_npz(out)
+        .with_context(|| format!("writing the stand-in model to {}", out.display()))?;
+    println!(
+        "wrote {}: stand-in SMPL-X model (seed {seed}), {} vertices, {} faces, {} shape components",
+        out.display(),
+        model.num_vertices(),
+        model.num_faces(),
+        model.num_shape_components
+    );
+    Ok(())
+}
+
+/// Per body, a list of 3D points.
+type Points = Vec<Vec<[f32; 3]>>;
+
+/// Run the layer on parameters and return vertices `[N][V]` and joints `[N][J]` as f32 triples.
+fn pose(model: &BodyModel, bodies: &[SmplxParams], device: &Device) -> Result<(Points, Points)> {
+    let layer = SmplxLayer::new(model, device);
+    let p = ParamTensors::from_params(bodies, device);
+    let out = layer.forward_axis_angle(
+        p.pose,
+        p.betas,
+        p.expression,
+        p.transl,
+        Translation::Standard,
+    );
+    let n = bodies.len();
+    let split = |t: Tensor<3>| -> Result<Points> {
+        let [_, k, _] = t.dims();
+        let flat: Vec<f32> = t
+            .into_data()
+            .try_into_vec()
+            .map_err(|e| anyhow::anyhow!("reading tensor: {e:?}"))?;
+        if let Some(i) = flat.iter().position(|v| !v.is_finite()) {
+            bail!("the forward produced a non-finite value at flat index {i}");
+        }
+        Ok(flat
+            .chunks_exact(k * 3)
+            .map(|b| b.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
+            .collect())
+    };
+    let v = split(out.vertices)?;
+    let j = split(out.joints)?;
+    debug_assert_eq!(v.len(), n);
+    Ok((v, j))
+}
+
+pub fn forward(model: Option<&Path>, params: &Path, out: &Path, device: &Device) -> Result<()> {
+    let bodies = SmplxParams::read_json(params)?;
+    let model = load_model(model)?;
+    let (verts, joints) = pose(&model, &bodies, device)?;
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let n = bodies.len();
+    let nv = verts[0].len();
+    let nj = joints[0].len();
+    // output.npz: vertices [N, V, 3], joints [N, J, 3], float32 metres.
+    let npz_path = out.join("output.npz");
+    write_atomic_with(&npz_path, |w| {
+        let mut npz = npyz::npz::NpzWriter::new(std::io::Cursor::new(Vec::new()));
+        for (name, data, k) in [("vertices", &verts, nv), ("joints", &joints, nj)] {
+            let mut a = npz
+                .array::<f32>(name, Default::default())?
+                .default_dtype()
+                .shape(&[n as u64, k as u64, 3])
+                .begin_nd()?;
+            a.extend(data.iter().flatten().flatten().copied())?;
+            a.finish()?;
+        }
+        let bytes = npz.zip_writer().finish()?.into_inner();
+        w.write_all(&bytes)
+    })?;
+    let json_path = out.join("output.json");
+    let json = serde_json::json!({ "vertices": verts, "joints": joints, "units": "m" });
+    write_atomic_with(&json_path, |w| {
+        serde_json::to_writer(w, &json).map_err(std::io::Error::other)
+    })?;
+    for (i, v) in verts.iter().enumerate() {
+        write_obj(&out.join(format!("body_{i:03}.obj")), v, &model.faces)?;
+        write_ply(&out.join(format!("body_{i:03}.ply")), v, &model.faces)?;
+    }
+    println!(
+        "posed {n} bod{} ({nv} vertices, {nj} joints each); wrote {}, {} and body_000..{:03}.obj/.ply in {}",
+        if n == 1 { "y" } else { "ies" },
+        npz_path.display(),
+        json_path.display(),
+        n - 1,
+        out.display()
+    );
+    Ok(())
+}
+
+use std::io::Write;
+
+pub fn render(
+    model: Option<&Path>,
+    params: Option<&Path>,
+    out: &Path,
+    size: u32,
+    device: &Device,
+) -> Result<()> {
+    if !(16..=8192).contains(&size) {
+        bail!("--size {size}: expected 16 to 8192 pixels");
+    }
+    let bodies = match params {
+        Some(p) => SmplxParams::read_json(p)?,
+        None => vec![SmplxParams::default()],
+    };
+    let model = load_model(model)?;
+    let (verts, _) = pose(&model, &bodies, device)?;
+    // Frame all bodies: a camera on +z (the model faces +z, y up) at a distance that fits the bounds.
+    let (mut lo, mut hi) = ([f32::MAX; 3], [f32::MIN; 3]);
+    for v in verts.iter().flatten() {
+        for a in 0..3 {
+            lo[a] = lo[a].min(v[a]);
+            hi[a] = hi[a].max(v[a]);
+        }
+    }
+    let c = [
+        0.5 * (lo[0] + hi[0]),
+        0.5 * (lo[1] + hi[1]),
+        0.5 * (lo[2] + hi[2]),
+    ]
+    .map(|x| x as f64);
+    let extent = ((hi[0] - lo[0]).max(hi[1] - lo[1]) as f64).max(0.1);
+    let f = size as f64 * 2.0;
+    let dist = f * extent * 1.15 / size as f64 + (hi[2] as f64 - c[2]);
+    // A slight three-quarter view: rotate the camera 20 degrees about the vertical axis.
+    let yaw = 20f64.to_radians();
+    let eye = Vector3::new(
+        c[0] + dist * yaw.sin(),
+        c[1] + 0.1 * dist,
+        c[2] + dist * yaw.cos(),
+    );
+    let target = Vector3::from(c);
+    let z = (target - eye).normalize();
+    let x = z.cross(&Vector3::y()).normalize();
+    let y = z.cross(&x);
+    let r = Matrix3::from_rows(&[x.transpose(), y.transpose(), z.transpose()]);
+    let k = Matrix3::new(
+        f,
+        0.0,
+        size as f64 / 2.0,
+        0.0,
+        f,
+        size as f64 / 2.0,
+        0.0,
+        0.0,
+        1.0,
+    );
+    let cam = Camera::new("preview", k, r, -(r * eye), [0.0; 5], size, size)?;
+    let mut frame = Frame::new(size, size, [0.93, 0.94, 0.96]);
+    let palette = [
+        [0.80, 0.55, 0.45],
+        [0.45, 0.60, 0.80],
+        [0.55, 0.75, 0.50],
+        [0.80, 0.70, 0.40],
+    ];
+    let meshes: Vec<MeshRef> = verts
+        .iter()
+        .enumerate()
+        .map(|(i, v)| MeshRef {
+            vertices: v,
+            faces: &model.faces,
+            color: palette[i % palette.len()],
+        })
+        .collect();
+    draw(&mut frame, &cam, &meshes, [-0.4, -0.6, -1.0], 0.25);
+    let img = image::RgbImage::from_raw(size, size, frame.to_rgb8())
+        .context("building the image buffer")?;
+    write_atomic_with(out, |w| {
+        let mut buf = std::io::Cursor::new(Vec::new());
+        img.write_to(&mut buf, image::ImageFormat::Png)
+            .map_err(std::io::Error::other)?;
+        w.write_all(buf.get_ref())
+    })?;
+    println!("wrote {} ({size} x {size})", out.display());
+    Ok(())
+}
+
+pub fn bench(model: Option<&Path>, batch: usize, iters: usize, device: &Device) -> Result<()> {
+    if batch == 0 || iters == 0 {
+        bail!("--batch and --iters must be positive (got {batch} and {iters})");
+    }
+    let model = load_model(model)?;
+    let layer = SmplxLayer::new(&model, device);
+    // Random-ish but fixed poses: small angles on every joint, varied shapes.
+    let pose: Vec<f32> = (0..batch * 55 * 3)
+        .map(|i| ((i * 7919 % 1000) as f32 / 1000.0 - 0.5) * 0.6)
+        .collect();
+    let betas: Vec<f32> = (0..batch * 10)
+        .map(|i| (i * 104729 % 1000) as f32 / 500.0 - 1.0)
+        .collect();
+    let pose = Tensor::<3>::from_data(TensorData::new(pose, [batch, 55, 3]), device);
+    let betas = Tensor::<2>::from_data(TensorData::new(betas, [batch, 10]), device);
+    let expr = Tensor::<2>::zeros([batch, 10], device);
+    let transl = Tensor::<2>::zeros([batch, 3], device);
+    let run = || {
+        let out = layer.forward_axis_angle(
+            pose.clone(),
+            betas.clone(),
+            expr.clone(),
+            transl.clone(),
+            Translation::Standard,
+        );
+        // Reading a value back waits for the device to finish.
+        let _ = out.vertices.sum().into_scalar::<f32>();
+    };
+    for _ in 0..3 {
+        run();
+    }
+    let mut times = Vec::with_capacity(iters);
+    for _ in 0..iters {
+        let t0 = Instant::now();
+        run();
+        times.push(t0.elapsed().as_secs_f64() * 1e3);
+    }
+    times.sort_by(f64::total_cmp);
+    let median = times[times.len() / 2];
+    println!("smplx forward batch {batch}: {median:.2} ms");
+    Ok(())
+}

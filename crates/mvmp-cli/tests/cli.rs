@@ -1,0 +1,195 @@
+//! The `mvmp` binary end to end: outputs that load back, and clear errors with a non-zero exit.
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn mvmp(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_mvmp"))
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+#[test]
+fn body_forward_writes_npz_json_and_meshes() {
+    let dir = tempfile::tempdir().unwrap();
+    let params = dir.path().join("p.json");
+    std::fs::write(
+        &params,
+        r#"[{"body_pose": [0.0, 0.0, 0.3, 0,0,0, 0,0,0, 0.8,0,0, 0,0,0, 0,0,0, 0,0,0, 0,0,0, 0,0,0, 0,0,0,
+              0,0,0, 0,0,0, 0,0,0, 0,0,0, 0,0,0, 0,0,0, 0,0,0, 0,0,0, 0,0,0, 0,0,0, 0,0,0],
+            "betas": [1.0, -0.5], "transl": [1.0, 2.0, 3.0]},
+           {"global_orient": [1.5708, 0, 0]}]"#,
+    )
+    .unwrap();
+    let out = dir.path().join("out");
+    let o = mvmp(&[
+        "body",
+        "forward",
+        "--params",
+        params.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let mut npz = npyz::npz::NpzArchive::open(out.join("output.npz")).unwrap();
+    let v = npz.by_name("vertices").unwrap().unwrap();
+    assert_eq!(v.shape(), &[2, 10475, 3]);
+    let verts: Vec<f32> = v.into_vec().unwrap();
+    let j = npz.by_name("joints").unwrap().unwrap();
+    assert_eq!(j.shape(), &[2, 127, 3]);
+    let joints: Vec<f32> = j.into_vec().unwrap();
+    // The first body is translated by (1, 2, 3): its pelvis sits near (1, 2 - 0.35, 3).
+    assert!(
+        (joints[0] - 1.0).abs() < 0.05
+            && (joints[1] - 1.65).abs() < 0.05
+            && (joints[2] - 3.0).abs() < 0.05
+    );
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("output.json")).unwrap()).unwrap();
+    assert_eq!(json["vertices"][1].as_array().unwrap().len(), 10475);
+    assert!((json["vertices"][0][0][0].as_f64().unwrap() - verts[0] as f64).abs() < 1e-6);
+    for f in [
+        "body_000.obj",
+        "body_000.ply",
+        "body_001.obj",
+        "body_001.ply",
+    ] {
+        assert!(out.join(f).metadata().unwrap().len() > 1000, "{f}");
+    }
+}
+
+fn expect_error(args: &[&str], needles: &[&str]) {
+    let o = mvmp(args);
+    assert!(!o.status.success(), "{args:?} should fail");
+    let e = stderr(&o);
+    assert!(!e.contains("panicked"), "{args:?} panicked: {e}");
+    for n in needles {
+        assert!(e.contains(n), "{args:?}: {n:?} not in {e:?}");
+    }
+}
+
+#[test]
+fn bad_inputs_give_clear_errors() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = |n: &str| dir.path().join(n).to_str().unwrap().to_string();
+    let out = d("out");
+    expect_error(
+        &[
+            "body",
+            "forward",
+            "--params",
+            &d("missing.json"),
+            "--out",
+            &out,
+        ],
+        &["missing.json"],
+    );
+    std::fs::write(d("bad.json"), "{ \"betas\": [1, 2,").unwrap();
+    expect_error(
+        &["body", "forward", "--params", &d("bad.json"), "--out", &out],
+        &["bad.json", "malformed JSON"],
+    );
+    std::fs::write(d("len.json"), r#"{"body_pose": [0.1, 0.2]}"#).unwrap();
+    expect_error(
+        &["body", "forward", "--params", &d("len.json"), "--out", &out],
+        &["len.json", "body_pose", "63"],
+    );
+    std::fs::write(d("key.json"), r#"[{}, {"pose": [0.1]}]"#).unwrap();
+    expect_error(
+        &["body", "forward", "--params", &d("key.json"), "--out", &out],
+        &["key.json", "bodies[1]", "pose"],
+    );
+    std::fs::write(d("nan.json"), r#"{"transl": [0, NaN, 0]}"#).unwrap();
+    expect_error(
+        &["body", "forward", "--params", &d("nan.json"), "--out", &out],
+        &["nan.json"],
+    );
+    std::fs::write(d("ok.json"), "{}").unwrap();
+    expect_error(
+        &[
+            "body",
+            "forward",
+            "--model",
+            &d("SMPLX_NEUTRAL.pkl"),
+            "--params",
+            &d("ok.json"),
+            "--out",
+            &out,
+        ],
+        &["SMPLX_NEUTRAL.pkl", "npz"],
+    );
+    std::fs::write(d("junk.npz"), "not a zip").unwrap();
+    expect_error(
+        &[
+            "body",
+            "forward",
+            "--model",
+            &d("junk.npz"),
+            "--params",
+            &d("ok.json"),
+            "--out",
+            &out,
+        ],
+        &["junk.npz"],
+    );
+    expect_error(
+        &[
+            "--device",
+            "tpu",
+            "body",
+            "make-standin",
+            "--out",
+            &d("m.npz"),
+        ],
+        &["tpu"],
+    );
+    // Nothing half-written: failed runs left no output directory.
+    assert!(!Path::new(&out).exists());
+}
+
+#[test]
+fn make_standin_then_use_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = dir.path().join("SMPLX_STANDIN.npz");
+    let o = mvmp(&[
+        "body",
+        "make-standin",
+        "--out",
+        model.to_str().unwrap(),
+        "--seed",
+        "3",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let params = dir.path().join("p.json");
+    std::fs::write(&params, r#"{"expression": [1.0]}"#).unwrap();
+    let out = dir.path().join("o");
+    let o = mvmp(&[
+        "body",
+        "forward",
+        "--model",
+        model.to_str().unwrap(),
+        "--params",
+        params.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let png = dir.path().join("body.png");
+    let o = mvmp(&[
+        "body",
+        "render",
+        "--out",
+        png.to_str().unwrap(),
+        "--size",
+        "64",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let img = image::open(&png).unwrap().to_rgb8();
+    // The body covers part of the frame: some pixels differ from the background.
+    let bg = img.get_pixel(0, 0);
+    assert!(img.pixels().filter(|p| *p != bg).count() > 200);
+}

@@ -1,0 +1,31 @@
+use std::path::PathBuf;
+
+/// Errors of the geometry crate. Every variant names what was wrong and, where there is one, the file.
+#[derive(Debug, thiserror::Error)]
+pub enum GeomError {
+    #[error("camera `{camera}`: {what}")]
+    InvalidCamera { camera: String, what: String },
+    #[error("voxel grid: {0}")]
+    InvalidGrid(String),
+    #[error("letterbox: {0}")]
+    InvalidLetterbox(String),
+    #[error("{path}: {what}")]
+    File { path: PathBuf, what: String },
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("procrustes: {0}")]
+    Procrustes(String),
+}
+
+impl GeomError {
+    pub(crate) fn file(path: impl Into<PathBuf>, what: impl Into<String>) -> Self {
+        GeomError::File {
+            path: path.into(),
+            what: what.into(),
+        }
+    }
+}

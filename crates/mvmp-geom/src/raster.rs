@@ -1,0 +1,122 @@
+//! A z-buffered software rasterizer for triangle meshes seen by a [`Camera`]: Lambert shading from a
+//! directional light, per-pixel depth and the index of the mesh that covers each pixel. Vertices are
+//! projected with the full camera model (distortion included); triangles are filled in image space with
+//! perspective-correct depth.
+use nalgebra::{Vector2, Vector3};
+
+use crate::Camera;
+
+/// One mesh to draw.
+pub struct MeshRef<'a> {
+    pub vertices: &'a [[f32; 3]],
+    pub faces: &'a [[u32; 3]],
+    /// Base colour (linear 0..1).
+    pub color: [f32; 3],
+}
+
+/// Rendered buffers, row-major `height x width`.
+pub struct Frame {
+    pub width: u32,
+    pub height: u32,
+    /// RGB, 0..1.
+    pub rgb: Vec<[f32; 3]>,
+    /// Depth along the optical axis (metres); `f32::INFINITY` where nothing was drawn.
+    pub depth: Vec<f32>,
+    /// Index of the mesh drawn at each pixel, or -1.
+    pub mesh: Vec<i32>,
+}
+
+impl Frame {
+    pub fn new(width: u32, height: u32, background: [f32; 3]) -> Self {
+        let n = (width * height) as usize;
+        Frame {
+            width,
+            height,
+            rgb: vec![background; n],
+            depth: vec![f32::INFINITY; n],
+            mesh: vec![-1; n],
+        }
+    }
+
+    /// 8-bit sRGB-ish bytes (gamma 2.2), row-major RGB.
+    pub fn to_rgb8(&self) -> Vec<u8> {
+        self.rgb
+            .iter()
+            .flat_map(|c| c.map(|v| (v.clamp(0.0, 1.0).powf(1.0 / 2.2) * 255.0).round() as u8))
+            .collect()
+    }
+}
+
+/// Draw meshes into a frame with a light travelling along `light_dir` (world), plus an ambient term.
+pub fn draw(
+    frame: &mut Frame,
+    camera: &Camera,
+    meshes: &[MeshRef],
+    light_dir: [f32; 3],
+    ambient: f32,
+) {
+    let l = Vector3::new(
+        light_dir[0] as f64,
+        light_dir[1] as f64,
+        light_dir[2] as f64,
+    )
+    .normalize();
+    let centre = camera.centre();
+    let (w, h) = (frame.width as i64, frame.height as i64);
+    for (mi, m) in meshes.iter().enumerate() {
+        let proj: Vec<(Vector2<f64>, f64)> = m
+            .vertices
+            .iter()
+            .map(|v| camera.project(&Vector3::new(v[0] as f64, v[1] as f64, v[2] as f64)))
+            .collect();
+        for f in m.faces {
+            let idx = f.map(|i| i as usize);
+            let [(p0, z0), (p1, z1), (p2, z2)] = idx.map(|i| proj[i]);
+            if z0 <= 1e-3 || z1 <= 1e-3 || z2 <= 1e-3 {
+                continue;
+            }
+            let wv = idx.map(|i| {
+                let v = m.vertices[i];
+                Vector3::new(v[0] as f64, v[1] as f64, v[2] as f64)
+            });
+            let mut n = (wv[1] - wv[0]).cross(&(wv[2] - wv[0]));
+            if n.norm() == 0.0 {
+                continue;
+            }
+            n = n.normalize();
+            // Two-sided: light the side that faces the camera.
+            if n.dot(&(centre - wv[0])) < 0.0 {
+                n = -n;
+            }
+            let shade = (ambient as f64 + (1.0 - ambient as f64) * (-n.dot(&l)).max(0.0)) as f32;
+            let color = m.color.map(|c| c * shade);
+            let area = (p1 - p0).perp(&(p2 - p0));
+            if area.abs() < 1e-12 {
+                continue;
+            }
+            let xmin = p0.x.min(p1.x).min(p2.x).floor().max(0.0) as i64;
+            let xmax = (p0.x.max(p1.x).max(p2.x).ceil() as i64).min(w - 1);
+            let ymin = p0.y.min(p1.y).min(p2.y).floor().max(0.0) as i64;
+            let ymax = (p0.y.max(p1.y).max(p2.y).ceil() as i64).min(h - 1);
+            for y in ymin..=ymax {
+                for x in xmin..=xmax {
+                    let p = Vector2::new(x as f64, y as f64);
+                    let b0 = (p1 - p).perp(&(p2 - p)) / area;
+                    let b1 = (p2 - p).perp(&(p0 - p)) / area;
+                    let b2 = 1.0 - b0 - b1;
+                    if b0 < 0.0 || b1 < 0.0 || b2 < 0.0 {
+                        continue;
+                    }
+                    // Perspective-correct depth: 1/z is affine in screen space.
+                    let z = 1.0 / (b0 / z0 + b1 / z1 + b2 / z2);
+                    let k = (y * w + x) as usize;
+                    if (z as f32) < frame.depth[k] {
+                        frame.depth[k] = z as f32;
+                        frame.rgb[k] = color;
+                        frame.mesh[k] = mi as i32;
+                    }
+                }
+            }
+        }
+    }
+}

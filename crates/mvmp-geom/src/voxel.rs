@@ -1,0 +1,114 @@
+//! The voxel grid in the voxel-centre convention: `x_i = c_x - L_x/2 + (i + 0.5) L_x / X`.
+//! Tensors over the grid are `[B, C, X, Y, Z]` and a flat index is `(ix * Y + iy) * Z + iz`.
+use serde::{Deserialize, Serialize};
+
+use crate::GeomError;
+
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct VoxelGrid {
+    /// Centre of the grid in the world (metres).
+    pub center: [f64; 3],
+    /// Extent along x, y, z (metres).
+    pub size: [f64; 3],
+    /// Number of voxels along x, y, z.
+    pub shape: [usize; 3],
+}
+
+impl VoxelGrid {
+    pub fn new(center: [f64; 3], size: [f64; 3], shape: [usize; 3]) -> Result<Self, GeomError> {
+        let g = VoxelGrid {
+            center,
+            size,
+            shape,
+        };
+        g.validate()?;
+        Ok(g)
+    }
+
+    pub fn validate(&self) -> Result<(), GeomError> {
+        for a in 0..3 {
+            if !self.center[a].is_finite() {
+                return Err(GeomError::InvalidGrid(format!(
+                    "center[{a}] = {} is not finite",
+                    self.center[a]
+                )));
+            }
+            if !(self.size[a].is_finite() && self.size[a] > 0.0) {
+                return Err(GeomError::InvalidGrid(format!(
+                    "size[{a}] = {} must be positive",
+                    self.size[a]
+                )));
+            }
+            if self.shape[a] == 0 {
+                return Err(GeomError::InvalidGrid(format!("shape[{a}] = 0")));
+            }
+        }
+        Ok(())
+    }
+
+    /// Edge length of one voxel along each axis.
+    pub fn voxel_size(&self) -> [f64; 3] {
+        std::array::from_fn(|a| self.size[a] / self.shape[a] as f64)
+    }
+
+    pub fn num_voxels(&self) -> usize {
+        self.shape.iter().product()
+    }
+
+    /// The lower corner of the grid.
+    pub fn min_corner(&self) -> [f64; 3] {
+        std::array::from_fn(|a| self.center[a] - self.size[a] / 2.0)
+    }
+
+    /// World position of a (possibly fractional) voxel index; integers give voxel centres.
+    pub fn index_to_world(&self, idx: [f64; 3]) -> [f64; 3] {
+        let lo = self.min_corner();
+        let vs = self.voxel_size();
+        std::array::from_fn(|a| lo[a] + (idx[a] + 0.5) * vs[a])
+    }
+
+    /// Continuous voxel index of a world point (inverse of [`VoxelGrid::index_to_world`]).
+    pub fn world_to_index(&self, p: [f64; 3]) -> [f64; 3] {
+        let lo = self.min_corner();
+        let vs = self.voxel_size();
+        std::array::from_fn(|a| (p[a] - lo[a]) / vs[a] - 0.5)
+    }
+
+    /// The voxel that contains a world point, or `None` outside the grid.
+    pub fn containing_voxel(&self, p: [f64; 3]) -> Option<[usize; 3]> {
+        let f = self.world_to_index(p);
+        let mut out = [0usize; 3];
+        for a in 0..3 {
+            let i = (f[a] + 0.5).floor();
+            if i < 0.0 || i >= self.shape[a] as f64 {
+                return None;
+            }
+            out[a] = i as usize;
+        }
+        Some(out)
+    }
+
+    pub fn flat_index(&self, idx: [usize; 3]) -> usize {
+        (idx[0] * self.shape[1] + idx[1]) * self.shape[2] + idx[2]
+    }
+
+    pub fn unflatten(&self, flat: usize) -> [usize; 3] {
+        let [_, y, z] = self.shape;
+        [flat / (y * z), (flat / z) % y, flat % z]
+    }
+
+    /// All voxel centres in flat-index order, as `[x, y, z]` triples.
+    pub fn centers(&self) -> Vec<[f64; 3]> {
+        let [nx, ny, nz] = self.shape;
+        let mut out = Vec::with_capacity(self.num_voxels());
+        for ix in 0..nx {
+            for iy in 0..ny {
+                for iz in 0..nz {
+                    out.push(self.index_to_world([ix as f64, iy as f64, iz as f64]));
+                }
+            }
+        }
+        out
+    }
+}

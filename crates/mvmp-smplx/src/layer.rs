@@ -1,0 +1,338 @@
+//! The batched, differentiable SMPL-X layer on tensors (smplx `lbs.py`; REFERENCE.md 7.2).
+//!
+//! Forward, for N bodies:
+//! 1. `v_shaped = v_template + [betas, expression] . shapedirs`            `[N, V, 3]`
+//! 2. `J = J_regressor . v_shaped` (precomputed as a blend of joint templates) `[N, 55, 3]`
+//! 3. `v_posed = v_shaped + (R_j - I)_{j=1..54} . posedirs`                `[N, V, 3]`
+//! 4. kinematic chain, level by level of the tree: `G_j = G_parent(j) [R_j | J_j - J_parent(j)]`
+//! 5. skinning `v = sum_j w_vj (G_j with translation G_j.t - G_j.R J_j) [v_posed; 1]`
+//! 6. joints: the 55 posed joints, the 21 vertex joints and, when the file has them, the 51 face
+//!    landmarks (barycentric over faces), all from the posed mesh; then the translation.
+//!
+//! Hands are relative to a flat hand (smplx's `flat_hand_mean = True`): the file's hand means are not added.
+use burn::tensor::{Device, Int, Tensor, TensorData};
+
+use crate::BodyModel;
+use crate::names::{
+    EXTRA_VERTEX_JOINTS, NUM_BETAS, NUM_EXPRESSION, NUM_JOINTS, NUM_POSE_JOINTS, NUM_REGRESSED,
+};
+use mvmp_geom::rotation::axis_angle_to_matrix;
+
+/// How the translation places the body.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Translation {
+    /// smplx's `transl`: added to the model's own origin (the pelvis then sits at `J_0(betas) + transl`).
+    #[default]
+    Standard,
+    /// DESIGN.md's `T_wld`: the translation is the pelvis position in the world.
+    Pelvis,
+}
+
+/// Output of the layer.
+#[derive(Debug, Clone)]
+pub struct SmplxOutput {
+    /// `[N, V, 3]` posed vertices (metres).
+    pub vertices: Tensor<3>,
+    /// `[N, J, 3]` joints: 55 LBS joints, 21 vertex joints, then 51 landmarks when available.
+    pub joints: Tensor<3>,
+}
+
+/// The SMPL-X layer with the model's arrays on a device.
+#[derive(Debug, Clone)]
+pub struct SmplxLayer {
+    /// `[1, V*3]`
+    v_template: Tensor<2>,
+    /// `[B+E, V*3]` shape then expression directions.
+    shapedirs: Tensor<2>,
+    /// `[1, 55*3]` joints of the template.
+    j_template: Tensor<2>,
+    /// `[B+E, 55*3]` joint displacement per shape/expression unit.
+    j_shapedirs: Tensor<2>,
+    /// `[486, V*3]`
+    posedirs: Tensor<2>,
+    /// `[V, 55]`
+    weights: Tensor<2>,
+    /// `[1, X, V]` sparse-as-dense selector of the extra joints (vertex joints, landmarks).
+    extra: Tensor<3>,
+    /// Tree levels: for each depth, the joints at that depth and the positions of their parents in the
+    /// concatenation of the previous levels.
+    levels: Vec<(Tensor<1, Int>, Tensor<1, Int>, Vec<usize>)>,
+    /// Joint order of the concatenated levels back to model order.
+    level_to_joint: Tensor<1, Int>,
+    parents: Tensor<1, Int>,
+    num_vertices: usize,
+    num_extra: usize,
+    faces: Vec<[u32; 3]>,
+    device: Device,
+}
+
+impl SmplxLayer {
+    /// Put a body model on a device, keeping 10 shape and 10 expression components.
+    pub fn new(model: &BodyModel, device: &Device) -> Self {
+        let v = model.num_vertices();
+        let l = model.num_shape_components;
+        let e0 = model.expression_offset();
+        let comps: Vec<usize> = (0..NUM_BETAS).chain(e0..e0 + NUM_EXPRESSION).collect();
+        let nc = comps.len();
+        // shapedirs [V, 3, L] -> [nc, V*3]
+        let mut sd = vec![0f32; nc * v * 3];
+        for (ci, &c) in comps.iter().enumerate() {
+            for k in 0..v * 3 {
+                sd[ci * v * 3 + k] = model.shapedirs[k * l + c];
+            }
+        }
+        // Joints are linear in the shaped vertices: J = Jr v_template + sum_c beta_c (Jr sd_c).
+        let jr = &model.j_regressor;
+        let regress = |verts: &[f32]| -> Vec<f32> {
+            let mut out = vec![0f32; NUM_JOINTS * 3];
+            for j in 0..NUM_JOINTS {
+                let row = &jr[j * v..(j + 1) * v];
+                for (vi, &w) in row.iter().enumerate() {
+                    if w != 0.0 {
+                        for a in 0..3 {
+                            out[j * 3 + a] += w * verts[vi * 3 + a];
+                        }
+                    }
+                }
+            }
+            out
+        };
+        let j_template = regress(&model.v_template);
+        let j_sd: Vec<f32> = (0..nc)
+            .flat_map(|ci| regress(&sd[ci * v * 3..(ci + 1) * v * 3]))
+            .collect();
+        // posedirs [V, 3, 486] -> [486, V*3]
+        let p = NUM_POSE_JOINTS * 9;
+        let mut pd = vec![0f32; p * v * 3];
+        for k in 0..v * 3 {
+            for q in 0..p {
+                pd[q * v * 3 + k] = model.posedirs[k * p + q];
+            }
+        }
+        // Extra joints as rows over vertices.
+        let mut extra_rows: Vec<Vec<(usize, f32)>> = EXTRA_VERTEX_JOINTS
+            .iter()
+            .filter(|(_, vid)| *vid < v)
+            .map(|(_, vid)| vec![(*vid, 1.0)])
+            .collect();
+        if extra_rows.len() < EXTRA_VERTEX_JOINTS.len() {
+            // A model with fewer vertices than SMPL-X has no meaningful vertex joints.
+            extra_rows.clear();
+        } else if let Some((fi, bary)) = &model.landmarks {
+            for (li, &f) in fi.iter().enumerate() {
+                let tri = model.faces[f as usize];
+                extra_rows.push(
+                    (0..3)
+                        .map(|k| (tri[k] as usize, bary[li * 3 + k]))
+                        .collect(),
+                );
+            }
+        }
+        let nx = extra_rows.len();
+        let mut extra = vec![0f32; nx.max(1) * v];
+        for (r, row) in extra_rows.iter().enumerate() {
+            for &(vi, w) in row {
+                extra[r * v + vi] += w;
+            }
+        }
+        // Levels of the tree.
+        let mut depth = vec![0usize; NUM_JOINTS];
+        for j in 1..NUM_JOINTS {
+            depth[j] = depth[model.parents[j] as usize] + 1;
+        }
+        let max_depth = *depth.iter().max().unwrap_or(&0);
+        let mut position = vec![0usize; NUM_JOINTS];
+        let mut order = Vec::with_capacity(NUM_JOINTS);
+        let mut levels = Vec::new();
+        for d in 0..=max_depth {
+            let joints: Vec<usize> = (0..NUM_JOINTS).filter(|&j| depth[j] == d).collect();
+            let parent_pos: Vec<usize> = joints
+                .iter()
+                .map(|&j| {
+                    if d == 0 {
+                        0
+                    } else {
+                        position[model.parents[j] as usize]
+                    }
+                })
+                .collect();
+            for &j in &joints {
+                position[j] = order.len();
+                order.push(j);
+            }
+            levels.push((
+                int1(&joints, device),
+                int1(&parent_pos, device),
+                joints.clone(),
+            ));
+        }
+        let level_to_joint: Vec<usize> = (0..NUM_JOINTS).map(|j| position[j]).collect();
+        let parents: Vec<usize> = (0..NUM_JOINTS)
+            .map(|j| model.parents[j].max(0) as usize)
+            .collect();
+        let f2 = |d: Vec<f32>, s: [usize; 2]| Tensor::<2>::from_data(TensorData::new(d, s), device);
+        SmplxLayer {
+            v_template: f2(model.v_template.clone(), [1, v * 3]),
+            shapedirs: f2(sd, [nc, v * 3]),
+            j_template: f2(j_template, [1, NUM_JOINTS * 3]),
+            j_shapedirs: f2(j_sd, [nc, NUM_JOINTS * 3]),
+            posedirs: f2(pd, [p, v * 3]),
+            weights: f2(model.weights.clone(), [v, NUM_JOINTS]),
+            extra: Tensor::from_data(TensorData::new(extra, [1, nx.max(1), v]), device),
+            levels,
+            level_to_joint: int1(&level_to_joint, device),
+            parents: int1(&parents, device),
+            num_vertices: v,
+            num_extra: nx,
+            faces: model.faces.clone(),
+            device: device.clone(),
+        }
+    }
+
+    pub fn num_vertices(&self) -> usize {
+        self.num_vertices
+    }
+
+    /// Joints in the output: 55 plus the extra joints (127 with landmarks, 76 without).
+    pub fn num_joints(&self) -> usize {
+        NUM_JOINTS + self.num_extra
+    }
+
+    pub fn faces(&self) -> &[[u32; 3]] {
+        &self.faces
+    }
+
+    pub fn device(&self) -> &Device {
+        &self.device
+    }
+
+    /// Joints of the shaped rest pose `[N, 55, 3]` (no pose, no translation).
+    pub fn rest_joints(&self, betas: Tensor<2>, expression: Tensor<2>) -> Tensor<3> {
+        let n = betas.dims()[0];
+        let coeffs = Tensor::cat(vec![betas, expression], 1);
+        (self.j_template.clone() + coeffs.matmul(self.j_shapedirs.clone()))
+            .reshape([n, NUM_JOINTS, 3])
+    }
+
+    /// Forward from axis-angle: `pose [N, 55, 3]` (full pose in model joint order).
+    pub fn forward_axis_angle(
+        &self,
+        pose: Tensor<3>,
+        betas: Tensor<2>,
+        expression: Tensor<2>,
+        transl: Tensor<2>,
+        mode: Translation,
+    ) -> SmplxOutput {
+        let n = pose.dims()[0];
+        let rot =
+            axis_angle_to_matrix(pose.reshape([n * NUM_JOINTS, 3])).reshape([n, NUM_JOINTS, 3, 3]);
+        self.forward(rot, betas, expression, transl, mode)
+    }
+
+    /// Forward from rotation matrices `[N, 55, 3, 3]`, betas `[N, 10]`, expression `[N, 10]`,
+    /// translation `[N, 3]`.
+    pub fn forward(
+        &self,
+        rot: Tensor<4>,
+        betas: Tensor<2>,
+        expression: Tensor<2>,
+        transl: Tensor<2>,
+        mode: Translation,
+    ) -> SmplxOutput {
+        let n = rot.dims()[0];
+        let v = self.num_vertices;
+        let coeffs = Tensor::cat(vec![betas, expression], 1); // [N, 20]
+        let v_shaped = self.v_template.clone() + coeffs.clone().matmul(self.shapedirs.clone()); // [N, V*3]
+        let joints_rest = (self.j_template.clone() + coeffs.matmul(self.j_shapedirs.clone()))
+            .reshape([n, NUM_JOINTS, 3]);
+        // Pose correctives from (R_j - I) of joints 1..54, row-major.
+        let eye = Tensor::<2>::eye(3, &self.device).reshape([1, 1, 3, 3]);
+        let feat =
+            (rot.clone().narrow(1, 1, NUM_POSE_JOINTS) - eye).reshape([n, NUM_POSE_JOINTS * 9]);
+        let v_posed = (v_shaped + feat.matmul(self.posedirs.clone())).reshape([n, v, 3]);
+
+        // Kinematic chain, one tree level at a time.
+        let parent_rest = joints_rest.clone().select(1, self.parents.clone());
+        let rel = joints_rest.clone() - parent_rest; // [N, 55, 3]; the root's row is fixed below
+        let mut g_rot: Vec<Tensor<4>> = Vec::new();
+        let mut g_tr: Vec<Tensor<3>> = Vec::new();
+        for (d, (joints, parent_pos, _)) in self.levels.iter().enumerate() {
+            let r_l = rot.clone().select(1, joints.clone()); // [N, k, 3, 3]
+            if d == 0 {
+                g_rot.push(r_l);
+                g_tr.push(joints_rest.clone().select(1, joints.clone()));
+                continue;
+            }
+            let acc_rot = Tensor::cat(g_rot.clone(), 1).select(1, parent_pos.clone()); // [N, k, 3, 3]
+            let acc_tr = Tensor::cat(g_tr.clone(), 1).select(1, parent_pos.clone()); // [N, k, 3]
+            let rel_l = rel.clone().select(1, joints.clone()); // [N, k, 3]
+            let k = rel_l.dims()[1];
+            let t_l = acc_rot
+                .clone()
+                .matmul(rel_l.reshape([n, k, 3, 1]))
+                .reshape([n, k, 3])
+                + acc_tr;
+            g_rot.push(acc_rot.matmul(r_l));
+            g_tr.push(t_l);
+        }
+        let g_rot = Tensor::cat(g_rot, 1).select(1, self.level_to_joint.clone()); // [N, 55, 3, 3]
+        let posed_joints = Tensor::cat(g_tr, 1).select(1, self.level_to_joint.clone()); // [N, 55, 3]
+        // Skinning transforms A_j = [G_R | G_t - G_R J_j], flattened to 12 per joint.
+        let a_t = posed_joints.clone()
+            - g_rot
+                .clone()
+                .matmul(joints_rest.clone().reshape([n, NUM_JOINTS, 3, 1]))
+                .reshape([n, NUM_JOINTS, 3]);
+        let a = Tensor::cat(vec![g_rot, a_t.reshape([n, NUM_JOINTS, 3, 1])], 3)
+            .reshape([n, NUM_JOINTS, 12]); // rows of [R | t]
+        let t = self
+            .weights
+            .clone()
+            .unsqueeze_dim::<3>(0)
+            .matmul(a)
+            .reshape([n, v, 3, 4]);
+        let ones = Tensor::<3>::ones([n, v, 1], &self.device);
+        let vh = Tensor::cat(vec![v_posed, ones], 2).reshape([n, v, 1, 4]);
+        let mut verts = (t * vh).sum_dim(3).reshape([n, v, 3]);
+        let mut joints = posed_joints;
+        if self.num_extra > 0 {
+            let extra = self.extra.clone().matmul(verts.clone()); // [N, X, 3]
+            joints = Tensor::cat(vec![joints, extra], 1);
+        }
+        let shift = match mode {
+            Translation::Standard => transl,
+            Translation::Pelvis => transl - joints_rest.narrow(1, 0, 1).reshape([n, 3]),
+        }
+        .reshape([n, 1, 3]);
+        verts = verts + shift.clone();
+        SmplxOutput {
+            vertices: verts,
+            joints: joints + shift,
+        }
+    }
+}
+
+fn int1(v: &[usize], device: &Device) -> Tensor<1, Int> {
+    let d: Vec<i64> = v.iter().map(|&x| x as i64).collect();
+    Tensor::from_data(TensorData::new(d, [v.len()]), device)
+}
+
+/// Map the 53 regressed rotations `[N, 53, 3, 3]` (global, 21 body, 15 left hand, 15 right hand, jaw) to
+/// the full pose `[N, 55, 3, 3]` with identity eyes.
+pub fn regressed_to_full_pose(rot53: Tensor<4>) -> Tensor<4> {
+    let n = rot53.dims()[0];
+    debug_assert_eq!(rot53.dims()[1], NUM_REGRESSED);
+    let eye = Tensor::<2>::eye(3, &rot53.device())
+        .reshape([1, 1, 3, 3])
+        .repeat_dim(0, n)
+        .repeat_dim(1, 2);
+    Tensor::cat(
+        vec![
+            rot53.clone().narrow(1, 0, 22), // global + body -> 0..=21
+            rot53.clone().narrow(1, 52, 1), // jaw -> 22
+            eye,                            // eyes -> 23, 24
+            rot53.narrow(1, 22, 30),        // hands -> 25..=54
+        ],
+        1,
+    )
+}

@@ -1,0 +1,14 @@
+//! SMPL-X for mvmp: body-model files, the batched differentiable layer, the stand-in model and mesh export.
+pub mod error;
+pub mod export;
+pub mod layer;
+pub mod model;
+pub mod names;
+pub mod params;
+pub mod standin;
+
+pub use error::SmplxError;
+pub use layer::{SmplxLayer, SmplxOutput, Translation, regressed_to_full_pose};
+pub use model::BodyModel;
+pub use params::{ParamTensors, SmplxParams};
+pub use standin::standin_model;

@@ -1,0 +1,221 @@
+//! SMPL-X parameters with the standard smplx keys (axis-angle), as read from and written to files.
+use std::path::Path;
+
+use burn::tensor::{Device, Tensor, TensorData};
+use serde::{Deserialize, Serialize};
+
+use crate::SmplxError;
+use crate::names::{NUM_BETAS, NUM_EXPRESSION, NUM_JOINTS, POSE_KEYS};
+
+/// One body's parameters. Missing keys are zero. Lengths: `global_orient`, `jaw_pose`, `leye_pose`,
+/// `reye_pose`, `transl` 3; `body_pose` 63; hand poses 45 each; `betas` and `expression` up to 10.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SmplxParams {
+    #[serde(default)]
+    pub global_orient: Vec<f64>,
+    #[serde(default)]
+    pub body_pose: Vec<f64>,
+    #[serde(default)]
+    pub jaw_pose: Vec<f64>,
+    #[serde(default)]
+    pub leye_pose: Vec<f64>,
+    #[serde(default)]
+    pub reye_pose: Vec<f64>,
+    #[serde(default)]
+    pub left_hand_pose: Vec<f64>,
+    #[serde(default)]
+    pub right_hand_pose: Vec<f64>,
+    #[serde(default)]
+    pub betas: Vec<f64>,
+    #[serde(default)]
+    pub expression: Vec<f64>,
+    #[serde(default)]
+    pub transl: Vec<f64>,
+}
+
+impl SmplxParams {
+    fn field(&self, key: &str) -> &Vec<f64> {
+        match key {
+            "global_orient" => &self.global_orient,
+            "body_pose" => &self.body_pose,
+            "jaw_pose" => &self.jaw_pose,
+            "leye_pose" => &self.leye_pose,
+            "reye_pose" => &self.reye_pose,
+            "left_hand_pose" => &self.left_hand_pose,
+            "right_hand_pose" => &self.right_hand_pose,
+            "betas" => &self.betas,
+            "expression" => &self.expression,
+            "transl" => &self.transl,
+            _ => unreachable!("unknown key {key}"),
+        }
+    }
+
+    fn field_mut(&mut self, key: &str) -> &mut Vec<f64> {
+        match key {
+            "global_orient" => &mut self.global_orient,
+            "body_pose" => &mut self.body_pose,
+            "jaw_pose" => &mut self.jaw_pose,
+            "leye_pose" => &mut self.leye_pose,
+            "reye_pose" => &mut self.reye_pose,
+            "left_hand_pose" => &mut self.left_hand_pose,
+            "right_hand_pose" => &mut self.right_hand_pose,
+            "betas" => &mut self.betas,
+            "expression" => &mut self.expression,
+            "transl" => &mut self.transl,
+            _ => unreachable!("unknown key {key}"),
+        }
+    }
+
+    /// Check lengths and values; `which` names the body in messages (for example "bodies[2]").
+    pub fn validate(&self, which: &str) -> Result<(), SmplxError> {
+        let mut keys: Vec<(&str, usize, bool)> = POSE_KEYS
+            .iter()
+            .map(|(k, _, n)| (*k, n * 3, true))
+            .collect();
+        keys.extend([
+            ("betas", NUM_BETAS, false),
+            ("expression", NUM_EXPRESSION, false),
+            ("transl", 3, true),
+        ]);
+        for (key, len, exact) in keys {
+            let v = self.field(key);
+            let ok = if exact {
+                v.is_empty() || v.len() == len
+            } else {
+                v.len() <= len
+            };
+            if !ok {
+                let want = if exact {
+                    format!("{len}")
+                } else {
+                    format!("at most {len}")
+                };
+                return Err(SmplxError::Params(format!(
+                    "{which}: key `{key}` has {} values, expected {want}",
+                    v.len()
+                )));
+            }
+            if let Some(i) = v.iter().position(|x| !x.is_finite()) {
+                return Err(SmplxError::Params(format!(
+                    "{which}: key `{key}`[{i}] = {} is not finite",
+                    v[i]
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    /// The full pose as 55 axis-angle triples in model joint order.
+    pub fn full_pose(&self) -> Vec<f64> {
+        let mut out = vec![0.0; NUM_JOINTS * 3];
+        for (key, first, count) in POSE_KEYS {
+            let v = self.field(key);
+            if !v.is_empty() {
+                out[first * 3..(first + count) * 3].copy_from_slice(v);
+            }
+        }
+        out
+    }
+
+    /// Parameters from a full pose (55 x 3 axis-angle), betas, expression and translation.
+    pub fn from_full_pose(
+        pose: &[f64],
+        betas: &[f64],
+        expression: &[f64],
+        transl: [f64; 3],
+    ) -> Self {
+        let mut p = SmplxParams::default();
+        for (key, first, count) in POSE_KEYS {
+            *p.field_mut(key) = pose[first * 3..(first + count) * 3].to_vec();
+        }
+        p.betas = betas.to_vec();
+        p.expression = expression.to_vec();
+        p.transl = transl.to_vec();
+        p
+    }
+
+    fn padded(&self, key: &str, len: usize) -> Vec<f64> {
+        let mut v = self.field(key).clone();
+        v.resize(len, 0.0);
+        v
+    }
+
+    /// Read one body or a list of bodies from a JSON file, validated.
+    pub fn read_json(path: &Path) -> Result<Vec<SmplxParams>, SmplxError> {
+        let text = std::fs::read_to_string(path).map_err(|source| SmplxError::Io {
+            path: path.into(),
+            source,
+        })?;
+        let parsed: serde_json::Value =
+            serde_json::from_str(&text).map_err(|e| SmplxError::File {
+                path: path.into(),
+                what: format!("malformed JSON: {e}"),
+            })?;
+        let err = |what: String| SmplxError::File {
+            path: path.into(),
+            what,
+        };
+        // Parse each body separately so a message can say which one is wrong.
+        let bodies: Vec<SmplxParams> = match parsed {
+            serde_json::Value::Array(items) => items
+                .into_iter()
+                .enumerate()
+                .map(|(i, it)| {
+                    serde_json::from_value(it).map_err(|e| err(format!("bodies[{i}]: {e}")))
+                })
+                .collect::<Result<_, _>>()?,
+            obj @ serde_json::Value::Object(_) => {
+                vec![serde_json::from_value(obj).map_err(|e| err(e.to_string()))?]
+            }
+            _ => {
+                return Err(err(
+                    "expected an object with smplx keys (global_orient, body_pose, jaw_pose, \
+                     leye_pose, reye_pose, left_hand_pose, right_hand_pose, betas, expression, \
+                     transl) or a list of them"
+                        .into(),
+                ));
+            }
+        };
+        if bodies.is_empty() {
+            return Err(err("the list of bodies is empty".into()));
+        }
+        for (i, b) in bodies.iter().enumerate() {
+            b.validate(&format!("bodies[{i}]"))
+                .map_err(|e| err(e.to_string().trim_start_matches("parameters: ").to_string()))?;
+        }
+        Ok(bodies)
+    }
+}
+
+/// A batch of parameters as tensors.
+#[derive(Debug, Clone)]
+pub struct ParamTensors {
+    /// `[N, 55, 3]` axis-angle.
+    pub pose: Tensor<3>,
+    /// `[N, 10]`
+    pub betas: Tensor<2>,
+    /// `[N, 10]`
+    pub expression: Tensor<2>,
+    /// `[N, 3]`
+    pub transl: Tensor<2>,
+}
+
+impl ParamTensors {
+    pub fn from_params(bodies: &[SmplxParams], device: &Device) -> Self {
+        let n = bodies.len();
+        let cat = |f: &dyn Fn(&SmplxParams) -> Vec<f64>| -> Vec<f32> {
+            bodies.iter().flat_map(f).map(|x| x as f32).collect()
+        };
+        let pose = cat(&|b| b.full_pose());
+        let betas = cat(&|b| b.padded("betas", NUM_BETAS));
+        let expr = cat(&|b| b.padded("expression", NUM_EXPRESSION));
+        let transl = cat(&|b| b.padded("transl", 3));
+        ParamTensors {
+            pose: Tensor::from_data(TensorData::new(pose, [n, NUM_JOINTS, 3]), device),
+            betas: Tensor::from_data(TensorData::new(betas, [n, NUM_BETAS]), device),
+            expression: Tensor::from_data(TensorData::new(expr, [n, NUM_EXPRESSION]), device),
+            transl: Tensor::from_data(TensorData::new(transl, [n, 3]), device),
+        }
+    }
+}
