@@ -8,7 +8,7 @@ use nalgebra::{Matrix3, Vector3};
 
 use mvmp_geom::Camera;
 use mvmp_geom::io::write_atomic_with;
-use mvmp_geom::raster::{Frame, MeshRef, draw};
+use mvmp_geom::raster::{Frame, Light, MeshRef, draw};
 use mvmp_smplx::export::{write_obj, write_ply};
 use mvmp_smplx::{BodyModel, ParamTensors, SmplxLayer, SmplxParams, Translation, standin_model};
 use npyz::WriterBuilder;
@@ -188,9 +188,15 @@ pub fn render(
             vertices: v,
             faces: &model.faces,
             color: palette[i % palette.len()],
+            face_colors: None,
         })
         .collect();
-    draw(&mut frame, &cam, &meshes, [-0.4, -0.6, -1.0], 0.25);
+    let light = Light {
+        dir: [-0.4, -0.6, -1.0],
+        ambient: 0.25,
+        color: [1.0; 3],
+    };
+    draw(&mut frame, &cam, &meshes, &light);
     let img = image::RgbImage::from_raw(size, size, frame.to_rgb8())
         .context("building the image buffer")?;
     write_atomic_with(out, |w| {

@@ -5,6 +5,7 @@ use std::process::ExitCode;
 use clap::{Parser, Subcommand};
 
 mod body;
+mod data;
 mod device;
 
 #[derive(Parser)]
@@ -26,9 +27,44 @@ enum Command {
     /// Body-model tools: the stand-in model, the SMPL-X forward, previews.
     #[command(subcommand)]
     Body(BodyCommand),
+    /// Datasets: synthesis, statistics, validation.
+    #[command(subcommand)]
+    Data(DataCommand),
     /// Benchmarks.
     #[command(subcommand)]
     Bench(BenchCommand),
+}
+
+#[derive(Subcommand)]
+enum DataCommand {
+    /// Make a synthetic multiview multi-person dataset in the MVMP-HMR layout.
+    Synth {
+        /// Synthesis config (TOML), e.g. configs/synth/tiny.toml.
+        #[arg(long)]
+        config: PathBuf,
+        /// Output dataset directory (must not exist, or be empty).
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// The dataset-table numbers of a dataset: scenes, frames, views, area, people, occlusion.
+    Stats {
+        /// Dataset root.
+        dir: PathBuf,
+        /// Print JSON instead of a table.
+        #[arg(long)]
+        json: bool,
+        /// Write a PNG contact sheet of the first frame's views.
+        #[arg(long)]
+        sheet: Option<PathBuf>,
+    },
+    /// Validate a whole dataset tree and list every problem with its file.
+    Check {
+        /// Layout of the dataset.
+        #[arg(long, default_value = "mvmp")]
+        format: String,
+        /// Dataset root.
+        dir: PathBuf,
+    },
 }
 
 #[derive(Subcommand)]
@@ -115,6 +151,11 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             out,
             size,
         }) => body::render(model.as_deref(), params.as_deref(), &out, size, &device),
+        Command::Data(DataCommand::Synth { config, out }) => data::synth(&config, &out),
+        Command::Data(DataCommand::Stats { dir, json, sheet }) => {
+            data::stats(&dir, json, sheet.as_deref())
+        }
+        Command::Data(DataCommand::Check { format, dir }) => data::check(&format, &dir),
         Command::Bench(BenchCommand::Smplx {
             batch,
             model,

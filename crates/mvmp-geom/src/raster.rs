@@ -12,6 +12,19 @@ pub struct MeshRef<'a> {
     pub faces: &'a [[u32; 3]],
     /// Base colour (linear 0..1).
     pub color: [f32; 3],
+    /// Optional per-face colours, overriding `color`.
+    pub face_colors: Option<&'a [[f32; 3]]>,
+}
+
+/// A directional light plus an ambient term, with a colour.
+#[derive(Debug, Clone, Copy)]
+pub struct Light {
+    /// Direction the light travels (world).
+    pub dir: [f32; 3],
+    /// Ambient fraction, 0..1.
+    pub ambient: f32,
+    /// Light colour and intensity.
+    pub color: [f32; 3],
 }
 
 /// Rendered buffers, row-major `height x width`.
@@ -47,20 +60,11 @@ impl Frame {
     }
 }
 
-/// Draw meshes into a frame with a light travelling along `light_dir` (world), plus an ambient term.
-pub fn draw(
-    frame: &mut Frame,
-    camera: &Camera,
-    meshes: &[MeshRef],
-    light_dir: [f32; 3],
-    ambient: f32,
-) {
-    let l = Vector3::new(
-        light_dir[0] as f64,
-        light_dir[1] as f64,
-        light_dir[2] as f64,
-    )
-    .normalize();
+/// Draw meshes into a frame (z-buffered against what the frame already holds).
+pub fn draw(frame: &mut Frame, camera: &Camera, meshes: &[MeshRef], light: &Light) {
+    let ld = light.dir;
+    let l = Vector3::new(ld[0] as f64, ld[1] as f64, ld[2] as f64).normalize();
+    let ambient = light.ambient as f64;
     let centre = camera.centre();
     let (w, h) = (frame.width as i64, frame.height as i64);
     for (mi, m) in meshes.iter().enumerate() {
@@ -69,7 +73,7 @@ pub fn draw(
             .iter()
             .map(|v| camera.project(&Vector3::new(v[0] as f64, v[1] as f64, v[2] as f64)))
             .collect();
-        for f in m.faces {
+        for (fi, f) in m.faces.iter().enumerate() {
             let idx = f.map(|i| i as usize);
             let [(p0, z0), (p1, z1), (p2, z2)] = idx.map(|i| proj[i]);
             if z0 <= 1e-3 || z1 <= 1e-3 || z2 <= 1e-3 {
@@ -88,8 +92,9 @@ pub fn draw(
             if n.dot(&(centre - wv[0])) < 0.0 {
                 n = -n;
             }
-            let shade = (ambient as f64 + (1.0 - ambient as f64) * (-n.dot(&l)).max(0.0)) as f32;
-            let color = m.color.map(|c| c * shade);
+            let shade = (ambient + (1.0 - ambient) * (-n.dot(&l)).max(0.0)) as f32;
+            let base = m.face_colors.map_or(m.color, |c| c[fi]);
+            let color = std::array::from_fn(|k| base[k] * shade * light.color[k]);
             let area = (p1 - p0).perp(&(p2 - p0));
             if area.abs() < 1e-12 {
                 continue;
@@ -119,4 +124,61 @@ pub fn draw(
             }
         }
     }
+}
+
+/// Pixels covered by a mesh's projection (its whole silhouette, no depth test), counting only pixels inside
+/// a `width x height` image. Triangles with a vertex behind the camera are skipped.
+pub fn coverage(
+    camera: &Camera,
+    vertices: &[[f32; 3]],
+    faces: &[[u32; 3]],
+    width: u32,
+    height: u32,
+) -> u32 {
+    let proj: Vec<(Vector2<f64>, f64)> = vertices
+        .iter()
+        .map(|v| camera.project(&Vector3::new(v[0] as f64, v[1] as f64, v[2] as f64)))
+        .collect();
+    // The bounding box of the visible projections bounds the buffer.
+    let (mut x0, mut y0, mut x1, mut y1) = (i64::MAX, i64::MAX, i64::MIN, i64::MIN);
+    for (p, z) in &proj {
+        if *z > 1e-3 {
+            x0 = x0.min(p.x.floor() as i64);
+            y0 = y0.min(p.y.floor() as i64);
+            x1 = x1.max(p.x.ceil() as i64);
+            y1 = y1.max(p.y.ceil() as i64);
+        }
+    }
+    let (x0, y0) = (x0.max(0), y0.max(0));
+    let (x1, y1) = (x1.min(width as i64 - 1), y1.min(height as i64 - 1));
+    if x0 > x1 || y0 > y1 {
+        return 0;
+    }
+    let bw = (x1 - x0 + 1) as usize;
+    let mut hit = vec![false; bw * (y1 - y0 + 1) as usize];
+    for f in faces {
+        let [(p0, z0), (p1, z1), (p2, z2)] = f.map(|i| proj[i as usize]);
+        if z0 <= 1e-3 || z1 <= 1e-3 || z2 <= 1e-3 {
+            continue;
+        }
+        let area = (p1 - p0).perp(&(p2 - p0));
+        if area.abs() < 1e-12 {
+            continue;
+        }
+        let xa = (p0.x.min(p1.x).min(p2.x).floor() as i64).max(x0);
+        let xb = (p0.x.max(p1.x).max(p2.x).ceil() as i64).min(x1);
+        let ya = (p0.y.min(p1.y).min(p2.y).floor() as i64).max(y0);
+        let yb = (p0.y.max(p1.y).max(p2.y).ceil() as i64).min(y1);
+        for y in ya..=yb {
+            for x in xa..=xb {
+                let p = Vector2::new(x as f64, y as f64);
+                let b0 = (p1 - p).perp(&(p2 - p)) / area;
+                let b1 = (p2 - p).perp(&(p0 - p)) / area;
+                if b0 >= 0.0 && b1 >= 0.0 && 1.0 - b0 - b1 >= 0.0 {
+                    hit[(y - y0) as usize * bw + (x - x0) as usize] = true;
+                }
+            }
+        }
+    }
+    hit.iter().filter(|h| **h).count() as u32
 }

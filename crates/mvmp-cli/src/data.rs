@@ -1,0 +1,108 @@
+//! `mvmp data ...`: synthesis, statistics and validation of datasets.
+use std::path::Path;
+
+use anyhow::{Context, Result};
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+
+use mvmp_data::synth::{SynthConfig, generate};
+
+/// A progress bar on stderr; hidden when stderr is not a terminal.
+pub fn progress_bar(len: u64, what: &str) -> ProgressBar {
+    let pb = ProgressBar::with_draw_target(Some(len), ProgressDrawTarget::stderr());
+    pb.set_style(
+        ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} {elapsed_precise} eta {eta}")
+            .expect("valid template")
+            .progress_chars("=> "),
+    );
+    pb.set_message(what.to_string());
+    pb
+}
+
+pub fn synth(config: &Path, out: &Path) -> Result<()> {
+    let cfg = SynthConfig::read(config)?;
+    let config_dir = config.parent().unwrap_or(Path::new("."));
+    let pb = progress_bar((cfg.scenes * cfg.frames_per_scene) as u64, "synth");
+    let t0 = std::time::Instant::now();
+    let summary = generate(&cfg, out, config_dir, &|| pb.inc(1))
+        .with_context(|| format!("synthesising {} into {}", config.display(), out.display()))?;
+    pb.finish_and_clear();
+    println!(
+        "wrote {}: {} scenes, {} frames, {} views, {} people in last frames, {:.1} s",
+        out.display(),
+        summary.scenes,
+        summary.frames,
+        summary.views,
+        summary.people,
+        t0.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
+
+pub fn stats(dir: &Path, json: bool, sheet: Option<&Path>) -> Result<()> {
+    let s = mvmp_data::stats::dataset_stats(dir)?;
+    if json {
+        println!("{}", serde_json::to_string_pretty(&s)?);
+    } else {
+        println!("dataset {}", dir.display());
+        println!("  scenes               {}", s.scenes);
+        println!("  frames               {}", s.frames);
+        println!(
+            "  views per scene      {} (min {}, mean {:.1})",
+            s.views, s.views_per_scene.min, s.views_per_scene.mean
+        );
+        println!(
+            "  area                 up to {:.0} m x {:.0} m (mean {:.0} m^2)",
+            s.area_max[0], s.area_max[1], s.area_m2.mean
+        );
+        println!(
+            "  people per frame     {}-{} (mean {:.1})",
+            s.people_per_frame.min, s.people_per_frame.max, s.people_per_frame.mean
+        );
+        println!("  occlusion (mean)     {:.3}", s.occlusion_mean);
+        println!("  visible views (mean) {:.2}", s.visible_views_mean);
+        let total: usize = s.occlusion_histogram.iter().sum::<usize>().max(1);
+        println!(
+            "  occlusion histogram (person-views, fraction of the silhouette hidden by others):"
+        );
+        for (i, n) in s.occlusion_histogram.iter().enumerate() {
+            let bar = "#".repeat((40 * n).div_ceil(total));
+            println!(
+                "    {:.1}-{:.1} {:>7} {bar}",
+                i as f64 / 10.0,
+                (i + 1) as f64 / 10.0,
+                n
+            );
+        }
+    }
+    if let Some(path) = sheet {
+        mvmp_data::stats::contact_sheet(dir, 0, 0, 400, path)?;
+        if !json {
+            println!("contact sheet of scene 0, frame 0: {}", path.display());
+        }
+    }
+    Ok(())
+}
+
+pub fn check(format: &str, dir: &Path) -> Result<()> {
+    if format != "mvmp" {
+        anyhow::bail!("--format {format:?}: this build checks the mvmp layout (--format mvmp)");
+    }
+    let r = mvmp_data::check::check_dataset(dir);
+    println!(
+        "checked {}: {} scenes, {} frames, up to {} views, {} person annotations, {} image files",
+        dir.display(),
+        r.scenes,
+        r.frames,
+        r.views,
+        r.people,
+        r.images
+    );
+    if r.problems.is_empty() {
+        println!("no problems found");
+        return Ok(());
+    }
+    for p in &r.problems {
+        println!("{}: {}", p.path.display(), p.what);
+    }
+    anyhow::bail!("{} problem(s) found in {}", r.problems.len(), dir.display())
+}

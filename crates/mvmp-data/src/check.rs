@@ -1,0 +1,148 @@
+//! `mvmp data check --format mvmp`: validate a whole dataset tree and list every problem with its file.
+use std::path::{Path, PathBuf};
+
+use crate::layout::{Annotation, DatasetIndex, SceneIndex};
+use mvmp_geom::Rig;
+
+/// One problem found by the check.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Problem {
+    pub path: PathBuf,
+    pub what: String,
+}
+
+/// What the check found.
+#[derive(Debug, Default, Clone)]
+pub struct CheckReport {
+    pub scenes: usize,
+    pub frames: usize,
+    pub views: usize,
+    pub people: usize,
+    pub images: usize,
+    pub problems: Vec<Problem>,
+}
+
+fn problem(r: &mut CheckReport, path: &Path, what: impl Into<String>) {
+    r.problems.push(Problem {
+        path: path.to_path_buf(),
+        what: what.into(),
+    });
+}
+
+/// Check an image file: present, a readable image header, the expected size and colour type.
+fn check_image(r: &mut CheckReport, path: &Path, size: (u32, u32), kind: &str) {
+    let reader = match image::ImageReader::open(path).and_then(|r| r.with_guessed_format()) {
+        Ok(rd) => rd,
+        Err(e) => return problem(r, path, format!("{kind} is missing or unreadable: {e}")),
+    };
+    match reader.into_decoder() {
+        Err(e) => problem(r, path, format!("{kind} is not a readable image: {e}")),
+        Ok(dec) => {
+            use image::ImageDecoder;
+            let dims = dec.dimensions();
+            if dims != size {
+                problem(
+                    r,
+                    path,
+                    format!(
+                        "{kind} is {} x {}, the camera says {} x {}",
+                        dims.0, dims.1, size.0, size.1
+                    ),
+                );
+            }
+            let ct = dec.color_type();
+            let ok = match kind {
+                "depth map" => ct == image::ColorType::L16,
+                "mask" => ct == image::ColorType::L8,
+                _ => true,
+            };
+            if !ok {
+                problem(r, path, format!("{kind} has colour type {ct:?}"));
+            }
+        }
+    }
+    r.images += 1;
+}
+
+/// Validate the dataset at `root`.
+pub fn check_dataset(root: &Path) -> CheckReport {
+    let mut r = CheckReport::default();
+    let index = match DatasetIndex::read(root) {
+        Ok(i) => i,
+        Err(e) => {
+            problem(&mut r, &root.join("dataset.json"), e.to_string());
+            return r;
+        }
+    };
+    if let Err(e) = crate::layout::load_body_model(&index.body_model, root) {
+        problem(
+            &mut r,
+            &root.join("dataset.json"),
+            format!("body model: {e}"),
+        );
+    }
+    for name in &index.scenes {
+        let dir = root.join(name);
+        r.scenes += 1;
+        let rig = match Rig::read(&dir.join("cameras.json")) {
+            Ok(rig) => rig,
+            Err(e) => {
+                problem(&mut r, &dir.join("cameras.json"), e.to_string());
+                continue;
+            }
+        };
+        r.views = r.views.max(rig.len());
+        let scene = match SceneIndex::read(&dir) {
+            Ok(s) => s,
+            Err(e) => {
+                problem(&mut r, &dir.join("scene.json"), e.to_string());
+                continue;
+            }
+        };
+        for f in &scene.frames {
+            let fdir = dir.join(f);
+            let apath = fdir.join("annotation.json");
+            r.frames += 1;
+            let ann = match Annotation::read(&apath, rig.len()) {
+                Ok(a) => a,
+                Err(e) => {
+                    problem(
+                        &mut r,
+                        &apath,
+                        e.to_string()
+                            .trim_start_matches(&format!("{}: ", apath.display()))
+                            .to_string(),
+                    );
+                    continue;
+                }
+            };
+            r.people += ann.people.len();
+            for (v, cam) in rig.cameras.iter().enumerate() {
+                let size = (cam.width, cam.height);
+                check_image(&mut r, &fdir.join(&ann.images[v]), size, "image");
+                if let Some(d) = &ann.depth {
+                    check_image(&mut r, &fdir.join(&d[v]), size, "depth map");
+                }
+                if let Some(m) = &ann.masks {
+                    let mpath = fdir.join(&m[v]);
+                    check_image(&mut r, &mpath, size, "mask");
+                    if let Ok(img) = image::open(&mpath) {
+                        let max = img.to_luma8().pixels().map(|p| p.0[0]).max().unwrap_or(0);
+                        if max as usize > ann.people.len() {
+                            problem(
+                                &mut r,
+                                &mpath,
+                                format!(
+                                    "mask holds person {} but the frame has {} people",
+                                    max,
+                                    ann.people.len()
+                                ),
+                            );
+                        }
+                    }
+                }
+            }
+        }
+    }
+    r
+}

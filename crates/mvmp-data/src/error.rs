@@ -1,0 +1,40 @@
+use std::path::PathBuf;
+
+/// Errors of the data crate; each names the file and, where there is one, the key and the value.
+#[derive(Debug, thiserror::Error)]
+pub enum DataError {
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{path}: {what}")]
+    File { path: PathBuf, what: String },
+    #[error("config {path}: key `{key}`: {what}")]
+    Config {
+        path: PathBuf,
+        key: String,
+        what: String,
+    },
+    #[error(transparent)]
+    Geom(#[from] mvmp_geom::GeomError),
+    #[error(transparent)]
+    Smplx(#[from] mvmp_smplx::SmplxError),
+}
+
+impl DataError {
+    pub fn file(path: impl Into<PathBuf>, what: impl Into<String>) -> Self {
+        DataError::File {
+            path: path.into(),
+            what: what.into(),
+        }
+    }
+
+    pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
+        DataError::Io {
+            path: path.into(),
+            source,
+        }
+    }
+}

@@ -1,0 +1,311 @@
+//! The on-disk MVMP-HMR dataset layout, version 1 (docs/dataset-format.md).
+//!
+//! ```text
+//! ROOT/dataset.json                       index: format, version, name, body model, scene list
+//! ROOT/<scene>/scene.json                 frame list
+//! ROOT/<scene>/cameras.json               the rig (mvmp-rig file, metres)
+//! ROOT/<scene>/<frame>/annotation.json    people: SMPL-X, 3D joints, per-view 2D joints, boxes, occlusion
+//! ROOT/<scene>/<frame>/<image per view>   RGB, PNG or JPEG, named in the annotation
+//! ROOT/<scene>/<frame>/depth_VV.png       optional: 16-bit depth along the optical axis, millimetres
+//! ROOT/<scene>/<frame>/mask_VV.png        optional: 8-bit instance masks, person index + 1, 0 = none
+//! ```
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use crate::DataError;
+use mvmp_geom::Rig;
+use mvmp_geom::io::write_atomic;
+use mvmp_smplx::SmplxParams;
+
+pub const DATASET_FORMAT: &str = "mvmp-dataset";
+pub const SCENE_FORMAT: &str = "mvmp-scene";
+pub const ANNOTATION_FORMAT: &str = "mvmp-annotation";
+/// The layout version this build reads and writes.
+pub const SCHEMA_VERSION: u32 = 1;
+
+/// `dataset.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DatasetIndex {
+    pub format: String,
+    pub version: u32,
+    pub name: String,
+    /// The body model the SMPL-X parameters refer to: `standin:SEED` for the stand-in, else a path
+    /// (relative to the dataset root or absolute) to an `SMPLX_*.npz`.
+    pub body_model: String,
+    pub scenes: Vec<String>,
+}
+
+/// `scene.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SceneIndex {
+    pub format: String,
+    pub version: u32,
+    pub frames: Vec<String>,
+    /// Size of the capture area (metres, x and y), centred at the world origin.
+    pub area: [f64; 2],
+}
+
+/// `annotation.json` of one frame.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Annotation {
+    pub format: String,
+    pub version: u32,
+    /// Image file per view, relative to the frame directory, in rig order.
+    pub images: Vec<String>,
+    /// Depth file per view (16-bit PNG, millimetres along the optical axis; 0 = no surface).
+    #[serde(default)]
+    pub depth: Option<Vec<String>>,
+    /// Instance mask per view (8-bit PNG, person index + 1; 0 = background).
+    #[serde(default)]
+    pub masks: Option<Vec<String>>,
+    pub people: Vec<Person>,
+}
+
+/// One person in a frame.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Person {
+    /// Identity, stable across the frames of a scene.
+    pub id: u32,
+    /// SMPL-X parameters in the world (standard smplx keys, axis-angle; `transl` in smplx's meaning).
+    pub smplx: SmplxParams,
+    /// The pelvis in the world (metres): the translation of DESIGN.md (`T_wld`).
+    pub pelvis: [f64; 3],
+    /// The 127 SMPL-X joints in the world (metres).
+    pub joints_3d: Vec<[f64; 3]>,
+    /// Per view, in rig order.
+    pub views: Vec<PersonView>,
+}
+
+/// A person as seen by one view.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PersonView {
+    /// Per joint `[u, v, visible]` in original image pixels; visible = 1 when the joint is in the image,
+    /// in front of the camera and not hidden by another person.
+    pub joints_2d: Vec<[f64; 3]>,
+    /// Bounding box `[x0, y0, x1, y1]` of the visible silhouette, `null` when no pixel is visible.
+    pub bbox: Option<[f64; 4]>,
+    /// Pixels of the person's whole silhouette in the image (others ignored) and of its visible part.
+    pub silhouette_pixels: u32,
+    pub visible_pixels: u32,
+}
+
+impl PersonView {
+    /// Fraction of the silhouette hidden by other people; `None` when the person is outside the view.
+    pub fn occlusion(&self) -> Option<f64> {
+        (self.silhouette_pixels > 0)
+            .then(|| 1.0 - self.visible_pixels as f64 / self.silhouette_pixels as f64)
+    }
+}
+
+fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T, DataError> {
+    let text = std::fs::read_to_string(path).map_err(|e| DataError::io(path, e))?;
+    serde_json::from_str(&text).map_err(|e| DataError::file(path, format!("invalid: {e}")))
+}
+
+fn check_header(path: &Path, format: &str, want: &str, version: u32) -> Result<(), DataError> {
+    if format != want {
+        return Err(DataError::file(
+            path,
+            format!("key `format` is {format:?}, expected {want:?}"),
+        ));
+    }
+    if version != SCHEMA_VERSION {
+        return Err(DataError::file(
+            path,
+            format!("key `version` is {version}, this build reads version {SCHEMA_VERSION}"),
+        ));
+    }
+    Ok(())
+}
+
+/// Write a value as pretty JSON, atomically.
+pub fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<(), DataError> {
+    let text = serde_json::to_string_pretty(value).expect("serialisable");
+    Ok(write_atomic(path, text.as_bytes())?)
+}
+
+impl DatasetIndex {
+    pub fn read(root: &Path) -> Result<Self, DataError> {
+        let path = root.join("dataset.json");
+        let d: DatasetIndex = read_json(&path)?;
+        check_header(&path, &d.format, DATASET_FORMAT, d.version)?;
+        Ok(d)
+    }
+}
+
+impl SceneIndex {
+    pub fn read(scene_dir: &Path) -> Result<Self, DataError> {
+        let path = scene_dir.join("scene.json");
+        let s: SceneIndex = read_json(&path)?;
+        check_header(&path, &s.format, SCENE_FORMAT, s.version)?;
+        Ok(s)
+    }
+}
+
+impl Annotation {
+    /// Read and validate an annotation against the number of views of its rig.
+    pub fn read(path: &Path, num_views: usize) -> Result<Self, DataError> {
+        let a: Annotation = read_json(path)?;
+        check_header(path, &a.format, ANNOTATION_FORMAT, a.version)?;
+        a.validate(path, num_views)?;
+        Ok(a)
+    }
+
+    /// Consistency of counts and values; errors name the key path and the value.
+    pub fn validate(&self, path: &Path, num_views: usize) -> Result<(), DataError> {
+        let err = |what: String| DataError::file(path, what);
+        if self.images.len() != num_views {
+            return Err(err(format!(
+                "key `images` lists {} images, the rig has {num_views} cameras",
+                self.images.len()
+            )));
+        }
+        for (key, list) in [("depth", &self.depth), ("masks", &self.masks)] {
+            if let Some(l) = list
+                && l.len() != num_views
+            {
+                return Err(err(format!(
+                    "key `{key}` lists {} files, the rig has {num_views} cameras",
+                    l.len()
+                )));
+            }
+        }
+        for (i, p) in self.people.iter().enumerate() {
+            p.smplx
+                .validate(&format!("people[{i}].smplx"))
+                .map_err(|e| err(e.to_string().trim_start_matches("parameters: ").into()))?;
+            let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
+            if !finite(&p.pelvis) {
+                return Err(err(format!(
+                    "people[{i}].pelvis = {:?} is not finite",
+                    p.pelvis
+                )));
+            }
+            if let Some(k) = p.joints_3d.iter().position(|j| !finite(j)) {
+                return Err(err(format!(
+                    "people[{i}].joints_3d[{k}] = {:?} is not finite",
+                    p.joints_3d[k]
+                )));
+            }
+            if p.views.len() != num_views {
+                return Err(err(format!(
+                    "people[{i}].views has {} entries, the rig has {num_views} cameras",
+                    p.views.len()
+                )));
+            }
+            for (v, pv) in p.views.iter().enumerate() {
+                if pv.joints_2d.len() != p.joints_3d.len() {
+                    return Err(err(format!(
+                        "people[{i}].views[{v}].joints_2d has {} joints, joints_3d has {}",
+                        pv.joints_2d.len(),
+                        p.joints_3d.len()
+                    )));
+                }
+                if let Some(k) = pv.joints_2d.iter().position(|j| !finite(j)) {
+                    return Err(err(format!(
+                        "people[{i}].views[{v}].joints_2d[{k}] = {:?} is not finite",
+                        pv.joints_2d[k]
+                    )));
+                }
+                if pv.visible_pixels > pv.silhouette_pixels {
+                    return Err(err(format!(
+                        "people[{i}].views[{v}]: visible_pixels {} exceeds silhouette_pixels {}",
+                        pv.visible_pixels, pv.silhouette_pixels
+                    )));
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// One frame of a dataset: where it is and what it holds.
+#[derive(Debug, Clone)]
+pub struct FrameRef {
+    pub scene: usize,
+    pub scene_name: String,
+    pub frame_name: String,
+    pub dir: PathBuf,
+}
+
+/// An opened dataset: the index, every scene's rig and frame list.
+#[derive(Debug, Clone)]
+pub struct DatasetLayout {
+    pub root: PathBuf,
+    pub index: DatasetIndex,
+    pub scenes: Vec<SceneEntry>,
+}
+
+#[derive(Debug, Clone)]
+pub struct SceneEntry {
+    pub name: String,
+    pub dir: PathBuf,
+    pub rig: Rig,
+    pub index: SceneIndex,
+}
+
+impl DatasetLayout {
+    /// Open a dataset root: reads `dataset.json`, each `scene.json` and `cameras.json`.
+    pub fn open(root: &Path) -> Result<Self, DataError> {
+        let index = DatasetIndex::read(root)?;
+        let mut scenes = Vec::with_capacity(index.scenes.len());
+        for name in &index.scenes {
+            let dir = root.join(name);
+            let si = SceneIndex::read(&dir)?;
+            let rig = Rig::read(&dir.join("cameras.json"))?;
+            scenes.push(SceneEntry {
+                name: name.clone(),
+                dir,
+                rig,
+                index: si,
+            });
+        }
+        Ok(DatasetLayout {
+            root: root.to_path_buf(),
+            index,
+            scenes,
+        })
+    }
+
+    /// Every frame, scene by scene.
+    pub fn frames(&self) -> Vec<FrameRef> {
+        self.scenes
+            .iter()
+            .enumerate()
+            .flat_map(|(si, s)| {
+                s.index.frames.iter().map(move |f| FrameRef {
+                    scene: si,
+                    scene_name: s.name.clone(),
+                    frame_name: f.clone(),
+                    dir: s.dir.join(f),
+                })
+            })
+            .collect()
+    }
+
+    /// The body model the dataset's parameters refer to.
+    pub fn body_model(&self) -> Result<mvmp_smplx::BodyModel, DataError> {
+        load_body_model(&self.index.body_model, &self.root)
+    }
+}
+
+/// Resolve a body-model reference: `standin:SEED` or a path (relative to `base` or absolute).
+pub fn load_body_model(reference: &str, base: &Path) -> Result<mvmp_smplx::BodyModel, DataError> {
+    if let Some(seed) = reference.strip_prefix("standin:") {
+        let seed: u64 = seed.parse().map_err(|_| {
+            DataError::file(
+                base.join("dataset.json"),
+                format!("key `body_model` is {reference:?}: expected `standin:SEED` or a path"),
+            )
+        })?;
+        return Ok(mvmp_smplx::standin_model(seed));
+    }
+    let p = base.join(reference);
+    Ok(mvmp_smplx::BodyModel::load(&p)?)
+}

@@ -1,0 +1,11 @@
+//! Datasets for mvmp: the MVMP-HMR on-disk layout, the synthetic scene generator and renderer,
+//! dataset statistics and validation, and loading for training.
+pub mod check;
+pub mod error;
+pub mod layout;
+pub mod loader;
+pub mod stats;
+pub mod synth;
+
+pub use error::DataError;
+pub use layout::{Annotation, DatasetLayout, Person, PersonView};

@@ -1,0 +1,411 @@
+//! Reading an MVMP-HMR-layout dataset for training: a burn `Dataset` over frames, view selection,
+//! letterboxed and normalised images, ground-truth tensors, splits by scene and a padding batcher.
+use std::path::Path;
+use std::sync::Arc;
+
+use burn::data::dataloader::batcher::Batcher;
+use burn::data::dataset::{Dataset, DatasetError};
+use burn::tensor::{Bool, Device, Tensor, TensorData};
+use nalgebra::{Vector2, Vector3};
+use rand::SeedableRng;
+use rand::seq::SliceRandom;
+use rand_chacha::ChaCha8Rng;
+
+use crate::DataError;
+use crate::layout::{Annotation, DatasetLayout, FrameRef};
+use mvmp_geom::{Camera, Letterbox};
+
+/// ImageNet normalisation (RGB).
+pub const IMAGENET_MEAN: [f32; 3] = [0.485, 0.456, 0.406];
+pub const IMAGENET_STD: [f32; 3] = [0.229, 0.224, 0.225];
+
+/// Which views a sample uses.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ViewChoice {
+    /// These camera indices, in this order.
+    Fixed(Vec<usize>),
+    /// `count` views drawn at random per sample (training); the draw depends on `seed`, the epoch set with
+    /// [`FrameDataset::set_epoch`] and the sample index only.
+    Random { count: usize, seed: u64 },
+}
+
+/// A dataset split.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Split {
+    Train,
+    Test,
+    All,
+}
+
+impl std::str::FromStr for Split {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "train" => Ok(Split::Train),
+            "test" => Ok(Split::Test),
+            "all" => Ok(Split::All),
+            _ => Err(format!("{s:?} is not a split; expected train, test or all")),
+        }
+    }
+}
+
+/// The scenes of a split: scenes sorted by their mean people count (then by name), every third one to test,
+/// so train:test is 2:1 and both cover the range of crowd sizes. Deterministic.
+pub fn split_scenes(layout: &DatasetLayout, split: Split) -> Result<Vec<usize>, DataError> {
+    let mut keyed = Vec::new();
+    for (i, s) in layout.scenes.iter().enumerate() {
+        let Some(first) = s.index.frames.first() else {
+            continue;
+        };
+        let path = s.dir.join(first).join("annotation.json");
+        let n = Annotation::read(&path, s.rig.len())?.people.len();
+        keyed.push((n, s.name.clone(), i));
+    }
+    keyed.sort();
+    Ok(keyed
+        .into_iter()
+        .enumerate()
+        .filter(|(k, _)| match split {
+            Split::All => true,
+            Split::Test => k % 3 == 2,
+            Split::Train => k % 3 != 2,
+        })
+        .map(|(_, (_, _, i))| i)
+        .collect())
+}
+
+/// Ground truth of one person in a sample.
+#[derive(Debug, Clone)]
+pub struct PersonGt {
+    pub id: u32,
+    /// 55 x 3 axis-angle.
+    pub pose: Vec<f32>,
+    pub betas: [f32; 10],
+    pub expression: [f32; 10],
+    /// Pelvis in the world (T_wld).
+    pub pelvis: [f32; 3],
+    /// `[J][3]` world joints.
+    pub joints_3d: Vec<[f32; 3]>,
+    /// Per selected view, `[J][3]`: network-pixel u, v and visibility.
+    pub joints_2d: Vec<Vec<[f32; 3]>>,
+}
+
+/// One training sample: a frame seen by the selected views.
+#[derive(Debug, Clone)]
+pub struct FrameSample {
+    pub scene: String,
+    pub frame: String,
+    /// `[V * 3 * S * S]` normalised, letterboxed images.
+    pub images: Vec<f32>,
+    pub size: usize,
+    /// The selected cameras and their letterboxes.
+    pub cameras: Vec<Camera>,
+    pub letterboxes: Vec<Letterbox>,
+    pub people: Vec<PersonGt>,
+}
+
+/// A burn dataset over the frames of some scenes.
+pub struct FrameDataset {
+    layout: Arc<DatasetLayout>,
+    frames: Vec<FrameRef>,
+    views: ViewChoice,
+    size: u32,
+    epoch: std::sync::atomic::AtomicU64,
+}
+
+impl FrameDataset {
+    /// Frames of a split, with images letterboxed to `size`.
+    pub fn open(
+        root: &Path,
+        split: Split,
+        views: ViewChoice,
+        size: u32,
+    ) -> Result<Self, DataError> {
+        let layout = DatasetLayout::open(root)?;
+        let scenes = split_scenes(&layout, split)?;
+        let frames = layout
+            .frames()
+            .into_iter()
+            .filter(|f| scenes.contains(&f.scene))
+            .collect();
+        let min_views = layout.scenes.iter().map(|s| s.rig.len()).min().unwrap_or(0);
+        match &views {
+            ViewChoice::Fixed(v) => {
+                if let Some(bad) = v.iter().find(|&&i| i >= min_views) {
+                    return Err(DataError::file(
+                        root,
+                        format!("view {bad} requested, but a scene has only {min_views} cameras"),
+                    ));
+                }
+            }
+            ViewChoice::Random { count, .. } => {
+                if *count == 0 || *count > min_views {
+                    return Err(DataError::file(
+                        root,
+                        format!("{count} random views requested, scenes have {min_views} cameras"),
+                    ));
+                }
+            }
+        }
+        if size < 14 {
+            return Err(DataError::file(
+                root,
+                format!("input size {size} is too small"),
+            ));
+        }
+        Ok(FrameDataset {
+            layout: Arc::new(layout),
+            frames,
+            views,
+            size,
+            epoch: Default::default(),
+        })
+    }
+
+    pub fn layout(&self) -> &DatasetLayout {
+        &self.layout
+    }
+
+    pub fn frames(&self) -> &[FrameRef] {
+        &self.frames
+    }
+
+    /// Set the epoch that seeds random view choices.
+    pub fn set_epoch(&self, epoch: u64) {
+        self.epoch
+            .store(epoch, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    fn select_views(&self, index: usize, available: usize) -> Vec<usize> {
+        match &self.views {
+            ViewChoice::Fixed(v) => v.clone(),
+            ViewChoice::Random { count, seed } => {
+                let epoch = self.epoch.load(std::sync::atomic::Ordering::Relaxed);
+                let mut rng = ChaCha8Rng::seed_from_u64(
+                    seed ^ epoch.wrapping_mul(0x9E37_79B9_7F4A_7C15)
+                        ^ (index as u64).wrapping_mul(0xD6E8_FEB8_6659_FD93),
+                );
+                let mut all: Vec<usize> = (0..available).collect();
+                all.shuffle(&mut rng);
+                all.truncate(*count);
+                all
+            }
+        }
+    }
+
+    /// Load sample `index`.
+    pub fn load(&self, index: usize) -> Result<FrameSample, DataError> {
+        let f = &self.frames[index];
+        let scene = &self.layout.scenes[f.scene];
+        let ann = Annotation::read(&f.dir.join("annotation.json"), scene.rig.len())?;
+        let views = self.select_views(index, scene.rig.len());
+        let s = self.size as usize;
+        let mut images = vec![0f32; views.len() * 3 * s * s];
+        let mut cameras = Vec::new();
+        let mut letterboxes = Vec::new();
+        for (vi, &v) in views.iter().enumerate() {
+            let cam = scene.rig.cameras[v].clone();
+            let path = f.dir.join(&ann.images[v]);
+            let img = image::open(&path)
+                .map_err(|e| DataError::file(&path, format!("unreadable image: {e}")))?
+                .to_rgb8();
+            if img.dimensions() != (cam.width, cam.height) {
+                return Err(DataError::file(
+                    &path,
+                    format!(
+                        "image is {} x {}, camera {} says {} x {}",
+                        img.width(),
+                        img.height(),
+                        cam.name,
+                        cam.width,
+                        cam.height
+                    ),
+                ));
+            }
+            let lb = Letterbox::new(cam.width, cam.height, self.size)?;
+            letterbox_into(&img, &lb, &mut images[vi * 3 * s * s..(vi + 1) * 3 * s * s]);
+            cameras.push(cam);
+            letterboxes.push(lb);
+        }
+        let people = ann
+            .people
+            .iter()
+            .map(|p| {
+                let joints_2d = views
+                    .iter()
+                    .zip(&letterboxes)
+                    .map(|(&v, lb)| {
+                        p.views[v]
+                            .joints_2d
+                            .iter()
+                            .map(|j| {
+                                let q = lb.apply(Vector2::new(j[0], j[1]));
+                                [q.x as f32, q.y as f32, j[2] as f32]
+                            })
+                            .collect()
+                    })
+                    .collect();
+                let f32s = |v: &[f64], n: usize| -> Vec<f32> {
+                    let mut o: Vec<f32> = v.iter().map(|&x| x as f32).collect();
+                    o.resize(n, 0.0);
+                    o
+                };
+                let pose = f32s(&p.smplx.full_pose(), 165);
+                PersonGt {
+                    id: p.id,
+                    pose,
+                    betas: f32s(&p.smplx.betas, 10).try_into().expect("10 betas"),
+                    expression: f32s(&p.smplx.expression, 10).try_into().expect("10 values"),
+                    pelvis: p.pelvis.map(|x| x as f32),
+                    joints_3d: p.joints_3d.iter().map(|j| j.map(|x| x as f32)).collect(),
+                    joints_2d,
+                }
+            })
+            .collect();
+        Ok(FrameSample {
+            scene: f.scene_name.clone(),
+            frame: f.frame_name.clone(),
+            images,
+            size: s,
+            cameras,
+            letterboxes,
+            people,
+        })
+    }
+}
+
+/// Resize an image into its letterbox (aspect kept, zero padding) and normalise, writing `[3, S, S]`.
+pub fn letterbox_into(img: &image::RgbImage, lb: &Letterbox, out: &mut [f32]) {
+    let s = lb.size as usize;
+    let resized = image::imageops::resize(
+        img,
+        lb.content_width,
+        lb.content_height,
+        image::imageops::FilterType::Triangle,
+    );
+    // Padding is zero *after* normalisation (what the network sees for "no image").
+    out.fill(0.0);
+    for (x, y, p) in resized.enumerate_pixels() {
+        let (u, v) = (
+            x as usize + lb.offset_x as usize,
+            y as usize + lb.offset_y as usize,
+        );
+        for c in 0..3 {
+            out[c * s * s + v * s + u] =
+                (p.0[c] as f32 / 255.0 - IMAGENET_MEAN[c]) / IMAGENET_STD[c];
+        }
+    }
+}
+
+impl Dataset<FrameSample> for FrameDataset {
+    fn get(&self, index: usize) -> Result<FrameSample, DatasetError> {
+        self.load(index).map_err(DatasetError::new)
+    }
+
+    fn len(&self) -> usize {
+        self.frames.len()
+    }
+}
+
+/// A batch: `B` samples with `V` views each, people padded to the most in the batch (`P`).
+#[derive(Debug, Clone)]
+pub struct FrameBatch {
+    /// `[B, V, 3, S, S]`
+    pub images: Tensor<5>,
+    /// Per sample, the selected cameras and letterboxes (the rig of each sample).
+    pub cameras: Vec<Vec<Camera>>,
+    pub letterboxes: Vec<Vec<Letterbox>>,
+    /// `[B, P]` true where a person is present.
+    pub mask: Tensor<2, Bool>,
+    /// `[B, P, 55, 3]` axis-angle.
+    pub pose: Tensor<4>,
+    /// `[B, P, 10]`
+    pub betas: Tensor<3>,
+    /// `[B, P, 10]`
+    pub expression: Tensor<3>,
+    /// `[B, P, 3]` pelvis (T_wld).
+    pub pelvis: Tensor<3>,
+    /// `[B, P, J, 3]` world joints.
+    pub joints_3d: Tensor<4>,
+    /// `[B, V, P, J, 3]` network-pixel joints with visibility.
+    pub joints_2d: Tensor<5>,
+    /// Number of people per sample.
+    pub counts: Vec<usize>,
+    pub names: Vec<(String, String)>,
+}
+
+/// Pads people and stacks views.
+#[derive(Debug, Clone, Default)]
+pub struct FrameBatcher;
+
+impl Batcher<FrameSample, FrameBatch> for FrameBatcher {
+    fn batch(&self, items: Vec<FrameSample>, device: &Device) -> FrameBatch {
+        let b = items.len();
+        let v = items.first().map_or(0, |i| i.cameras.len());
+        let s = items.first().map_or(0, |i| i.size);
+        let p = items
+            .iter()
+            .map(|i| i.people.len())
+            .max()
+            .unwrap_or(0)
+            .max(1);
+        let j = items
+            .iter()
+            .flat_map(|i| i.people.first())
+            .map(|q| q.joints_3d.len())
+            .next()
+            .unwrap_or(127);
+        let mut images = Vec::with_capacity(b * v * 3 * s * s);
+        let mut mask = vec![false; b * p];
+        let mut pose = vec![0f32; b * p * 165];
+        let mut betas = vec![0f32; b * p * 10];
+        let mut expr = vec![0f32; b * p * 10];
+        let mut pelvis = vec![0f32; b * p * 3];
+        let mut j3 = vec![0f32; b * p * j * 3];
+        let mut j2 = vec![0f32; b * v * p * j * 3];
+        for (bi, it) in items.iter().enumerate() {
+            images.extend_from_slice(&it.images);
+            for (pi, q) in it.people.iter().enumerate() {
+                let k = bi * p + pi;
+                mask[k] = true;
+                pose[k * 165..(k + 1) * 165].copy_from_slice(&q.pose);
+                betas[k * 10..(k + 1) * 10].copy_from_slice(&q.betas);
+                expr[k * 10..(k + 1) * 10].copy_from_slice(&q.expression);
+                pelvis[k * 3..(k + 1) * 3].copy_from_slice(&q.pelvis);
+                for (ji, x) in q.joints_3d.iter().enumerate().take(j) {
+                    j3[(k * j + ji) * 3..(k * j + ji) * 3 + 3].copy_from_slice(x);
+                }
+                for (vi, view) in q.joints_2d.iter().enumerate() {
+                    for (ji, x) in view.iter().enumerate().take(j) {
+                        let o = (((bi * v + vi) * p + pi) * j + ji) * 3;
+                        j2[o..o + 3].copy_from_slice(x);
+                    }
+                }
+            }
+        }
+        let t = |data: Vec<f32>, shape: Vec<usize>| TensorData::new(data, shape);
+        FrameBatch {
+            images: Tensor::from_data(t(images, vec![b, v, 3, s, s]), device),
+            cameras: items.iter().map(|i| i.cameras.clone()).collect(),
+            letterboxes: items.iter().map(|i| i.letterboxes.clone()).collect(),
+            mask: Tensor::from_data(TensorData::new(mask, [b, p]), device),
+            pose: Tensor::from_data(t(pose, vec![b, p, 55, 3]), device),
+            betas: Tensor::from_data(t(betas, vec![b, p, 10]), device),
+            expression: Tensor::from_data(t(expr, vec![b, p, 10]), device),
+            pelvis: Tensor::from_data(t(pelvis, vec![b, p, 3]), device),
+            joints_3d: Tensor::from_data(t(j3, vec![b, p, j, 3]), device),
+            joints_2d: Tensor::from_data(t(j2, vec![b, v, p, j, 3]), device),
+            counts: items.iter().map(|i| i.people.len()).collect(),
+            names: items
+                .iter()
+                .map(|i| (i.scene.clone(), i.frame.clone()))
+                .collect(),
+        }
+    }
+}
+
+/// World point to network pixel for a selected camera (used by tests and tools).
+pub fn project_to_network(cam: &Camera, lb: &Letterbox, p: [f64; 3]) -> Option<Vector2<f64>> {
+    let (uv, z) = cam.project(&Vector3::from(p));
+    (z > 0.0).then(|| lb.apply(uv))
+}

@@ -1,0 +1,237 @@
+//! The synthetic-scene configuration (`configs/synth/*.toml`). Unknown keys are an error; every key has a
+//! default; `validate` names the key path and the bad value.
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use crate::DataError;
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SynthConfig {
+    /// Dataset name written into dataset.json.
+    pub name: String,
+    /// Master seed: the same seed gives byte-identical output.
+    pub seed: u64,
+    /// Number of scenes.
+    pub scenes: usize,
+    /// Frames per scene (people move between frames).
+    pub frames_per_scene: usize,
+    /// People per scene, inclusive range `[min, max]` (paper: 10-30).
+    pub people: [usize; 2],
+    /// Capture area `[x, y]` in metres, centred at the origin (paper: up to 30 x 30).
+    pub area: [f64; 2],
+    /// Image `[width, height]` in pixels.
+    pub image_size: [u32; 2],
+    /// Image file format: "png" or "jpeg".
+    pub image_format: String,
+    /// Write 16-bit depth maps.
+    pub depth: bool,
+    /// Write instance masks.
+    pub masks: bool,
+    /// Body model: `standin:SEED` or a path to an SMPLX_*.npz.
+    pub body_model: String,
+    pub cameras: CameraConfig,
+    pub lighting: LightingConfig,
+}
+
+impl Default for SynthConfig {
+    fn default() -> Self {
+        SynthConfig {
+            name: "synthetic".into(),
+            seed: 0,
+            scenes: 3,
+            frames_per_scene: 2,
+            people: [4, 8],
+            area: [8.0, 8.0],
+            image_size: [256, 256],
+            image_format: "png".into(),
+            depth: true,
+            masks: true,
+            body_model: "standin:0".into(),
+            cameras: CameraConfig::default(),
+            lighting: LightingConfig::default(),
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CameraConfig {
+    /// Number of cameras, spread over the rings (ignored when `listed` is given). At most 50.
+    pub count: usize,
+    /// Rings of cameras around the area: height above the ground and distance from the centre (metres).
+    pub rings: Vec<Ring>,
+    /// Horizontal field of view range in degrees `[min, max]`, drawn per camera.
+    pub fov_deg: [f64; 2],
+    /// Range of the radial distortion k1 `[min, max]` (k2 = -k1/4; 0 for an ideal lens).
+    pub k1: [f64; 2],
+    /// Height the cameras look at (metres).
+    pub look_at_height: f64,
+    /// Explicit cameras instead of rings.
+    pub listed: Vec<ListedCamera>,
+}
+
+impl Default for CameraConfig {
+    fn default() -> Self {
+        CameraConfig {
+            count: 4,
+            rings: vec![Ring {
+                height: 3.0,
+                radius: 9.0,
+            }],
+            fov_deg: [55.0, 65.0],
+            k1: [0.0, 0.0],
+            look_at_height: 0.9,
+            listed: Vec::new(),
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Ring {
+    pub height: f64,
+    pub radius: f64,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ListedCamera {
+    pub position: [f64; 3],
+    pub look_at: [f64; 3],
+    pub fov_deg: f64,
+    #[serde(default)]
+    pub k1: f64,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LightingConfig {
+    /// Fraction of scenes lit as night (dim, bluish, a low light); the rest are day.
+    pub night_fraction: f64,
+}
+
+impl Default for LightingConfig {
+    fn default() -> Self {
+        LightingConfig {
+            night_fraction: 0.25,
+        }
+    }
+}
+
+impl SynthConfig {
+    /// Read and validate a TOML config.
+    pub fn read(path: &Path) -> Result<Self, DataError> {
+        let text = std::fs::read_to_string(path).map_err(|e| DataError::io(path, e))?;
+        let cfg: SynthConfig = toml::from_str(&text)
+            .map_err(|e| DataError::file(path, format!("invalid config: {e}")))?;
+        cfg.validate(path)?;
+        Ok(cfg)
+    }
+
+    pub fn validate(&self, path: &Path) -> Result<(), DataError> {
+        let bad = |key: &str, what: String| DataError::Config {
+            path: path.into(),
+            key: key.into(),
+            what,
+        };
+        if self.scenes == 0 {
+            return Err(bad("scenes", "must be at least 1".into()));
+        }
+        if self.frames_per_scene == 0 {
+            return Err(bad("frames_per_scene", "must be at least 1".into()));
+        }
+        let [lo, hi] = self.people;
+        if lo == 0 || lo > hi || hi > 254 {
+            return Err(bad(
+                "people",
+                format!("{:?}: expected 1 <= min <= max <= 254", self.people),
+            ));
+        }
+        if !self
+            .area
+            .iter()
+            .all(|a| a.is_finite() && *a >= 2.0 && *a <= 100.0)
+        {
+            return Err(bad(
+                "area",
+                format!("{:?}: each side must be 2 to 100 m", self.area),
+            ));
+        }
+        let [w, h] = self.image_size;
+        if !(16..=8192).contains(&w) || !(16..=8192).contains(&h) {
+            return Err(bad(
+                "image_size",
+                format!("{:?}: 16 to 8192 pixels", self.image_size),
+            ));
+        }
+        if !["png", "jpeg"].contains(&self.image_format.as_str()) {
+            return Err(bad(
+                "image_format",
+                format!("{:?}: expected \"png\" or \"jpeg\"", self.image_format),
+            ));
+        }
+        let c = &self.cameras;
+        if c.listed.is_empty() {
+            if c.count == 0 || c.count > 50 {
+                return Err(bad(
+                    "cameras.count",
+                    format!("{}: expected 1 to 50", c.count),
+                ));
+            }
+            if c.rings.is_empty() {
+                return Err(bad("cameras.rings", "at least one ring is needed".into()));
+            }
+            for (i, r) in c.rings.iter().enumerate() {
+                if !(r.height.is_finite()
+                    && r.height > 0.2
+                    && r.radius.is_finite()
+                    && r.radius > 1.0)
+                {
+                    return Err(bad(
+                        &format!("cameras.rings[{i}]"),
+                        format!(
+                            "height {} and radius {}: expected > 0.2 m and > 1 m",
+                            r.height, r.radius
+                        ),
+                    ));
+                }
+            }
+        } else if c.listed.len() > 50 {
+            return Err(bad(
+                "cameras.listed",
+                format!("{} cameras: at most 50", c.listed.len()),
+            ));
+        }
+        let fov_ok = |f: f64| f.is_finite() && (10.0..=150.0).contains(&f);
+        if !(fov_ok(c.fov_deg[0]) && fov_ok(c.fov_deg[1]) && c.fov_deg[0] <= c.fov_deg[1]) {
+            return Err(bad(
+                "cameras.fov_deg",
+                format!("{:?}: expected 10 to 150 degrees, min <= max", c.fov_deg),
+            ));
+        }
+        if !(c.k1[0] <= c.k1[1] && c.k1.iter().all(|k| k.is_finite() && k.abs() <= 0.5)) {
+            return Err(bad(
+                "cameras.k1",
+                format!("{:?}: expected |k1| <= 0.5, min <= max", c.k1),
+            ));
+        }
+        for (i, l) in c.listed.iter().enumerate() {
+            let finite = l.position.iter().chain(&l.look_at).all(|v| v.is_finite());
+            if !finite || !fov_ok(l.fov_deg) || l.k1.abs() > 0.5 || l.position == l.look_at {
+                return Err(bad(
+                    &format!("cameras.listed[{i}]"),
+                    "position and look_at must be finite and distinct, fov_deg 10 to 150, |k1| <= 0.5".into(),
+                ));
+            }
+        }
+        if !(0.0..=1.0).contains(&self.lighting.night_fraction) {
+            return Err(bad(
+                "lighting.night_fraction",
+                format!("{}: expected 0 to 1", self.lighting.night_fraction),
+            ));
+        }
+        Ok(())
+    }
+}
