@@ -40,20 +40,21 @@ pub struct SmplxOutput {
 /// The SMPL-X layer with the model's arrays on a device.
 #[derive(Debug, Clone)]
 pub struct SmplxLayer {
-    /// `[1, V*3]`
+    /// `[1, 3*V]`, planar: all x, then all y, then all z (elementwise skinning runs on contiguous planes).
     v_template: Tensor<2>,
-    /// `[B+E, V*3]` shape then expression directions.
+    /// `[B+E, 3*V]` shape then expression directions, planar.
     shapedirs: Tensor<2>,
     /// `[1, 55*3]` joints of the template.
     j_template: Tensor<2>,
     /// `[B+E, 55*3]` joint displacement per shape/expression unit.
     j_shapedirs: Tensor<2>,
-    /// `[486, V*3]`
+    /// `[486, 3*V]`, planar.
     posedirs: Tensor<2>,
-    /// `[V, 55]`
-    weights: Tensor<2>,
-    /// `[1, X, V]` sparse-as-dense selector of the extra joints (vertex joints, landmarks).
-    extra: Tensor<3>,
+    /// `[55, V]` skinning weights, transposed.
+    weights_t: Tensor<2>,
+    /// Extra joints as weighted sums of 3 vertices each: `[3X]` vertex indices and `[1, X, 3, 1]` weights.
+    extra_index: Tensor<1, Int>,
+    extra_weight: Tensor<4>,
     /// Tree levels: for each depth, the joints at that depth and the positions of their parents in the
     /// concatenation of the previous levels.
     levels: Vec<(Tensor<1, Int>, Tensor<1, Int>, Vec<usize>)>,
@@ -74,13 +75,25 @@ impl SmplxLayer {
         let e0 = model.expression_offset();
         let comps: Vec<usize> = (0..NUM_BETAS).chain(e0..e0 + NUM_EXPRESSION).collect();
         let nc = comps.len();
-        // shapedirs [V, 3, L] -> [nc, V*3]
+        // shapedirs [V, 3, L] -> [nc, V*3] (interleaved, for the joint blend below).
         let mut sd = vec![0f32; nc * v * 3];
         for (ci, &c) in comps.iter().enumerate() {
             for k in 0..v * 3 {
                 sd[ci * v * 3 + k] = model.shapedirs[k * l + c];
             }
         }
+        // Interleaved [.., V*3] rows to planar [.., 3*V] rows.
+        let planar = |src: &[f32], rows: usize| -> Vec<f32> {
+            let mut out = vec![0f32; rows * 3 * v];
+            for r in 0..rows {
+                for vi in 0..v {
+                    for a in 0..3 {
+                        out[r * 3 * v + a * v + vi] = src[r * 3 * v + vi * 3 + a];
+                    }
+                }
+            }
+            out
+        };
         // Joints are linear in the shaped vertices: J = Jr v_template + sum_c beta_c (Jr sd_c).
         let jr = &model.j_regressor;
         let regress = |verts: &[f32]| -> Vec<f32> {
@@ -101,12 +114,14 @@ impl SmplxLayer {
         let j_sd: Vec<f32> = (0..nc)
             .flat_map(|ci| regress(&sd[ci * v * 3..(ci + 1) * v * 3]))
             .collect();
-        // posedirs [V, 3, 486] -> [486, V*3]
+        // posedirs [V, 3, 486] -> [486, 3*V] planar.
         let p = NUM_POSE_JOINTS * 9;
         let mut pd = vec![0f32; p * v * 3];
-        for k in 0..v * 3 {
-            for q in 0..p {
-                pd[q * v * 3 + k] = model.posedirs[k * p + q];
+        for vi in 0..v {
+            for a in 0..3 {
+                for q in 0..p {
+                    pd[q * v * 3 + a * v + vi] = model.posedirs[(vi * 3 + a) * p + q];
+                }
             }
         }
         // Extra joints as rows over vertices.
@@ -129,11 +144,18 @@ impl SmplxLayer {
             }
         }
         let nx = extra_rows.len();
-        let mut extra = vec![0f32; nx.max(1) * v];
-        for (r, row) in extra_rows.iter().enumerate() {
-            for &(vi, w) in row {
-                extra[r * v + vi] += w;
+        let mut extra_index = Vec::with_capacity(nx.max(1) * 3);
+        let mut extra_weight = Vec::with_capacity(nx.max(1) * 3);
+        for row in &extra_rows {
+            for k in 0..3 {
+                let (vi, w) = row.get(k).copied().unwrap_or((row[0].0, 0.0));
+                extra_index.push(vi);
+                extra_weight.push(w);
             }
+        }
+        if nx == 0 {
+            extra_index.extend([0, 0, 0]);
+            extra_weight.extend([0.0, 0.0, 0.0]);
         }
         // Levels of the tree.
         let mut depth = vec![0usize; NUM_JOINTS];
@@ -171,14 +193,24 @@ impl SmplxLayer {
             .map(|j| model.parents[j].max(0) as usize)
             .collect();
         let f2 = |d: Vec<f32>, s: [usize; 2]| Tensor::<2>::from_data(TensorData::new(d, s), device);
+        let mut weights_t = vec![0f32; NUM_JOINTS * v];
+        for vi in 0..v {
+            for j in 0..NUM_JOINTS {
+                weights_t[j * v + vi] = model.weights[vi * NUM_JOINTS + j];
+            }
+        }
         SmplxLayer {
-            v_template: f2(model.v_template.clone(), [1, v * 3]),
-            shapedirs: f2(sd, [nc, v * 3]),
+            v_template: f2(planar(&model.v_template, 1), [1, v * 3]),
+            shapedirs: f2(planar(&sd, nc), [nc, v * 3]),
             j_template: f2(j_template, [1, NUM_JOINTS * 3]),
             j_shapedirs: f2(j_sd, [nc, NUM_JOINTS * 3]),
             posedirs: f2(pd, [p, v * 3]),
-            weights: f2(model.weights.clone(), [v, NUM_JOINTS]),
-            extra: Tensor::from_data(TensorData::new(extra, [1, nx.max(1), v]), device),
+            weights_t: f2(weights_t, [NUM_JOINTS, v]),
+            extra_weight: Tensor::from_data(
+                TensorData::new(extra_weight, [1, nx.max(1), 3, 1]),
+                device,
+            ),
+            extra_index: int1(&extra_index, device),
             levels,
             level_to_joint: int1(&level_to_joint, device),
             parents: int1(&parents, device),
@@ -242,18 +274,18 @@ impl SmplxLayer {
         let n = rot.dims()[0];
         let v = self.num_vertices;
         let coeffs = Tensor::cat(vec![betas, expression], 1); // [N, 20]
-        let v_shaped = self.v_template.clone() + coeffs.clone().matmul(self.shapedirs.clone()); // [N, V*3]
+        let v_shaped = self.v_template.clone() + coeffs.clone().matmul(self.shapedirs.clone()); // [N, 3V]
         let joints_rest = (self.j_template.clone() + coeffs.matmul(self.j_shapedirs.clone()))
             .reshape([n, NUM_JOINTS, 3]);
         // Pose correctives from (R_j - I) of joints 1..54, row-major.
         let eye = Tensor::<2>::eye(3, &self.device).reshape([1, 1, 3, 3]);
         let feat =
             (rot.clone().narrow(1, 1, NUM_POSE_JOINTS) - eye).reshape([n, NUM_POSE_JOINTS * 9]);
-        let v_posed = (v_shaped + feat.matmul(self.posedirs.clone())).reshape([n, v, 3]);
+        let v_posed = (v_shaped + feat.matmul(self.posedirs.clone())).reshape([n, 3, v]); // planar
 
         // Kinematic chain, one tree level at a time.
         let parent_rest = joints_rest.clone().select(1, self.parents.clone());
-        let rel = joints_rest.clone() - parent_rest; // [N, 55, 3]; the root's row is fixed below
+        let rel = joints_rest.clone() - parent_rest; // [N, 55, 3]; the root's row is unused
         let mut g_rot: Vec<Tensor<4>> = Vec::new();
         let mut g_tr: Vec<Tensor<3>> = Vec::new();
         for (d, (joints, parent_pos, _)) in self.levels.iter().enumerate() {
@@ -277,26 +309,39 @@ impl SmplxLayer {
         }
         let g_rot = Tensor::cat(g_rot, 1).select(1, self.level_to_joint.clone()); // [N, 55, 3, 3]
         let posed_joints = Tensor::cat(g_tr, 1).select(1, self.level_to_joint.clone()); // [N, 55, 3]
-        // Skinning transforms A_j = [G_R | G_t - G_R J_j], flattened to 12 per joint.
+        // Skinning transforms A_j = [G_R | G_t - G_R J_j] as 12 coefficient planes:
+        // [12, N, 55] x [55, V] -> [12, N, V], one GEMM for every body.
         let a_t = posed_joints.clone()
             - g_rot
                 .clone()
                 .matmul(joints_rest.clone().reshape([n, NUM_JOINTS, 3, 1]))
                 .reshape([n, NUM_JOINTS, 3]);
-        let a = Tensor::cat(vec![g_rot, a_t.reshape([n, NUM_JOINTS, 3, 1])], 3)
-            .reshape([n, NUM_JOINTS, 12]); // rows of [R | t]
-        let t = self
-            .weights
-            .clone()
-            .unsqueeze_dim::<3>(0)
-            .matmul(a)
-            .reshape([n, v, 3, 4]);
-        let ones = Tensor::<3>::ones([n, v, 1], &self.device);
-        let vh = Tensor::cat(vec![v_posed, ones], 2).reshape([n, v, 1, 4]);
-        let mut verts = (t * vh).sum_dim(3).reshape([n, v, 3]);
+        let a = Tensor::cat(vec![g_rot, a_t.reshape([n, NUM_JOINTS, 3, 1])], 3) // [N, 55, 3, 4]
+            .reshape([n, NUM_JOINTS, 12])
+            .permute([2, 0, 1])
+            .reshape([12 * n, NUM_JOINTS]);
+        let t = a.matmul(self.weights_t.clone()).reshape([12, n, v]);
+        let c = |k: usize| t.clone().narrow(0, k, 1).reshape([n, v]);
+        let x = v_posed.clone().narrow(1, 0, 1).reshape([n, v]);
+        let y = v_posed.clone().narrow(1, 1, 1).reshape([n, v]);
+        let z = v_posed.narrow(1, 2, 1).reshape([n, v]);
+        let out = |r: usize| {
+            c(4 * r) * x.clone()
+                + c(4 * r + 1) * y.clone()
+                + c(4 * r + 2) * z.clone()
+                + c(4 * r + 3)
+        };
+        let mut verts = Tensor::stack::<3>(vec![out(0), out(1), out(2)], 2); // [N, V, 3]
         let mut joints = posed_joints;
         if self.num_extra > 0 {
-            let extra = self.extra.clone().matmul(verts.clone()); // [N, X, 3]
+            let x = self.num_extra;
+            let picked = verts
+                .clone()
+                .select(1, self.extra_index.clone())
+                .reshape([n, x, 3, 3]);
+            let extra = (picked * self.extra_weight.clone())
+                .sum_dim(2)
+                .reshape([n, x, 3]);
             joints = Tensor::cat(vec![joints, extra], 1);
         }
         let shift = match mode {
