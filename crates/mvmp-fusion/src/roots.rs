@@ -1,0 +1,119 @@
+//! Root extraction from the likelihood volume and the Gaussian targets of the detection loss, in the
+//! voxel-centre convention of [`VoxelGrid`].
+use burn::tensor::{Device, Tensor, TensorData};
+
+use crate::pool::nms3d;
+use mvmp_geom::VoxelGrid;
+
+/// A detected root.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Root {
+    /// World position (metres), voxel centre plus the predicted sub-voxel offset.
+    pub position: [f64; 3],
+    pub score: f32,
+    /// The voxel of the peak.
+    pub voxel: [usize; 3],
+}
+
+/// NMS (3 x 3 x 3), top-K, threshold, sub-voxel offset. `likelihood`: `[B, 1, X, Y, Z]`; `offset`:
+/// `[B, 3, X, Y, Z]` in voxel units (clamped to half a voxel), or `None`. Returns, per batch item, the
+/// roots with score above `threshold`, best first.
+pub fn extract_roots(
+    likelihood: Tensor<5>,
+    offset: Option<Tensor<5>>,
+    grid: &VoxelGrid,
+    k: usize,
+    threshold: f32,
+) -> Vec<Vec<Root>> {
+    let [b, _, x, y, z] = likelihood.dims();
+    let p = x * y * z;
+    let k = k.min(p);
+    let kept = nms3d(likelihood).reshape([b, p]);
+    let (vals, idx) = kept.topk_with_indices(k, 1);
+    let vals: Vec<f32> = vals.into_data().try_into_vec().expect("f32 scores");
+    let idx: Vec<i64> = idx
+        .into_data()
+        .convert::<i64>()
+        .try_into_vec()
+        .expect("integer indices");
+    let offs: Option<Vec<f32>> = offset.map(|o| {
+        o.reshape([b, 3, p])
+            .into_data()
+            .try_into_vec()
+            .expect("f32 offsets")
+    });
+    let vs = grid.voxel_size();
+    (0..b)
+        .map(|bi| {
+            (0..k)
+                .filter(|&j| vals[bi * k + j] > threshold)
+                .map(|j| {
+                    let flat = idx[bi * k + j] as usize;
+                    let voxel = grid.unflatten(flat);
+                    let mut pos = grid.index_to_world(voxel.map(|i| i as f64));
+                    if let Some(o) = &offs {
+                        for a in 0..3 {
+                            let d = (o[(bi * 3 + a) * p + flat] as f64).clamp(-0.5, 0.5);
+                            pos[a] += d * vs[a];
+                        }
+                    }
+                    Root {
+                        position: pos,
+                        score: vals[bi * k + j],
+                        voxel,
+                    }
+                })
+                .collect()
+        })
+        .collect()
+}
+
+/// The Gaussian target volume `[X, Y, Z]` (flat, in flat-index order) for roots in the world:
+/// `exp(-|c - mu|^2 / (2 sigma^2))` at every voxel centre `c` within 3 sigma, people merged by maximum.
+pub fn gaussian_target_values(grid: &VoxelGrid, roots: &[[f64; 3]], sigma: f64) -> Vec<f32> {
+    let mut out = vec![0f32; grid.num_voxels()];
+    let vs = grid.voxel_size();
+    for r in roots {
+        let c = grid.world_to_index(*r);
+        let lo: [i64; 3] =
+            std::array::from_fn(|a| ((c[a] - 3.0 * sigma / vs[a]).floor() as i64).max(0));
+        let hi: [i64; 3] = std::array::from_fn(|a| {
+            ((c[a] + 3.0 * sigma / vs[a]).ceil() as i64).min(grid.shape[a] as i64 - 1)
+        });
+        for ix in lo[0]..=hi[0] {
+            for iy in lo[1]..=hi[1] {
+                for iz in lo[2]..=hi[2] {
+                    let w = grid.index_to_world([ix as f64, iy as f64, iz as f64]);
+                    let d2: f64 = (0..3).map(|a| (w[a] - r[a]).powi(2)).sum();
+                    let g = (-d2 / (2.0 * sigma * sigma)).exp() as f32;
+                    let k = grid.flat_index([ix as usize, iy as usize, iz as usize]);
+                    out[k] = out[k].max(g);
+                }
+            }
+        }
+    }
+    out
+}
+
+/// [`gaussian_target_values`] for a batch, as a tensor `[B, 1, X, Y, Z]`.
+pub fn gaussian_target(
+    grid: &VoxelGrid,
+    roots: &[Vec<[f64; 3]>],
+    sigma: f64,
+    device: &Device,
+) -> Tensor<5> {
+    let [x, y, z] = grid.shape;
+    let data: Vec<f32> = roots
+        .iter()
+        .flat_map(|r| gaussian_target_values(grid, r, sigma))
+        .collect();
+    Tensor::from_data(TensorData::new(data, [roots.len(), 1, x, y, z]), device)
+}
+
+/// The voxel that holds a root and the root's sub-voxel offset from that voxel's centre (voxel units, in
+/// [-0.5, 0.5)), or `None` outside the grid: the target of the offset head.
+pub fn root_voxel_and_offset(grid: &VoxelGrid, root: [f64; 3]) -> Option<([usize; 3], [f64; 3])> {
+    let v = grid.containing_voxel(root)?;
+    let c = grid.world_to_index(root);
+    Some((v, std::array::from_fn(|a| c[a] - v[a] as f64)))
+}
