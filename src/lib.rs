@@ -2,6 +2,7 @@
 //!
 //! This facade re-exports the workspace crates so that integration tests and benchmarks at the top level
 //! (and users who want one dependency) can reach every layer.
+pub use mvmp_backbone as backbone;
 pub use mvmp_data as data;
 pub use mvmp_fusion as fusion;
 pub use mvmp_geom as geom;
