@@ -1,5 +1,7 @@
-//! Per-view backbones of MVMP-HMR: the DINOv2-style ViT (patch 14) that gives the feature maps fused into
-//! the voxel volume.
+//! Per-view backbones of MVMP-HMR: the DINOv2-style ViT (patch 14) whose feature maps are fused into the
+//! voxel volume, and the HRNet whose 2D joint heatmaps feed the RootNet.
+pub mod hrnet;
 pub mod vit;
 
+pub use hrnet::{HRNet, HRNetConfig};
 pub use vit::{ViT, ViTConfig};

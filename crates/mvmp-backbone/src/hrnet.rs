@@ -1,0 +1,370 @@
+//! HRNet for 2D joint heatmaps (Sun et al., "Deep High-Resolution Representation Learning for Human Pose
+//! Estimation", CVPR 2019; REFERENCE.md 10), in the layout of the reference `pose_hrnet.py`: a stride-4
+//! stem with a bottleneck layer, four stages of parallel branches at strides 4, 8, 16, 32 with repeated
+//! multi-resolution fusion, and a 1 x 1 head on the highest-resolution branch.
+//!
+//! Forward: `[B, 3, H, W]` (H, W multiples of 32) -> heatmaps `[B, J, H/4, W/4]`.
+use burn::config::Config;
+use burn::module::Module;
+use burn::nn::conv::{Conv2d, Conv2dConfig};
+use burn::nn::{BatchNorm, BatchNormConfig, PaddingConfig2d};
+use burn::tensor::activation::relu;
+use burn::tensor::module::interpolate;
+use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
+use burn::tensor::{Device, Tensor};
+
+#[derive(Config, Debug, PartialEq)]
+pub struct HRNetConfig {
+    /// Output heatmaps (joints).
+    pub joints: usize,
+    /// Width C of the highest-resolution branch; branches are C, 2C, 4C, 8C (32 for W32, 48 for W48).
+    pub width: usize,
+    /// Stem channels (64 in the reference) and bottleneck planes of layer1 (64; output 4x).
+    #[config(default = 64)]
+    pub stem: usize,
+    #[config(default = 64)]
+    pub planes: usize,
+    /// Basic blocks per branch in every module (4 in the reference).
+    #[config(default = 4)]
+    pub blocks: usize,
+    /// Modules in stages 2, 3, 4 (1, 4, 3 in the reference).
+    #[config(default = "[1, 4, 3]")]
+    pub modules: [usize; 3],
+}
+
+impl HRNetConfig {
+    pub fn hrnet_w32(joints: usize) -> Self {
+        HRNetConfig::new(joints, 32)
+    }
+    pub fn hrnet_w48(joints: usize) -> Self {
+        HRNetConfig::new(joints, 48)
+    }
+    /// A small HRNet for CPU tests and the demo: width 8, stem 16, one block and one module per stage.
+    pub fn tiny(joints: usize) -> Self {
+        HRNetConfig::new(joints, 8)
+            .with_stem(16)
+            .with_planes(16)
+            .with_blocks(1)
+            .with_modules([1, 1, 1])
+    }
+    /// A variant by name: `tiny`, `hrnet_w32`, `hrnet_w48`.
+    pub fn by_name(name: &str, joints: usize) -> Option<Self> {
+        match name {
+            "tiny" => Some(Self::tiny(joints)),
+            "hrnet_w32" => Some(Self::hrnet_w32(joints)),
+            "hrnet_w48" => Some(Self::hrnet_w48(joints)),
+            _ => None,
+        }
+    }
+}
+
+fn conv(ci: usize, co: usize, k: usize, stride: usize, bias: bool, device: &Device) -> Conv2d {
+    let p = (k - 1) / 2;
+    Conv2dConfig::new([ci, co], [k, k])
+        .with_stride([stride, stride])
+        .with_padding(PaddingConfig2d::Explicit(p, p, p, p))
+        .with_bias(bias)
+        .init(device)
+}
+
+fn bn(c: usize, device: &Device) -> BatchNorm {
+    BatchNormConfig::new(c).with_momentum(0.1).init(device)
+}
+
+/// A conv (no bias) followed by batch norm: the reference's `Sequential(conv, BN)` pairs.
+#[derive(Module, Debug)]
+pub struct ConvBn {
+    pub conv: Conv2d,
+    pub bn: BatchNorm,
+}
+
+impl ConvBn {
+    fn new(ci: usize, co: usize, k: usize, stride: usize, device: &Device) -> Self {
+        ConvBn {
+            conv: conv(ci, co, k, stride, false, device),
+            bn: bn(co, device),
+        }
+    }
+    fn forward(&self, x: Tensor<4>) -> Tensor<4> {
+        self.bn.forward(self.conv.forward(x))
+    }
+}
+
+#[derive(Module, Debug)]
+pub struct Bottleneck {
+    pub conv1: Conv2d,
+    pub bn1: BatchNorm,
+    pub conv2: Conv2d,
+    pub bn2: BatchNorm,
+    pub conv3: Conv2d,
+    pub bn3: BatchNorm,
+    pub downsample: Option<ConvBn>,
+}
+
+impl Bottleneck {
+    fn new(ci: usize, planes: usize, device: &Device) -> Self {
+        Bottleneck {
+            conv1: conv(ci, planes, 1, 1, false, device),
+            bn1: bn(planes, device),
+            conv2: conv(planes, planes, 3, 1, false, device),
+            bn2: bn(planes, device),
+            conv3: conv(planes, planes * 4, 1, 1, false, device),
+            bn3: bn(planes * 4, device),
+            downsample: (ci != planes * 4).then(|| ConvBn::new(ci, planes * 4, 1, 1, device)),
+        }
+    }
+    fn forward(&self, x: Tensor<4>) -> Tensor<4> {
+        let r = relu(self.bn1.forward(self.conv1.forward(x.clone())));
+        let r = relu(self.bn2.forward(self.conv2.forward(r)));
+        let r = self.bn3.forward(self.conv3.forward(r));
+        let s = match &self.downsample {
+            Some(d) => d.forward(x),
+            None => x,
+        };
+        relu(r + s)
+    }
+}
+
+#[derive(Module, Debug)]
+pub struct BasicBlock {
+    pub conv1: Conv2d,
+    pub bn1: BatchNorm,
+    pub conv2: Conv2d,
+    pub bn2: BatchNorm,
+}
+
+impl BasicBlock {
+    fn new(c: usize, device: &Device) -> Self {
+        BasicBlock {
+            conv1: conv(c, c, 3, 1, false, device),
+            bn1: bn(c, device),
+            conv2: conv(c, c, 3, 1, false, device),
+            bn2: bn(c, device),
+        }
+    }
+    fn forward(&self, x: Tensor<4>) -> Tensor<4> {
+        let r = relu(self.bn1.forward(self.conv1.forward(x.clone())));
+        relu(self.bn2.forward(self.conv2.forward(r)) + x)
+    }
+}
+
+/// One step of a downsampling chain: conv3x3 s2 + BN (+ ReLU except for the last step).
+#[derive(Module, Debug)]
+pub struct Down {
+    pub cb: ConvBn,
+    pub relu: bool,
+}
+
+/// How branch j reaches resolution i inside a fuse layer.
+#[derive(Module, Debug)]
+pub enum Fuse {
+    /// j > i: conv1x1 + BN, then nearest upsampling by 2^(j - i).
+    Up(ConvBn),
+    /// j < i: i - j stride-2 convolutions.
+    Down(Vec<Down>),
+}
+
+#[derive(Module, Debug)]
+pub struct HrModule {
+    pub branches: Vec<Vec<BasicBlock>>,
+    /// `fuse_layers[i][j]`, None on the diagonal.
+    pub fuse_layers: Vec<Vec<Option<Fuse>>>,
+}
+
+impl HrModule {
+    fn new(widths: &[usize], blocks: usize, outputs: usize, device: &Device) -> Self {
+        let nb = widths.len();
+        HrModule {
+            branches: widths
+                .iter()
+                .map(|&c| (0..blocks).map(|_| BasicBlock::new(c, device)).collect())
+                .collect(),
+            fuse_layers: (0..outputs)
+                .map(|i| {
+                    (0..nb)
+                        .map(|j| {
+                            if j > i {
+                                Some(Fuse::Up(ConvBn::new(widths[j], widths[i], 1, 1, device)))
+                            } else if j < i {
+                                Some(Fuse::Down(
+                                    (0..i - j)
+                                        .map(|k| {
+                                            let last = k == i - j - 1;
+                                            let co = if last { widths[i] } else { widths[j] };
+                                            Down {
+                                                cb: ConvBn::new(widths[j], co, 3, 2, device),
+                                                relu: !last,
+                                            }
+                                        })
+                                        .collect(),
+                                ))
+                            } else {
+                                None
+                            }
+                        })
+                        .collect()
+                })
+                .collect(),
+        }
+    }
+
+    fn forward(&self, xs: Vec<Tensor<4>>) -> Vec<Tensor<4>> {
+        let xs: Vec<Tensor<4>> = xs
+            .into_iter()
+            .zip(&self.branches)
+            .map(|(x, blocks)| blocks.iter().fold(x, |x, b| b.forward(x)))
+            .collect();
+        self.fuse_layers
+            .iter()
+            .enumerate()
+            .map(|(i, row)| {
+                let [_, _, h, w] = xs[i].dims();
+                let mut acc: Option<Tensor<4>> = None;
+                for (j, f) in row.iter().enumerate() {
+                    let y = match f {
+                        None => xs[j].clone(),
+                        Some(Fuse::Up(cb)) => interpolate(
+                            cb.forward(xs[j].clone()),
+                            InterpolateOptions::new(InterpolateMode::Nearest)
+                                .with_output_size([h, w]),
+                        ),
+                        Some(Fuse::Down(chain)) => chain.iter().fold(xs[j].clone(), |x, d| {
+                            let y = d.cb.forward(x);
+                            if d.relu { relu(y) } else { y }
+                        }),
+                    };
+                    acc = Some(match acc {
+                        Some(a) => a + y,
+                        None => y,
+                    });
+                }
+                relu(acc.expect("at least one branch"))
+            })
+            .collect()
+    }
+}
+
+/// A transition: existing branches whose width changes get conv3x3 + BN + ReLU; a new branch is made from
+/// the last branch by a stride-2 conv3x3 + BN + ReLU.
+#[derive(Module, Debug)]
+pub struct Transition {
+    pub layers: Vec<Option<ConvBn>>,
+}
+
+impl Transition {
+    fn new(prev: &[usize], next: &[usize], device: &Device) -> Self {
+        Transition {
+            layers: next
+                .iter()
+                .enumerate()
+                .map(|(i, &c)| {
+                    if i < prev.len() {
+                        (prev[i] != c).then(|| ConvBn::new(prev[i], c, 3, 1, device))
+                    } else {
+                        Some(ConvBn::new(
+                            *prev.last().expect("a branch"),
+                            c,
+                            3,
+                            2,
+                            device,
+                        ))
+                    }
+                })
+                .collect(),
+        }
+    }
+
+    fn forward(&self, xs: &[Tensor<4>]) -> Vec<Tensor<4>> {
+        self.layers
+            .iter()
+            .enumerate()
+            .map(|(i, l)| {
+                let src = if i < xs.len() {
+                    xs[i].clone()
+                } else {
+                    xs[xs.len() - 1].clone()
+                };
+                match l {
+                    Some(cb) => relu(cb.forward(src)),
+                    None => src,
+                }
+            })
+            .collect()
+    }
+}
+
+#[derive(Module, Debug)]
+pub struct HRNet {
+    pub conv1: Conv2d,
+    pub bn1: BatchNorm,
+    pub conv2: Conv2d,
+    pub bn2: BatchNorm,
+    pub layer1: Vec<Bottleneck>,
+    pub transition1: Transition,
+    pub stage2: Vec<HrModule>,
+    pub transition2: Transition,
+    pub stage3: Vec<HrModule>,
+    pub transition3: Transition,
+    pub stage4: Vec<HrModule>,
+    pub final_layer: Conv2d,
+}
+
+impl HRNetConfig {
+    pub fn init(&self, device: &Device) -> HRNet {
+        let c = self.width;
+        let w = [c, 2 * c, 4 * c, 8 * c];
+        let l1_out = self.planes * 4;
+        let stage = |nb: usize, modules: usize, last_single: bool| -> Vec<HrModule> {
+            (0..modules)
+                .map(|m| {
+                    let outputs = if last_single && m == modules - 1 {
+                        1
+                    } else {
+                        nb
+                    };
+                    HrModule::new(&w[..nb], self.blocks, outputs, device)
+                })
+                .collect()
+        };
+        HRNet {
+            conv1: conv(3, self.stem, 3, 2, false, device),
+            bn1: bn(self.stem, device),
+            conv2: conv(self.stem, self.stem, 3, 2, false, device),
+            bn2: bn(self.stem, device),
+            layer1: (0..4)
+                .map(|i| {
+                    Bottleneck::new(if i == 0 { self.stem } else { l1_out }, self.planes, device)
+                })
+                .collect(),
+            transition1: Transition::new(&[l1_out], &w[..2], device),
+            stage2: stage(2, self.modules[0], false),
+            transition2: Transition::new(&w[..2], &w[..3], device),
+            stage3: stage(3, self.modules[1], false),
+            transition3: Transition::new(&w[..3], &w[..4], device),
+            stage4: stage(4, self.modules[2], true),
+            final_layer: conv(c, self.joints, 1, 1, true, device),
+        }
+    }
+}
+
+impl HRNet {
+    /// `[B, 3, H, W]` -> `[B, J, H/4, W/4]`.
+    pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
+        let x = relu(self.bn1.forward(self.conv1.forward(x)));
+        let x = relu(self.bn2.forward(self.conv2.forward(x)));
+        let x = self.layer1.iter().fold(x, |x, b| b.forward(x));
+        let mut xs = self.transition1.forward(&[x]);
+        for m in &self.stage2 {
+            xs = m.forward(xs);
+        }
+        xs = self.transition2.forward(&xs);
+        for m in &self.stage3 {
+            xs = m.forward(xs);
+        }
+        xs = self.transition3.forward(&xs);
+        for m in &self.stage4 {
+            xs = m.forward(xs);
+        }
+        self.final_layer.forward(xs.swap_remove(0))
+    }
+}
