@@ -155,13 +155,12 @@ pub struct Down {
     pub relu: bool,
 }
 
-/// How branch j reaches resolution i inside a fuse layer.
+/// How branch j reaches resolution i inside a fuse layer: for j > i a conv1x1 + BN and nearest
+/// upsampling by 2^(j - i) (`up`); for j < i a chain of i - j stride-2 convolutions (`down`).
 #[derive(Module, Debug)]
-pub enum Fuse {
-    /// j > i: conv1x1 + BN, then nearest upsampling by 2^(j - i).
-    Up(ConvBn),
-    /// j < i: i - j stride-2 convolutions.
-    Down(Vec<Down>),
+pub struct Fuse {
+    pub up: Option<ConvBn>,
+    pub down: Vec<Down>,
 }
 
 #[derive(Module, Debug)]
@@ -184,10 +183,14 @@ impl HrModule {
                     (0..nb)
                         .map(|j| {
                             if j > i {
-                                Some(Fuse::Up(ConvBn::new(widths[j], widths[i], 1, 1, device)))
+                                Some(Fuse {
+                                    up: Some(ConvBn::new(widths[j], widths[i], 1, 1, device)),
+                                    down: Vec::new(),
+                                })
                             } else if j < i {
-                                Some(Fuse::Down(
-                                    (0..i - j)
+                                Some(Fuse {
+                                    up: None,
+                                    down: (0..i - j)
                                         .map(|k| {
                                             let last = k == i - j - 1;
                                             let co = if last { widths[i] } else { widths[j] };
@@ -197,7 +200,7 @@ impl HrModule {
                                             }
                                         })
                                         .collect(),
-                                ))
+                                })
                             } else {
                                 None
                             }
@@ -223,12 +226,12 @@ impl HrModule {
                 for (j, f) in row.iter().enumerate() {
                     let y = match f {
                         None => xs[j].clone(),
-                        Some(Fuse::Up(cb)) => interpolate(
+                        Some(Fuse { up: Some(cb), .. }) => interpolate(
                             cb.forward(xs[j].clone()),
                             InterpolateOptions::new(InterpolateMode::Nearest)
                                 .with_output_size([h, w]),
                         ),
-                        Some(Fuse::Down(chain)) => chain.iter().fold(xs[j].clone(), |x, d| {
+                        Some(Fuse { up: None, down }) => down.iter().fold(xs[j].clone(), |x, d| {
                             let y = d.cb.forward(x);
                             if d.relu { relu(y) } else { y }
                         }),
