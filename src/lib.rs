@@ -4,6 +4,7 @@
 //! (and users who want one dependency) can reach every layer.
 pub use mvmp_backbone as backbone;
 pub use mvmp_data as data;
+pub use mvmp_decoder as decoder;
 pub use mvmp_fusion as fusion;
 pub use mvmp_geom as geom;
 pub use mvmp_smplx as smplx;

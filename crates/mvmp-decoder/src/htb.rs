@@ -1,0 +1,263 @@
+//! The Human Transformer Block and the decoder heads (paper, Sec. 3.4; DESIGN.md).
+//!
+//! Queries `[B, K, D]` (one per detected root), the fused volume as tokens `[B, P, D]` with a 3D sinusoidal
+//! positional encoding of each voxel centre. Each block: pre-norm self-attention among the people (padded
+//! people masked), pre-norm cross-attention to the volume tokens, pre-norm FFN, each residual. Heads: 53
+//! rotations (6D), betas, expression, each a residual on the mean parameters, and a 3D offset from the root.
+use burn::config::Config;
+use burn::module::Module;
+use burn::nn::attention::{MhaInput, MultiHeadAttention, MultiHeadAttentionConfig};
+use burn::nn::{LayerNorm, LayerNormConfig, Linear, LinearConfig};
+use burn::tensor::activation::{gelu, relu};
+use burn::tensor::{Bool, Device, Tensor, TensorData};
+
+use crate::queries::{PARAM_DIM, mean_params, trilinear_sample};
+use mvmp_geom::VoxelGrid;
+use mvmp_smplx::names::{NUM_BETAS, NUM_EXPRESSION, NUM_REGRESSED};
+
+#[derive(Config, Debug, PartialEq)]
+pub struct DecoderConfig {
+    /// Channels of the fused feature volume (C_f).
+    pub volume_channels: usize,
+    /// Model width D.
+    #[config(default = 256)]
+    pub dim: usize,
+    /// Number of Human Transformer Blocks (paper: 2).
+    #[config(default = 2)]
+    pub depth: usize,
+    #[config(default = 8)]
+    pub heads: usize,
+    #[config(default = 4)]
+    pub ffn_ratio: usize,
+    /// Average-pool the volume by this factor along x and y (and z when divisible) before cross-attention;
+    /// 1 keeps every voxel.
+    #[config(default = 1)]
+    pub pool: usize,
+    /// Without blocks: the VoxelSMPLX baseline (an MLP on the sampled queries).
+    #[config(default = true)]
+    pub use_htb: bool,
+}
+
+#[derive(Module, Debug)]
+pub struct HumanTransformerBlock {
+    pub norm_sa: LayerNorm,
+    pub self_attn: MultiHeadAttention,
+    pub norm_ca: LayerNorm,
+    pub cross_attn: MultiHeadAttention,
+    pub norm_ffn: LayerNorm,
+    pub fc1: Linear,
+    pub fc2: Linear,
+}
+
+impl HumanTransformerBlock {
+    fn new(dim: usize, heads: usize, ffn: usize, device: &Device) -> Self {
+        let mha = || {
+            MultiHeadAttentionConfig::new(dim, heads)
+                .with_dropout(0.0)
+                .init(device)
+        };
+        HumanTransformerBlock {
+            norm_sa: LayerNormConfig::new(dim).init(device),
+            self_attn: mha(),
+            norm_ca: LayerNormConfig::new(dim).init(device),
+            cross_attn: mha(),
+            norm_ffn: LayerNormConfig::new(dim).init(device),
+            fc1: LinearConfig::new(dim, dim * ffn).init(device),
+            fc2: LinearConfig::new(dim * ffn, dim).init(device),
+        }
+    }
+
+    /// `queries [B, K, D]`, `padding [B, K]` (true = no person), `tokens [B, P, D]` -> `[B, K, D]`.
+    pub fn forward(&self, q: Tensor<3>, padding: Tensor<2, Bool>, tokens: Tensor<3>) -> Tensor<3> {
+        let h = self.norm_sa.forward(q.clone());
+        let q = q + self
+            .self_attn
+            .forward(MhaInput::new(h.clone(), h.clone(), h).mask_pad(padding))
+            .context;
+        let h = self.norm_ca.forward(q.clone());
+        let q = q + self
+            .cross_attn
+            .forward(MhaInput::new(h, tokens.clone(), tokens))
+            .context;
+        let h = self.norm_ffn.forward(q.clone());
+        q + self.fc2.forward(gelu(self.fc1.forward(h)))
+    }
+}
+
+/// A two-layer MLP head.
+#[derive(Module, Debug)]
+pub struct Head {
+    pub fc1: Linear,
+    pub fc2: Linear,
+}
+
+impl Head {
+    fn new(dim: usize, out: usize, device: &Device) -> Self {
+        Head {
+            fc1: LinearConfig::new(dim, dim).init(device),
+            // Start at the mean: the residual heads begin near zero.
+            fc2: LinearConfig::new(dim, out)
+                .with_initializer(burn::nn::Initializer::Normal {
+                    mean: 0.0,
+                    std: 1e-3,
+                })
+                .init(device),
+        }
+    }
+    fn forward(&self, x: Tensor<3>) -> Tensor<3> {
+        self.fc2.forward(relu(self.fc1.forward(x)))
+    }
+}
+
+#[derive(Module, Debug)]
+pub struct Decoder {
+    pub query_proj: Linear,
+    pub token_proj: Linear,
+    pub pos_proj: Linear,
+    pub blocks: Vec<HumanTransformerBlock>,
+    pub baseline: Option<Head>,
+    pub norm: LayerNorm,
+    pub rot_head: Head,
+    pub betas_head: Head,
+    pub expr_head: Head,
+    pub offset_head: Head,
+    pub pool: usize,
+}
+
+/// Decoder output for `K` query slots.
+#[derive(Debug, Clone)]
+pub struct DecoderOutput {
+    /// `[B, K, 53, 6]`
+    pub rot6d: Tensor<4>,
+    /// `[B, K, 10]`
+    pub betas: Tensor<3>,
+    /// `[B, K, 10]`
+    pub expression: Tensor<3>,
+    /// `[B, K, 3]` root + offset: the pelvis in the world (T_wld).
+    pub transl: Tensor<3>,
+}
+
+/// Frequencies of the 3D sinusoidal positional encoding (per axis, sin and cos).
+const POS_FREQS: usize = 8;
+
+/// Sinusoidal encoding of voxel centres `[P, 3 * 2 * POS_FREQS]`, coordinates normalised to the grid.
+fn voxel_encoding(grid: &VoxelGrid, pool: [usize; 3], device: &Device) -> Tensor<2> {
+    let shape = [
+        grid.shape[0] / pool[0],
+        grid.shape[1] / pool[1],
+        grid.shape[2] / pool[2],
+    ];
+    let coarse = VoxelGrid::new(grid.center, grid.size, shape).expect("valid pooled grid");
+    let lo = coarse.min_corner();
+    let mut v = Vec::with_capacity(coarse.num_voxels() * 6 * POS_FREQS);
+    for c in coarse.centers() {
+        for a in 0..3 {
+            let x = (c[a] - lo[a]) / coarse.size[a]; // 0..1
+            for f in 0..POS_FREQS {
+                let w = std::f64::consts::PI * (1 << f) as f64 * x;
+                v.push(w.sin() as f32);
+                v.push(w.cos() as f32);
+            }
+        }
+    }
+    Tensor::from_data(
+        TensorData::new(v, [coarse.num_voxels(), 6 * POS_FREQS]),
+        device,
+    )
+}
+
+impl DecoderConfig {
+    pub fn init(&self, device: &Device) -> Decoder {
+        let d = self.dim;
+        Decoder {
+            query_proj: LinearConfig::new(self.volume_channels + PARAM_DIM, d).init(device),
+            token_proj: LinearConfig::new(self.volume_channels, d).init(device),
+            pos_proj: LinearConfig::new(6 * POS_FREQS, d).init(device),
+            blocks: if self.use_htb {
+                (0..self.depth)
+                    .map(|_| HumanTransformerBlock::new(d, self.heads, self.ffn_ratio, device))
+                    .collect()
+            } else {
+                Vec::new()
+            },
+            baseline: (!self.use_htb).then(|| Head::new(d, d, device)),
+            norm: LayerNormConfig::new(d).init(device),
+            rot_head: Head::new(d, NUM_REGRESSED * 6, device),
+            betas_head: Head::new(d, NUM_BETAS, device),
+            expr_head: Head::new(d, NUM_EXPRESSION, device),
+            offset_head: Head::new(d, 3, device),
+            pool: self.pool.max(1),
+        }
+    }
+}
+
+impl Decoder {
+    fn pool_factors(&self, grid: &VoxelGrid) -> [usize; 3] {
+        std::array::from_fn(|a| {
+            if grid.shape[a].is_multiple_of(self.pool) {
+                self.pool
+            } else {
+                1
+            }
+        })
+    }
+
+    /// `volume [B, C, X, Y, Z]`, `roots [B, K, 3]` (world), `present [B, K]` -> parameters per slot.
+    pub fn forward(
+        &self,
+        volume: Tensor<5>,
+        grid: &VoxelGrid,
+        roots: Tensor<3>,
+        present: Tensor<2, Bool>,
+    ) -> DecoderOutput {
+        let [b, c, nx, ny, nz] = volume.dims();
+        let k = roots.dims()[1];
+        let device = volume.device();
+        let sampled = trilinear_sample(volume.clone(), roots.clone(), grid); // [B, K, C]
+        let mean = mean_params(&device).reshape([1, 1, PARAM_DIM]);
+        let q_in = Tensor::cat(
+            vec![sampled, mean.clone().repeat_dim(0, b).repeat_dim(1, k)],
+            2,
+        );
+        let mut q = self.query_proj.forward(q_in); // [B, K, D]
+        if self.blocks.is_empty() {
+            if let Some(mlp) = &self.baseline {
+                q = q.clone() + mlp.forward(q);
+            }
+        } else {
+            let [px, py, pz] = self.pool_factors(grid);
+            let pooled = volume
+                .reshape([b, c, nx / px, px, ny / py, py, nz / pz * pz])
+                .mean_dim(3)
+                .mean_dim(5)
+                .reshape([b, c, nx / px, ny / py, nz / pz, pz])
+                .mean_dim(5);
+            let p = (nx / px) * (ny / py) * (nz / pz);
+            let tokens = self
+                .token_proj
+                .forward(pooled.reshape([b, c, p]).swap_dims(1, 2)); // [B, P, D]
+            let pos = self
+                .pos_proj
+                .forward(voxel_encoding(grid, [px, py, pz], &device)); // [P, D]
+            let tokens = tokens + pos.unsqueeze_dim::<3>(0);
+            let padding = present.bool_not();
+            for blk in &self.blocks {
+                q = blk.forward(q, padding.clone(), tokens.clone());
+            }
+        }
+        let q = self.norm.forward(q);
+        let mean = mean.reshape([1, 1, PARAM_DIM]);
+        let rot = mean.clone().narrow(2, 0, NUM_REGRESSED * 6) + self.rot_head.forward(q.clone());
+        let betas = mean.clone().narrow(2, NUM_REGRESSED * 6, NUM_BETAS)
+            + self.betas_head.forward(q.clone());
+        let expr = mean.narrow(2, NUM_REGRESSED * 6 + NUM_BETAS, NUM_EXPRESSION)
+            + self.expr_head.forward(q.clone());
+        let offset = self.offset_head.forward(q);
+        DecoderOutput {
+            rot6d: rot.reshape([b, k, NUM_REGRESSED, 6]),
+            betas,
+            expression: expr,
+            transl: roots + offset,
+        }
+    }
+}

@@ -1,0 +1,7 @@
+//! The MVMP-HMR decoder: person queries sampled from the fused volume at each root, the Human Transformer
+//! Block (self-attention among people, cross-attention to the volume, FFN) and the SMPL-X heads.
+pub mod htb;
+pub mod queries;
+
+pub use htb::{Decoder, DecoderConfig, DecoderOutput, HumanTransformerBlock};
+pub use queries::{mean_params, trilinear_sample};

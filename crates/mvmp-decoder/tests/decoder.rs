@@ -1,0 +1,147 @@
+//! Trilinear sampling, mean parameters, decoder shapes, masking of absent people and gradients.
+use burn::module::{Module, ModuleVisitor, Param};
+use burn::tensor::{Bool, Device, Tensor, TensorData};
+use mvmp_decoder::*;
+use mvmp_geom::VoxelGrid;
+use mvmp_geom::rotation::{rot6d_to_matrix, y_up_to_z_up};
+
+fn vals<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+    t.into_data().try_into_vec().unwrap()
+}
+
+#[test]
+fn trilinear_sampling_reproduces_a_linear_field() {
+    let d = Device::flex();
+    let g = VoxelGrid::new([0.5, -1.0, 1.0], [4.0, 3.0, 2.0], [8, 6, 4]).unwrap();
+    let f = |p: [f64; 3]| 2.0 * p[0] + 3.0 * p[1] - p[2] + 1.0;
+    let field: Vec<f32> = g.centers().iter().map(|c| f(*c) as f32).collect();
+    let mut two = field.clone();
+    two.extend(field.iter().map(|v| -v));
+    let vol = Tensor::<5>::from_data(TensorData::new(two, [1, 2, 8, 6, 4]), &d);
+    // Points inside the hull of the voxel centres.
+    let pts: Vec<[f64; 3]> = vec![
+        [0.0, -1.0, 1.0],
+        [2.2, 0.1, 0.3],
+        [-1.2, -2.2, 1.7],
+        [0.77, -0.33, 0.95],
+    ];
+    let flat: Vec<f32> = pts.iter().flatten().map(|&x| x as f32).collect();
+    let out = vals(trilinear_sample(
+        vol,
+        Tensor::from_data(TensorData::new(flat, [1, 4, 3]), &d),
+        &g,
+    ));
+    for (i, p) in pts.iter().enumerate() {
+        assert!(
+            (out[i * 2] as f64 - f(*p)).abs() < 1e-4,
+            "{p:?}: {} vs {}",
+            out[i * 2],
+            f(*p)
+        );
+        assert!((out[i * 2 + 1] as f64 + f(*p)).abs() < 1e-4);
+    }
+}
+
+#[test]
+fn mean_parameters_are_upright_identity_and_zero() {
+    let d = Device::flex();
+    let m = vals(mean_params(&d));
+    assert_eq!(m.len(), 53 * 6 + 20);
+    let g = vals(rot6d_to_matrix(Tensor::from_data(
+        TensorData::new(m[..6].to_vec(), [1, 6]),
+        &d,
+    )));
+    let want = y_up_to_z_up();
+    for k in 0..9 {
+        assert!((g[k] as f64 - want[(k / 3, k % 3)]).abs() < 1e-6);
+    }
+    assert_eq!(m[6..12], [1.0, 0.0, 0.0, 0.0, 1.0, 0.0]);
+    assert!(m[318..].iter().all(|&v| v == 0.0));
+}
+
+fn inputs(d: &Device, third_root: [f32; 3]) -> (Tensor<5>, Tensor<3>, Tensor<2, Bool>, VoxelGrid) {
+    let g = VoxelGrid::new([0.0, 0.0, 1.0], [4.0, 4.0, 2.0], [8, 8, 4]).unwrap();
+    let vol: Vec<f32> = (0..2 * 8 * 256)
+        .map(|i| ((i * 37) % 101) as f32 / 101.0)
+        .collect();
+    let vol = Tensor::<5>::from_data(TensorData::new(vol, [2, 8, 8, 8, 4]), d);
+    let mut roots = vec![0.1f32, 0.2, 0.9, -1.0, 0.5, 1.0];
+    roots.extend(third_root);
+    roots.extend([0.5f32, 0.5, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
+    let roots = Tensor::<3>::from_data(TensorData::new(roots, [2, 3, 3]), d);
+    let present = Tensor::<2, Bool>::from_data(
+        TensorData::new(vec![true, true, false, true, false, false], [2, 3]),
+        d,
+    );
+    (vol, roots, present, g)
+}
+
+#[test]
+fn shapes_and_masking_of_absent_people() {
+    let d = Device::flex();
+    for (use_htb, pool) in [(true, 1), (true, 2), (false, 1)] {
+        let dec = DecoderConfig::new(8)
+            .with_dim(32)
+            .with_heads(4)
+            .with_pool(pool)
+            .with_use_htb(use_htb)
+            .init(&d);
+        let (vol, roots, present, g) = inputs(&d, [1.5, 1.5, 1.0]);
+        let out = dec.forward(vol.clone(), &g, roots, present.clone());
+        assert_eq!(out.rot6d.dims(), [2, 3, 53, 6]);
+        assert_eq!(out.betas.dims(), [2, 3, 10]);
+        assert_eq!(out.expression.dims(), [2, 3, 10]);
+        assert_eq!(out.transl.dims(), [2, 3, 3]);
+        // Moving an absent person's root changes nothing for the people present.
+        let (_, roots2, _, _) = inputs(&d, [-1.7, 0.3, 0.4]);
+        let out2 = dec.forward(vol, &g, roots2, present);
+        let (a, b) = (vals(out.rot6d), vals(out2.rot6d));
+        let per = 53 * 6;
+        for slot in [0usize, 1, 3] {
+            let worst = (0..per)
+                .map(|k| (a[slot * per + k] - b[slot * per + k]).abs())
+                .fold(0.0, f32::max);
+            assert!(
+                worst < 1e-6,
+                "htb {use_htb} pool {pool} slot {slot}: {worst}"
+            );
+        }
+    }
+}
+
+#[test]
+fn every_parameter_gets_a_gradient() {
+    let d = Device::flex().autodiff();
+    let dec = DecoderConfig::new(8).with_dim(32).with_heads(4).init(&d);
+    let (vol, roots, present, g) = inputs(&d, [1.5, 1.5, 1.0]);
+    let out = dec.forward(vol, &g, roots, present);
+    let loss = out.rot6d.powi_scalar(2).sum()
+        + out.betas.sum()
+        + out.expression.sum()
+        + out.transl.powi_scalar(2).sum();
+    let grads = loss.backward();
+    struct Check<'a>(&'a burn::tensor::Gradients, Vec<Vec<usize>>, usize);
+    impl ModuleVisitor for Check<'_> {
+        fn visit_float<const D: usize>(&mut self, p: &Param<Tensor<D>>) {
+            if !p.is_require_grad() {
+                return;
+            }
+            self.2 += 1;
+            let ok = p
+                .val()
+                .grad(self.0)
+                .is_some_and(|g| g.abs().sum().into_scalar::<f32>() > 0.0);
+            if !ok {
+                self.1.push(p.val().dims().to_vec());
+            }
+        }
+    }
+    let mut c = Check(&grads, Vec::new(), 0);
+    dec.visit(&mut c);
+    assert!(
+        c.2 > 40 && c.1.is_empty(),
+        "{} params, without gradient: {:?}",
+        c.2,
+        c.1
+    );
+}
