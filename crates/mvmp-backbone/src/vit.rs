@@ -83,7 +83,8 @@ impl ViTConfig {
             },
             cls_token: normal([1, 1, c], 1e-6),
             pos_embed: normal([1, 1 + m * m, c], 0.02),
-            mask_token: Param::from_tensor(Tensor::zeros([1, c], device)),
+            // Used only by DINOv2's masked-image pre-training; kept (frozen) so checkpoints load as they are.
+            mask_token: Param::from_tensor(Tensor::zeros([1, c], device)).set_require_grad(false),
             blocks: (0..self.depth)
                 .map(|_| Block {
                     norm1: LayerNormConfig::new(c)

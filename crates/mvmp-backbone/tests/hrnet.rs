@@ -9,6 +9,9 @@ fn heatmaps_at_stride_four() {
     let net = HRNetConfig::tiny(15).init(&d);
     let y = net.forward(Tensor::<4>::zeros([2, 3, 64, 96], &d));
     assert_eq!(y.dims(), [2, 15, 16, 24]);
+    // Sizes that are not multiples of 32 (the paper's 1288 is not): branches round up, fusion resizes.
+    let y = net.forward(Tensor::<4>::zeros([1, 3, 100, 92], &d));
+    assert_eq!(y.dims(), [1, 15, 25, 23]);
 }
 
 #[test]

@@ -1,0 +1,240 @@
+//! The model configuration (`configs/model/*.toml`): plain serde structs that reject unknown keys, with
+//! documented defaults and a validation that names the key path and the bad value.
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use mvmp_backbone::{HRNetConfig, ViTConfig};
+use mvmp_fusion::FusionMode;
+use mvmp_geom::VoxelGrid;
+
+#[derive(Debug, thiserror::Error)]
+pub enum ModelConfigError {
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{path}: {what}")]
+    Parse { path: PathBuf, what: String },
+    #[error("model config: key `{key}`: {what}")]
+    Invalid { key: String, what: String },
+}
+
+/// Which joint's likelihood the RootNet predicts (paper ablation).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum PrimaryJoint {
+    Pelvis,
+    Head,
+    Spine,
+}
+
+impl PrimaryJoint {
+    /// The SMPL-X joint index.
+    pub fn joint(self) -> usize {
+        match self {
+            PrimaryJoint::Pelvis => 0,
+            PrimaryJoint::Head => 15,
+            PrimaryJoint::Spine => 6,
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct DecoderSection {
+    /// Model width D.
+    pub dim: usize,
+    /// Human Transformer Blocks (paper: 2).
+    pub depth: usize,
+    pub heads: usize,
+    /// Average-pool factor of the volume before cross-attention (1 = every voxel).
+    pub pool: usize,
+    /// false: the VoxelSMPLX baseline (an MLP on the sampled queries, no HTB).
+    pub use_htb: bool,
+}
+
+impl Default for DecoderSection {
+    fn default() -> Self {
+        DecoderSection {
+            dim: 256,
+            depth: 2,
+            heads: 8,
+            pool: 1,
+            use_htb: true,
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ModelConfig {
+    /// Network input size S (images are letterboxed to S x S).
+    pub image_size: u32,
+    /// ViT variant: tiny, vit_small_14, vit_base_14, vit_large_14.
+    pub backbone: String,
+    /// Feature channels after the 1 x 1 reduction (C_f).
+    pub feature_channels: usize,
+    /// HRNet variant: tiny, hrnet_w32, hrnet_w48.
+    pub hrnet: String,
+    /// SMPL-X joints whose 2D heatmaps HRNet predicts and the heatmap volume holds.
+    pub heatmap_joints: Vec<usize>,
+    /// The voxel grid (world metres).
+    pub grid: VoxelGrid,
+    /// View fusion: mean (paper) or max (ablation).
+    pub fusion: FusionMode,
+    /// RootNet width multiplier (1.0 = the reference V2V).
+    pub rootnet_width: f64,
+    pub primary_joint: PrimaryJoint,
+    /// Most people per scene (top-K of root extraction).
+    pub max_people: usize,
+    /// Root likelihood threshold.
+    pub root_threshold: f32,
+    pub decoder: DecoderSection,
+    /// Body model: `standin:SEED` or a path to an SMPLX_*.npz.
+    pub body_model: String,
+}
+
+impl Default for ModelConfig {
+    fn default() -> Self {
+        ModelConfig {
+            image_size: 224,
+            backbone: "tiny".into(),
+            feature_channels: 32,
+            hrnet: "tiny".into(),
+            heatmap_joints: (0..22).collect(),
+            grid: VoxelGrid {
+                center: [0.0, 0.0, 1.0],
+                size: [8.0, 8.0, 2.0],
+                shape: [32, 32, 8],
+            },
+            fusion: FusionMode::Mean,
+            rootnet_width: 0.5,
+            primary_joint: PrimaryJoint::Pelvis,
+            max_people: 10,
+            root_threshold: 0.3,
+            decoder: DecoderSection {
+                dim: 128,
+                depth: 2,
+                heads: 4,
+                pool: 2,
+                use_htb: true,
+            },
+            body_model: "standin:0".into(),
+        }
+    }
+}
+
+impl ModelConfig {
+    pub fn read(path: &Path) -> Result<Self, ModelConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ModelConfigError::Io {
+            path: path.into(),
+            source,
+        })?;
+        let cfg: ModelConfig = toml::from_str(&text).map_err(|e| ModelConfigError::Parse {
+            path: path.into(),
+            what: e.to_string(),
+        })?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    pub fn vit(&self) -> ViTConfig {
+        ViTConfig::by_name(&self.backbone).expect("validated")
+    }
+
+    pub fn hrnet_config(&self) -> HRNetConfig {
+        HRNetConfig::by_name(&self.hrnet, self.heatmap_joints.len()).expect("validated")
+    }
+
+    pub fn validate(&self) -> Result<(), ModelConfigError> {
+        let bad = |key: &str, what: String| ModelConfigError::Invalid {
+            key: key.into(),
+            what,
+        };
+        // Heatmaps are exactly S/4; a multiple of 14 also uses every pixel in the ViT (the paper: 1288).
+        if self.image_size < 28 || !self.image_size.is_multiple_of(4) {
+            return Err(bad(
+                "image_size",
+                format!(
+                    "{}: must be a multiple of 4 of at least 28",
+                    self.image_size
+                ),
+            ));
+        }
+        if ViTConfig::by_name(&self.backbone).is_none() {
+            return Err(bad(
+                "backbone",
+                format!(
+                    "{:?}: expected tiny, vit_small_14, vit_base_14 or vit_large_14",
+                    self.backbone
+                ),
+            ));
+        }
+        if HRNetConfig::by_name(&self.hrnet, 1).is_none() {
+            return Err(bad(
+                "hrnet",
+                format!("{:?}: expected tiny, hrnet_w32 or hrnet_w48", self.hrnet),
+            ));
+        }
+        if self.feature_channels == 0 {
+            return Err(bad("feature_channels", "must be positive".into()));
+        }
+        if self.heatmap_joints.is_empty() || self.heatmap_joints.iter().any(|&j| j >= 127) {
+            return Err(bad(
+                "heatmap_joints",
+                format!(
+                    "{:?}: a non-empty list of SMPL-X joint indices below 127",
+                    self.heatmap_joints
+                ),
+            ));
+        }
+        if !self.heatmap_joints.contains(&self.primary_joint.joint()) {
+            return Err(bad(
+                "primary_joint",
+                format!(
+                    "{:?} (joint {}) is not in heatmap_joints",
+                    self.primary_joint,
+                    self.primary_joint.joint()
+                ),
+            ));
+        }
+        self.grid
+            .validate()
+            .map_err(|e| bad("grid", e.to_string()))?;
+        if self.grid.shape.iter().any(|s| !s.is_multiple_of(4)) {
+            return Err(bad(
+                "grid.shape",
+                format!(
+                    "{:?}: every side must be divisible by 4 (the V2V encoder pools twice)",
+                    self.grid.shape
+                ),
+            ));
+        }
+        if !(self.rootnet_width > 0.0 && self.rootnet_width <= 4.0) {
+            return Err(bad(
+                "rootnet_width",
+                format!("{}: expected (0, 4]", self.rootnet_width),
+            ));
+        }
+        if self.max_people == 0 {
+            return Err(bad("max_people", "must be at least 1".into()));
+        }
+        let d = &self.decoder;
+        if d.dim == 0 || d.heads == 0 || !d.dim.is_multiple_of(d.heads) {
+            return Err(bad(
+                "decoder.dim",
+                format!(
+                    "{} must be a positive multiple of decoder.heads = {}",
+                    d.dim, d.heads
+                ),
+            ));
+        }
+        if d.pool == 0 {
+            return Err(bad("decoder.pool", "must be at least 1".into()));
+        }
+        Ok(())
+    }
+}

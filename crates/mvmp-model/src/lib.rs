@@ -1,0 +1,6 @@
+//! The assembled MVMP-HMR model and its configuration.
+pub mod config;
+pub mod model;
+
+pub use config::{ModelConfig, ModelConfigError};
+pub use model::{MvmpHmr, MvmpOutput, RigGrids};

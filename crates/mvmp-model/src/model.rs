@@ -1,0 +1,211 @@
+//! MVMP-HMR assembled (paper Fig. 2; DESIGN.md pipeline):
+//!
+//! ```text
+//! images [B, V, 3, S, S]
+//!  -> ViT -> 1x1 reduction -> features [B, V, Cf, S/14, S/14] -> fusion -> volume [B, Cf, X, Y, Z]
+//!  -> HRNet -> heatmaps [B, V, J, S/4, S/4] -> fusion (mean) -> heatmap volume [B, J, X, Y, Z]
+//!  -> RootNet -> likelihood [B, 1, X, Y, Z], offset [B, 3, X, Y, Z] -> NMS + top-K -> roots [B, K, 3]
+//!  -> decoder (queries, HTB, heads) -> 53 rotations, betas, expression, T_wld = root + offset
+//!  -> SMPL-X -> vertices [B, K, V, 3], joints [B, K, J, 3] (world metres)
+//! ```
+use burn::module::Module;
+use burn::nn::conv::{Conv2d, Conv2dConfig};
+use burn::tensor::{Bool, Device, Tensor, TensorData};
+
+use crate::ModelConfig;
+use mvmp_backbone::vit::PATCH;
+use mvmp_backbone::{HRNet, ViT};
+use mvmp_decoder::{Decoder, DecoderConfig};
+use mvmp_fusion::{
+    FusionMode, Root, RootNet, RootNetConfig, SamplingGrid, extract_roots, fuse_views,
+};
+use mvmp_geom::rotation::rot6d_to_matrix;
+use mvmp_geom::{Camera, Letterbox};
+use mvmp_smplx::names::NUM_REGRESSED;
+use mvmp_smplx::{SmplxLayer, Translation, regressed_to_full_pose};
+
+/// The trainable network.
+#[derive(Module, Debug)]
+pub struct MvmpHmr {
+    pub vit: ViT,
+    /// 1 x 1 channel reduction of the ViT features to C_f before projection.
+    pub reduce: Conv2d,
+    pub hrnet: HRNet,
+    pub rootnet: RootNet,
+    pub decoder: Decoder,
+}
+
+/// Sampling grids of one rig: for the ViT feature maps (stride 14) and the HRNet heatmaps (stride 4).
+#[derive(Debug, Clone)]
+pub struct RigGrids {
+    pub features: SamplingGrid,
+    pub heatmaps: SamplingGrid,
+}
+
+impl RigGrids {
+    pub fn new(
+        cfg: &ModelConfig,
+        cameras: &[Camera],
+        letterboxes: &[Letterbox],
+        device: &Device,
+    ) -> Self {
+        let s = cfg.image_size as usize;
+        let f = s / PATCH;
+        RigGrids {
+            features: SamplingGrid::new(
+                &cfg.grid,
+                cameras,
+                letterboxes,
+                PATCH as f64,
+                [f, f],
+                device,
+            ),
+            heatmaps: SamplingGrid::new(
+                &cfg.grid,
+                cameras,
+                letterboxes,
+                4.0,
+                [s / 4, s / 4],
+                device,
+            ),
+        }
+    }
+}
+
+/// Everything the forward produces (inputs of the losses and of inference).
+#[derive(Debug, Clone)]
+pub struct MvmpOutput {
+    /// `[B, V, J, S/4, S/4]`
+    pub heatmaps: Tensor<5>,
+    /// `[B, 1, X, Y, Z]` and `[B, 3, X, Y, Z]`
+    pub likelihood: Tensor<5>,
+    pub offset: Tensor<5>,
+    /// Detected roots per batch item (empty when roots were given).
+    pub detections: Vec<Vec<Root>>,
+    /// `[B, K, 3]` roots the people were decoded at, `[B, K]` which slots hold a person.
+    pub roots: Tensor<3>,
+    pub present: Tensor<2, Bool>,
+    /// `[B, K, 53, 6]`, `[B, K, 53, 3, 3]`
+    pub rot6d: Tensor<4>,
+    pub rotmats: Tensor<5>,
+    /// `[B, K, 10]` each
+    pub betas: Tensor<3>,
+    pub expression: Tensor<3>,
+    /// `[B, K, 3]` pelvis in the world (T_wld)
+    pub transl: Tensor<3>,
+    /// `[B, K, V, 3]`, `[B, K, J, 3]`
+    pub vertices: Tensor<4>,
+    pub joints: Tensor<4>,
+}
+
+impl ModelConfig {
+    pub fn init(&self, device: &Device) -> MvmpHmr {
+        let vit = self.vit();
+        MvmpHmr {
+            reduce: Conv2dConfig::new([vit.embed_dim, self.feature_channels], [1, 1]).init(device),
+            vit: vit.init(device),
+            hrnet: self.hrnet_config().init(device),
+            rootnet: RootNetConfig::new(self.heatmap_joints.len())
+                .with_width(self.rootnet_width)
+                .init(device),
+            decoder: DecoderConfig::new(self.feature_channels)
+                .with_dim(self.decoder.dim)
+                .with_depth(self.decoder.depth)
+                .with_heads(self.decoder.heads)
+                .with_pool(self.decoder.pool)
+                .with_use_htb(self.decoder.use_htb)
+                .init(device),
+        }
+    }
+}
+
+impl MvmpHmr {
+    /// Forward. `grids`: one [`RigGrids`] per batch item. `roots`: decode at these roots `[B, K, 3]` with
+    /// presence `[B, K]` (training with ground-truth roots); `None` detects them from the likelihood.
+    pub fn forward(
+        &self,
+        images: Tensor<5>,
+        grids: &[RigGrids],
+        cfg: &ModelConfig,
+        layer: &SmplxLayer,
+        roots: Option<(Tensor<3>, Tensor<2, Bool>)>,
+    ) -> MvmpOutput {
+        let [b, v, _, s, _] = images.dims();
+        let device = images.device();
+        let x = images.reshape([b * v, 3, s, s]);
+        let feats = self.reduce.forward(self.vit.forward(x.clone())); // [B*V, Cf, h, w]
+        let [_, cf, h, w] = feats.dims();
+        let feats = feats.reshape([b, v, cf, h, w]);
+        let hm = self.hrnet.forward(x); // [B*V, J, S/4, S/4]
+        let [_, j, hh, hw] = hm.dims();
+        let heatmaps = hm.reshape([b, v, j, hh, hw]);
+        let fgrids: Vec<SamplingGrid> = grids.iter().map(|g| g.features.clone()).collect();
+        let hgrids: Vec<SamplingGrid> = grids.iter().map(|g| g.heatmaps.clone()).collect();
+        let volume = fuse_views(feats, &fgrids, cfg.fusion);
+        let hvol = fuse_views(heatmaps.clone(), &hgrids, FusionMode::Mean);
+        let (likelihood, offset) = self.rootnet.forward(hvol);
+        let k = cfg.max_people;
+        let (roots, present, detections) = match roots {
+            Some((r, p)) => (r, p, Vec::new()),
+            None => {
+                let det = extract_roots(
+                    likelihood.clone().detach(),
+                    Some(offset.clone().detach()),
+                    &cfg.grid,
+                    k,
+                    cfg.root_threshold,
+                );
+                let mut r = vec![0f32; b * k * 3];
+                let mut p = vec![false; b * k];
+                for (bi, d) in det.iter().enumerate() {
+                    for (ki, root) in d.iter().enumerate().take(k) {
+                        p[bi * k + ki] = true;
+                        for a in 0..3 {
+                            r[(bi * k + ki) * 3 + a] = root.position[a] as f32;
+                        }
+                    }
+                }
+                (
+                    Tensor::from_data(TensorData::new(r, [b, k, 3]), &device),
+                    Tensor::from_data(TensorData::new(p, [b, k]), &device),
+                    det,
+                )
+            }
+        };
+        let kk = roots.dims()[1];
+        let dec = self
+            .decoder
+            .forward(volume, &cfg.grid, roots.clone(), present.clone());
+        let n = b * kk;
+        let rotmats = rot6d_to_matrix(dec.rot6d.clone().reshape([n * NUM_REGRESSED, 6])).reshape([
+            n,
+            NUM_REGRESSED,
+            3,
+            3,
+        ]);
+        let body = layer.forward(
+            regressed_to_full_pose(rotmats.clone()),
+            dec.betas.clone().reshape([n, 10]),
+            dec.expression.clone().reshape([n, 10]),
+            dec.transl.clone().reshape([n, 3]),
+            Translation::Pelvis,
+        );
+        let nv = layer.num_vertices();
+        let nj = layer.num_joints();
+        MvmpOutput {
+            heatmaps,
+            likelihood,
+            offset,
+            detections,
+            roots,
+            present,
+            rot6d: dec.rot6d,
+            rotmats: rotmats.reshape([b, kk, NUM_REGRESSED, 3, 3]),
+            betas: dec.betas,
+            expression: dec.expression,
+            transl: dec.transl,
+            vertices: body.vertices.reshape([b, kk, nv, 3]),
+            joints: body.joints.reshape([b, kk, nj, 3]),
+        }
+    }
+}

@@ -1,0 +1,150 @@
+//! The assembled model: every shipped config validates; forward shapes with detected and given roots;
+//! a loss on the outputs reaches every trainable parameter.
+use std::path::Path;
+
+use burn::module::{Module, ModuleVisitor, Param};
+use burn::tensor::{Bool, Device, Tensor, TensorData};
+use mvmp_geom::{Camera, Letterbox, VoxelGrid};
+use mvmp_model::{ModelConfig, RigGrids};
+use mvmp_smplx::{SmplxLayer, standin_model};
+use nalgebra::{Matrix3, Vector3};
+
+fn configs_dir() -> std::path::PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/model")
+}
+
+#[test]
+fn every_shipped_config_validates() {
+    let mut n = 0;
+    for dir in [configs_dir(), configs_dir().join("ablations")] {
+        for e in std::fs::read_dir(&dir).unwrap() {
+            let p = e.unwrap().path();
+            if p.extension().is_some_and(|x| x == "toml") {
+                ModelConfig::read(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+                n += 1;
+            }
+        }
+    }
+    assert!(n >= 8, "{n} configs");
+    let mut bad = ModelConfig::default();
+    bad.grid.shape = [30, 30, 6];
+    assert!(
+        bad.validate()
+            .unwrap_err()
+            .to_string()
+            .contains("grid.shape")
+    );
+}
+
+fn small_config() -> ModelConfig {
+    let mut c = ModelConfig::read(&configs_dir().join("tiny.toml")).unwrap();
+    c.image_size = 64;
+    c.grid = VoxelGrid::new([0.0, 0.0, 1.0], [4.0, 4.0, 2.0], [16, 16, 4]).unwrap();
+    c.max_people = 3;
+    c.decoder.dim = 32;
+    c.rootnet_width = 0.25;
+    c
+}
+
+fn rig() -> Vec<Camera> {
+    (0..2)
+        .map(|i| {
+            let a = i as f64 * 1.7;
+            let pos = Vector3::new(6.0 * a.cos(), 6.0 * a.sin(), 2.5);
+            let z = (Vector3::new(0.0, 0.0, 1.0) - pos).normalize();
+            let x = z.cross(&Vector3::z()).normalize();
+            let y = z.cross(&x);
+            let r = Matrix3::from_rows(&[x.transpose(), y.transpose(), z.transpose()]);
+            let k = Matrix3::new(120.0, 0.0, 79.5, 0.0, 120.0, 59.5, 0.0, 0.0, 1.0);
+            Camera::new(format!("{i}"), k, r, -(r * pos), [0.0; 5], 160, 120).unwrap()
+        })
+        .collect()
+}
+
+fn images(d: &Device) -> Tensor<5> {
+    let v: Vec<f32> = (0..2 * 3 * 64 * 64)
+        .map(|i| ((i * 31) % 97) as f32 / 97.0 - 0.5)
+        .collect();
+    Tensor::from_data(TensorData::new(v, [1, 2, 3, 64, 64]), d)
+}
+
+#[test]
+fn forward_shapes_with_detected_and_given_roots() {
+    let d = Device::flex();
+    let cfg = small_config();
+    let net = cfg.init(&d);
+    let layer = SmplxLayer::new(&standin_model(0), &d);
+    let cams = rig();
+    let lbs: Vec<Letterbox> = cams
+        .iter()
+        .map(|c| Letterbox::new(c.width, c.height, 64).unwrap())
+        .collect();
+    let grids = vec![RigGrids::new(&cfg, &cams, &lbs, &d)];
+    let out = net.forward(images(&d), &grids, &cfg, &layer, None);
+    assert_eq!(out.heatmaps.dims(), [1, 2, 17, 16, 16]);
+    assert_eq!(out.likelihood.dims(), [1, 1, 16, 16, 4]);
+    assert_eq!(out.vertices.dims(), [1, 3, 10475, 3]);
+    assert_eq!(out.joints.dims(), [1, 3, 127, 3]);
+    assert_eq!(out.detections.len(), 1);
+    let roots = Tensor::<3>::from_data(
+        TensorData::new(vec![0.5f32, 0.2, 0.9, -1.0, 1.0, 1.0], [1, 2, 3]),
+        &d,
+    );
+    let present = Tensor::<2, Bool>::from_data(TensorData::new(vec![true, false], [1, 2]), &d);
+    let out = net.forward(images(&d), &grids, &cfg, &layer, Some((roots, present)));
+    assert_eq!(out.rotmats.dims(), [1, 2, 53, 3, 3]);
+    assert_eq!(out.transl.dims(), [1, 2, 3]);
+}
+
+#[test]
+fn a_loss_reaches_every_trainable_parameter() {
+    let d = Device::flex().autodiff();
+    let cfg = small_config();
+    let net = cfg.init(&d);
+    let layer = SmplxLayer::new(&standin_model(0), &d);
+    let cams = rig();
+    let lbs: Vec<Letterbox> = cams
+        .iter()
+        .map(|c| Letterbox::new(c.width, c.height, 64).unwrap())
+        .collect();
+    let grids = vec![RigGrids::new(&cfg, &cams, &lbs, &d)];
+    let roots = Tensor::<3>::from_data(
+        TensorData::new(vec![0.5f32, 0.2, 0.9, -1.0, 1.0, 1.0], [1, 2, 3]),
+        &d,
+    );
+    let present = Tensor::<2, Bool>::from_data(TensorData::new(vec![true, true], [1, 2]), &d);
+    let out = net.forward(images(&d), &grids, &cfg, &layer, Some((roots, present)));
+    let loss = out.likelihood.powi_scalar(2).sum() * 1e3
+        + out.offset.abs().sum()
+        + out.heatmaps.powi_scalar(2).sum()
+        + out.vertices.abs().mean()
+        + out.betas.abs().sum()
+        + out.expression.abs().sum();
+    let grads = loss.backward();
+    struct Check<'a>(&'a burn::tensor::Gradients, Vec<Vec<usize>>, usize);
+    impl ModuleVisitor for Check<'_> {
+        fn visit_float<const D: usize>(&mut self, p: &Param<Tensor<D>>) {
+            if !p.is_require_grad() {
+                return;
+            }
+            self.2 += 1;
+            let ok = p
+                .val()
+                .grad(self.0)
+                .is_some_and(|g| g.abs().sum().into_scalar::<f32>() > 0.0);
+            if !ok {
+                self.1.push(p.val().dims().to_vec());
+            }
+        }
+    }
+    let mut c = Check(&grads, Vec::new(), 0);
+    net.visit(&mut c);
+    assert!(c.2 > 150, "{} parameters", c.2);
+    assert!(
+        c.1.is_empty(),
+        "{} of {} parameters without gradient: {:?}",
+        c.1.len(),
+        c.2,
+        c.1
+    );
+}
