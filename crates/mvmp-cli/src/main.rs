@@ -7,6 +7,7 @@ use clap::{Parser, Subcommand};
 mod body;
 mod data;
 mod device;
+mod model;
 
 #[derive(Parser)]
 #[command(
@@ -30,9 +31,25 @@ enum Command {
     /// Datasets: synthesis, statistics, validation.
     #[command(subcommand)]
     Data(DataCommand),
+    /// The MVMP-HMR model: summaries.
+    #[command(subcommand)]
+    Model(ModelCommand),
     /// Benchmarks.
     #[command(subcommand)]
     Bench(BenchCommand),
+}
+
+#[derive(Subcommand)]
+enum ModelCommand {
+    /// Parameters per module (count and MB), the largest activations and the MACs of one forward.
+    Summary {
+        /// Model config (TOML), e.g. configs/model/paper.toml.
+        #[arg(long)]
+        config: PathBuf,
+        /// Views per sample.
+        #[arg(long, default_value_t = 5)]
+        views: usize,
+    },
 }
 
 #[derive(Subcommand)]
@@ -118,6 +135,15 @@ enum BenchCommand {
         #[arg(long, default_value_t = 20)]
         iters: usize,
     },
+    /// Per-stage forward times of a model config (batch 1) and the fraction of GEMM speed each reaches.
+    Model {
+        #[arg(long)]
+        config: PathBuf,
+        #[arg(long, default_value_t = 4)]
+        views: usize,
+        #[arg(long, default_value_t = 3)]
+        iters: usize,
+    },
 }
 
 fn main() -> ExitCode {
@@ -156,6 +182,12 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             data::stats(&dir, json, sheet.as_deref())
         }
         Command::Data(DataCommand::Check { format, dir }) => data::check(&format, &dir),
+        Command::Model(ModelCommand::Summary { config, views }) => model::summary(&config, views),
+        Command::Bench(BenchCommand::Model {
+            config,
+            views,
+            iters,
+        }) => model::bench(&config, views, iters, &device),
         Command::Bench(BenchCommand::Smplx {
             batch,
             model,

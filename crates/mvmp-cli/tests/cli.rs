@@ -193,3 +193,134 @@ fn make_standin_then_use_it() {
     let bg = img.get_pixel(0, 0);
     assert!(img.pixels().filter(|p| *p != bg).count() > 200);
 }
+
+fn config(rel: &str) -> String {
+    format!("{}/../../configs/{rel}", env!("CARGO_MANIFEST_DIR"))
+}
+
+#[test]
+fn model_summary_and_bench_run_and_reject_bad_configs() {
+    let o = mvmp(&[
+        "model",
+        "summary",
+        "--config",
+        &config("model/tiny.toml"),
+        "--views",
+        "2",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = String::from_utf8_lossy(&o.stdout);
+    for needle in [
+        "vit",
+        "hrnet",
+        "rootnet",
+        "decoder",
+        "total",
+        "fused volume",
+    ] {
+        assert!(out.contains(needle), "{needle} missing from {out}");
+    }
+    let o = mvmp(&[
+        "bench",
+        "model",
+        "--config",
+        &config("model/tiny.toml"),
+        "--views",
+        "2",
+        "--iters",
+        "1",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("% of GEMM"));
+    let dir = tempfile::tempdir().unwrap();
+    let bad = dir.path().join("bad.toml");
+    std::fs::write(&bad, "image_size = 224\nbackbone = \"vit_huge\"\n").unwrap();
+    expect_error(
+        &["model", "summary", "--config", bad.to_str().unwrap()],
+        &["backbone", "vit_huge"],
+    );
+    std::fs::write(&bad, "image_sise = 224\n").unwrap();
+    expect_error(
+        &["model", "summary", "--config", bad.to_str().unwrap()],
+        &["bad.toml", "image_sise"],
+    );
+    expect_error(
+        &[
+            "model",
+            "summary",
+            "--config",
+            &dir.path().join("none.toml").to_string_lossy(),
+        ],
+        &["none.toml"],
+    );
+}
+
+#[test]
+fn data_synth_stats_check_end_to_end() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("s.toml");
+    std::fs::write(
+        &cfg,
+        "scenes = 2\nframes_per_scene = 1\npeople = [2, 3]\narea = [4.0, 4.0]\nimage_size = [96, 64]\n[cameras]\ncount = 2\nrings = [{ height = 2.5, radius = 6.0 }]\n",
+    )
+    .unwrap();
+    let out = dir.path().join("ds");
+    let o = mvmp(&[
+        "data",
+        "synth",
+        "--config",
+        cfg.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let o = mvmp(&["data", "stats", out.to_str().unwrap(), "--json"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(j["scenes"], 2);
+    assert_eq!(j["frames"], 2);
+    assert_eq!(j["views"], 2);
+    for k in ["people_per_frame", "occlusion_mean", "visible_views_mean"] {
+        assert!(!j[k].is_null(), "{k}");
+    }
+    let sheet = dir.path().join("sheet.png");
+    let o = mvmp(&[
+        "data",
+        "stats",
+        out.to_str().unwrap(),
+        "--sheet",
+        sheet.to_str().unwrap(),
+    ]);
+    assert!(o.status.success() && sheet.exists(), "{}", stderr(&o));
+    let o = mvmp(&["data", "check", "--format", "mvmp", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    std::fs::remove_file(out.join("scene_001/frame_000000/view_00.png")).unwrap();
+    let o = mvmp(&["data", "check", "--format", "mvmp", out.to_str().unwrap()]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stdout).contains("scene_001/frame_000000/view_00.png"));
+    // A second synth into a non-empty directory is refused; a bad config names the key.
+    expect_error(
+        &[
+            "data",
+            "synth",
+            "--config",
+            cfg.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        &["not empty"],
+    );
+    std::fs::write(&cfg, "people = [5, 2]\n").unwrap();
+    expect_error(
+        &[
+            "data",
+            "synth",
+            "--config",
+            cfg.to_str().unwrap(),
+            "--out",
+            &dir.path().join("x").to_string_lossy(),
+        ],
+        &["people", "[5, 2]"],
+    );
+    assert!(!dir.path().join("x").exists());
+}

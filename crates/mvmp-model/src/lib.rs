@@ -1,6 +1,7 @@
 //! The assembled MVMP-HMR model and its configuration.
 pub mod config;
 pub mod model;
+pub mod summary;
 
 pub use config::{ModelConfig, ModelConfigError};
 pub use model::{MvmpHmr, MvmpOutput, RigGrids};

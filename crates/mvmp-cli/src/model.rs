@@ -1,0 +1,214 @@
+//! `mvmp model summary` and `mvmp bench model`.
+use std::path::Path;
+use std::time::Instant;
+
+use anyhow::{Result, bail};
+use burn::tensor::{Bool, Device, Tensor, TensorData};
+use nalgebra::Vector3;
+
+use mvmp_data::synth::look_at;
+use mvmp_fusion::{FusionMode, extract_roots, fuse_views};
+use mvmp_geom::Letterbox;
+use mvmp_model::summary::summarize;
+use mvmp_model::{ModelConfig, RigGrids};
+use mvmp_smplx::{SmplxLayer, Translation, regressed_to_full_pose};
+
+/// flex's measured float32 GEMM speed on the 2-core development machine (GFLOP/s, 1024^3).
+const FLEX_GEMM_GFLOPS: f64 = 161.0;
+
+pub fn summary(config: &Path, views: usize) -> Result<()> {
+    let cfg = ModelConfig::read(config)?;
+    if views == 0 {
+        bail!("--views must be at least 1");
+    }
+    // An autodiff device tells trainable parameters from running statistics.
+    let s = summarize(&cfg, views, &Device::flex().autodiff());
+    println!(
+        "model {} ({} views, batch 1, {} x {} input)",
+        config.display(),
+        views,
+        cfg.image_size,
+        cfg.image_size
+    );
+    println!(
+        "{:<10} {:>14} {:>12} {:>14}",
+        "module", "parameters", "stored MB", "GMAC/forward"
+    );
+    let (mut tp, mut tb, mut tm) = (0, 0, 0.0);
+    for r in &s.rows {
+        println!(
+            "{:<10} {:>14} {:>12.1} {:>14.2}",
+            r.name,
+            r.params,
+            r.stored_bytes as f64 / 1e6,
+            r.macs / 1e9
+        );
+        tp += r.params;
+        tb += r.stored_bytes;
+        tm += r.macs;
+    }
+    println!(
+        "{:<10} {:>14} {:>12.1} {:>14.2}",
+        "total",
+        tp,
+        tb as f64 / 1e6,
+        tm / 1e9
+    );
+    println!("largest activations (float32):");
+    for (name, bytes) in &s.activations {
+        println!("  {:<52} {:>10.1} MB", name, *bytes as f64 / 1e6);
+    }
+    Ok(())
+}
+
+fn sync<const D: usize>(t: &Tensor<D>) {
+    let _ = t.clone().sum().into_scalar::<f32>();
+}
+
+fn time<const D: usize>(iters: usize, mut f: impl FnMut() -> Tensor<D>) -> (Tensor<D>, f64) {
+    let mut out = f();
+    sync(&out);
+    let mut times = Vec::with_capacity(iters);
+    for _ in 0..iters {
+        let t0 = Instant::now();
+        out = f();
+        sync(&out);
+        times.push(t0.elapsed().as_secs_f64());
+    }
+    times.sort_by(f64::total_cmp);
+    (out, times[times.len() / 2])
+}
+
+pub fn bench(config: &Path, views: usize, iters: usize, device: &Device) -> Result<()> {
+    let cfg = ModelConfig::read(config)?;
+    if views == 0 || iters == 0 {
+        bail!("--views and --iters must be at least 1");
+    }
+    let net = cfg.init(device);
+    let layer = SmplxLayer::new(&mvmp_smplx::standin_model(0), device);
+    let s = cfg.image_size;
+    let g = &cfg.grid;
+    let cams: Vec<_> = (0..views)
+        .map(|i| {
+            let a = i as f64 / views as f64 * std::f64::consts::TAU;
+            let r = 0.75 * g.size[0].max(g.size[1]);
+            look_at(
+                format!("cam{i}"),
+                Vector3::new(g.center[0] + r * a.cos(), g.center[1] + r * a.sin(), 3.0),
+                Vector3::new(g.center[0], g.center[1], 1.0),
+                60.0,
+                0.0,
+                [1920, 1080],
+                [0.0, 0.0],
+            )
+        })
+        .collect::<Result<_, _>>()?;
+    let lbs: Vec<Letterbox> = cams
+        .iter()
+        .map(|_| Letterbox::new(1920, 1080, s))
+        .collect::<Result<_, _>>()?;
+    let t0 = Instant::now();
+    let grids = [RigGrids::new(&cfg, &cams, &lbs, device)];
+    sync(&grids[0].features.grid);
+    let t_grids = t0.elapsed().as_secs_f64();
+    let n = views * 3 * (s * s) as usize;
+    let img: Vec<f32> = (0..n)
+        .map(|i| ((i * 7919) % 255) as f32 / 255.0 - 0.5)
+        .collect();
+    let x = Tensor::<4>::from_data(
+        TensorData::new(img, [views, 3, s as usize, s as usize]),
+        device,
+    );
+    let sm = summarize(&cfg, views, &Device::flex().autodiff());
+    let macs = |name: &str| {
+        sm.rows
+            .iter()
+            .find(|r| r.name == name)
+            .map_or(0.0, |r| r.macs)
+    };
+    let mut rows: Vec<(&str, f64, f64)> = Vec::new();
+    let (feats, t) = time(iters, || net.reduce.forward(net.vit.forward(x.clone())));
+    rows.push(("vit+reduce", t, macs("vit") + macs("reduce")));
+    let (hm, t) = time(iters, || net.hrnet.forward(x.clone()));
+    rows.push(("hrnet", t, macs("hrnet")));
+    let [_, cf, h, w] = feats.dims();
+    let feats = feats.reshape([1, views, cf, h, w]);
+    let [_, j, hh, hw] = hm.dims();
+    let hm = hm.reshape([1, views, j, hh, hw]);
+    let fg = vec![grids[0].features.clone()];
+    let hg = vec![grids[0].heatmaps.clone()];
+    let (vol, t1) = time(iters, || fuse_views(feats.clone(), &fg, cfg.fusion));
+    let (hvol, t2) = time(iters, || fuse_views(hm.clone(), &hg, FusionMode::Mean));
+    rows.push(("fusion", t1 + t2, macs("fusion")));
+    let (lik, t) = time(iters, || net.rootnet.forward(hvol.clone()).0);
+    rows.push(("rootnet", t, macs("rootnet")));
+    let k = cfg.max_people;
+    let t0 = Instant::now();
+    let _ = extract_roots(lik, None, g, k, f32::MIN);
+    rows.push(("roots", t0.elapsed().as_secs_f64(), 0.0));
+    let roots: Vec<f32> = (0..k)
+        .flat_map(|i| {
+            let a = i as f64 * 2.4;
+            [
+                (g.center[0] + a.cos()) as f32,
+                (g.center[1] + a.sin()) as f32,
+                0.9,
+            ]
+        })
+        .collect();
+    let roots = Tensor::<3>::from_data(TensorData::new(roots, [1, k, 3]), device);
+    let present = Tensor::<2, Bool>::from_data(TensorData::new(vec![true; k], [1, k]), device);
+    let (rot, t) = time(iters, || {
+        net.decoder
+            .forward(vol.clone(), g, roots.clone(), present.clone())
+            .rot6d
+    });
+    rows.push(("decoder", t, macs("decoder")));
+    let rotm =
+        mvmp_geom::rotation::rot6d_to_matrix(rot.reshape([k * 53, 6])).reshape([k, 53, 3, 3]);
+    let (_, t) = time(iters, || {
+        layer
+            .forward(
+                regressed_to_full_pose(rotm.clone()),
+                Tensor::zeros([k, 10], device),
+                Tensor::zeros([k, 10], device),
+                Tensor::zeros([k, 3], device),
+                Translation::Pelvis,
+            )
+            .vertices
+    });
+    rows.push(("smplx", t, macs("smplx")));
+    println!(
+        "model {} on {:?}: {} views, {} x {} input, {} people, median of {} runs",
+        config.display(),
+        device,
+        views,
+        s,
+        s,
+        k,
+        iters
+    );
+    println!("sampling grids (once per rig): {:.1} ms", t_grids * 1e3);
+    println!(
+        "{:<11} {:>10} {:>10} {:>12}",
+        "stage", "ms", "GFLOP/s", "% of GEMM"
+    );
+    let mut total = 0.0;
+    for (name, t, m) in &rows {
+        let gflops = 2.0 * m / t / 1e9;
+        let pct = if *m > 0.0 {
+            format!("{:.0}%", 100.0 * gflops / FLEX_GEMM_GFLOPS)
+        } else {
+            "-".into()
+        };
+        let gf = if *m > 0.0 {
+            format!("{gflops:.1}")
+        } else {
+            "-".into()
+        };
+        println!("{:<11} {:>10.1} {:>10} {:>12}", name, t * 1e3, gf, pct);
+        total += t;
+    }
+    println!("{:<11} {:>10.1}", "total", total * 1e3);
+    Ok(())
+}

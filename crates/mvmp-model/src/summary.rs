@@ -1,0 +1,203 @@
+//! `mvmp model summary`: parameters per module, the main activations and the multiply-accumulates of one
+//! forward, computed from the configuration (the formulas follow each module's structure).
+use burn::module::{Module, ModuleVisitor, Param};
+use burn::tensor::{Device, Tensor};
+
+use crate::ModelConfig;
+use mvmp_backbone::vit::PATCH;
+
+/// One row of the summary.
+#[derive(Debug, Clone)]
+pub struct Row {
+    pub name: &'static str,
+    /// Trainable parameters.
+    pub params: usize,
+    /// Everything stored in a checkpoint (parameters and running statistics), float32 bytes.
+    pub stored_bytes: usize,
+    /// Multiply-accumulates of one forward (batch 1, `views` views).
+    pub macs: f64,
+}
+
+#[derive(Debug, Clone)]
+pub struct Summary {
+    pub rows: Vec<Row>,
+    /// (tensor, float32 bytes) of the largest activations of one forward.
+    pub activations: Vec<(String, usize)>,
+}
+
+struct Count {
+    trainable: usize,
+    all: usize,
+}
+
+impl ModuleVisitor for Count {
+    fn visit_float<const D: usize>(&mut self, p: &Param<Tensor<D>>) {
+        let n = p.lazy_shape().num_elements();
+        self.all += n;
+        if p.is_require_grad() {
+            self.trainable += n;
+        }
+    }
+}
+
+fn count<M: Module>(m: &M) -> (usize, usize) {
+    let mut c = Count {
+        trainable: 0,
+        all: 0,
+    };
+    m.visit(&mut c);
+    (c.trainable, c.all * 4)
+}
+
+fn conv_macs(ci: usize, co: usize, k: usize, out_pixels: f64) -> f64 {
+    (ci * co * k * k) as f64 * out_pixels
+}
+
+/// HRNet multiply-accumulates for an `s x s` input, following [`mvmp_backbone::HRNetConfig`]'s structure.
+fn hrnet_macs(cfg: &ModelConfig) -> f64 {
+    let h = cfg.hrnet_config();
+    let s = cfg.image_size as f64;
+    let px = |stride: f64| (s / stride).ceil().powi(2);
+    let mut m = conv_macs(3, h.stem, 3, px(2.0)) + conv_macs(h.stem, h.stem, 3, px(4.0));
+    let l1 = h.planes * 4;
+    for i in 0..4 {
+        let ci = if i == 0 { h.stem } else { l1 };
+        m += conv_macs(ci, h.planes, 1, px(4.0)) + conv_macs(h.planes, h.planes, 3, px(4.0));
+        m += conv_macs(h.planes, l1, 1, px(4.0));
+        if ci != l1 {
+            m += conv_macs(ci, l1, 1, px(4.0));
+        }
+    }
+    let w = [h.width, 2 * h.width, 4 * h.width, 8 * h.width];
+    let stride = |b: usize| 4.0 * (1 << b) as f64;
+    // Transitions.
+    m += conv_macs(l1, w[0], 3, px(4.0)) + conv_macs(l1, w[1], 3, px(8.0));
+    m += conv_macs(w[1], w[2], 3, px(16.0)) + conv_macs(w[2], w[3], 3, px(32.0));
+    for (st, &modules) in h.modules.iter().enumerate() {
+        let nb = st + 2;
+        for md in 0..modules {
+            for (b, &wb) in w.iter().enumerate().take(nb) {
+                m += (h.blocks * 2) as f64 * conv_macs(wb, wb, 3, px(stride(b)));
+            }
+            let outputs = if st == 2 && md == modules - 1 { 1 } else { nb };
+            for i in 0..outputs {
+                for j in 0..nb {
+                    if j > i {
+                        m += conv_macs(w[j], w[i], 1, px(stride(j)));
+                    } else if j < i {
+                        for k in 0..i - j {
+                            let co = if k == i - j - 1 { w[i] } else { w[j] };
+                            m += conv_macs(w[j], co, 3, px(stride(j + k + 1)));
+                        }
+                    }
+                }
+            }
+        }
+    }
+    m + conv_macs(w[0], cfg.heatmap_joints.len(), 1, px(4.0))
+}
+
+fn v2v_macs(cfg: &ModelConfig) -> f64 {
+    let p = cfg.grid.num_voxels() as f64;
+    let w = [16.0, 32.0, 64.0, 128.0].map(|c: f64| (c * cfg.rootnet_width).round().max(2.0));
+    let j = cfg.heatmap_joints.len() as f64;
+    let res = |ci: f64, co: f64, vox: f64| {
+        (ci * co * 27.0 + co * co * 27.0 + if ci != co { ci * co } else { 0.0 }) * vox
+    };
+    j * w[0] * 343.0 * p
+        + res(w[0], w[1], p)
+        + res(w[1], w[1], p)
+        + res(w[1], w[2], p / 8.0)
+        + res(w[2], w[2], p / 8.0)
+        + res(w[2], w[3], p / 64.0)
+        + 2.0 * res(w[3], w[3], p / 64.0)
+        + w[3] * w[2] * 8.0 * p / 8.0
+        + res(w[2], w[2], p / 8.0)
+        + w[2] * w[1] * 8.0 * p
+        + w[1] * 4.0 * p
+}
+
+/// Summarise a configuration with `views` views (batch 1). Builds the model on `device`.
+pub fn summarize(cfg: &ModelConfig, views: usize, device: &Device) -> Summary {
+    let net = cfg.init(device);
+    let vit = cfg.vit();
+    let s = cfg.image_size as usize;
+    let v = views as f64;
+    let n = ((s / PATCH) * (s / PATCH)) as f64 + 1.0;
+    let c = vit.embed_dim as f64;
+    let hidden = c * vit.mlp_ratio;
+    let vit_macs = v
+        * ((3 * PATCH * PATCH) as f64 * c * (n - 1.0)
+            + vit.depth as f64 * (n * (4.0 * c * c + 2.0 * c * hidden) + 2.0 * n * n * c));
+    let p = cfg.grid.num_voxels() as f64;
+    let cf = cfg.feature_channels as f64;
+    let j = cfg.heatmap_joints.len() as f64;
+    // Bilinear sampling: 4 taps per channel, voxel and view.
+    let fusion_macs = v * p * 4.0 * (cf + j);
+    let d = cfg.decoder.dim as f64;
+    let k = cfg.max_people as f64;
+    let pool = cfg.decoder.pool as f64;
+    let tokens = p
+        / (pool
+            * pool
+            * if cfg.grid.shape[2].is_multiple_of(cfg.decoder.pool) {
+                pool
+            } else {
+                1.0
+            });
+    let dec_macs = tokens * cf * d
+        + if cfg.decoder.use_htb {
+            cfg.decoder.depth as f64
+                * (8.0 * k * d * d + 2.0 * tokens * d * d + 2.0 * k * tokens * d + 8.0 * k * d * d)
+        } else {
+            k * d * d * 2.0
+        };
+    let smplx_macs = k * (486.0 * 31425.0 + 12.0 * 55.0 * 10475.0 + 20.0 * 31425.0);
+    let rows = vec![
+        ("vit", count(&net.vit), vit_macs),
+        ("reduce", count(&net.reduce), v * (c * cf) * (n - 1.0)),
+        ("hrnet", count(&net.hrnet), v * hrnet_macs(cfg)),
+        ("fusion", (0, 0), fusion_macs),
+        ("rootnet", count(&net.rootnet), v2v_macs(cfg)),
+        ("decoder", count(&net.decoder), dec_macs),
+        ("smplx", (0, 0), smplx_macs),
+    ]
+    .into_iter()
+    .map(|(name, (params, stored_bytes), macs)| Row {
+        name,
+        params,
+        stored_bytes,
+        macs,
+    })
+    .collect();
+    let b = |x: f64| (x * 4.0) as usize;
+    let hs = (s / 4) as f64;
+    let v2v_w0 = (16.0 * cfg.rootnet_width).round().max(2.0);
+    let activations = vec![
+        (
+            "images [V, 3, S, S]".to_string(),
+            b(v * 3.0 * (s * s) as f64),
+        ),
+        ("ViT tokens of one block [V, N, C]".into(), b(v * n * c)),
+        (
+            "ViT attention of one block [V, heads, N, N]".into(),
+            b(v * vit.heads as f64 * n * n),
+        ),
+        ("features [V, Cf, S/14, S/14]".into(), b(v * cf * (n - 1.0))),
+        ("heatmaps [V, J, S/4, S/4]".into(), b(v * j * hs * hs)),
+        ("fused volume [Cf, X, Y, Z]".into(), b(cf * p)),
+        ("heatmap volume [J, X, Y, Z]".into(), b(j * p)),
+        ("V2V first activation [16w, X, Y, Z]".into(), b(v2v_w0 * p)),
+        (
+            "V2V 7^3 input patches (im2col, if the conv unfolds)".into(),
+            b(j * 343.0 * p),
+        ),
+        ("decoder tokens [P/pool^3, D]".into(), b(tokens * d)),
+        (
+            "cross-attention weights [heads, K, P/pool^3]".into(),
+            b(cfg.decoder.heads as f64 * k * tokens),
+        ),
+        ("meshes [K, 10475, 3]".into(), b(k * 10475.0 * 3.0)),
+    ];
+    Summary { rows, activations }
+}
