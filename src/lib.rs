@@ -7,5 +7,6 @@ pub use mvmp_data as data;
 pub use mvmp_decoder as decoder;
 pub use mvmp_fusion as fusion;
 pub use mvmp_geom as geom;
+pub use mvmp_losses as losses;
 pub use mvmp_model as model;
 pub use mvmp_smplx as smplx;

@@ -1,0 +1,164 @@
+//! The five MVMP-HMR losses (paper Sec. 3.5; DESIGN.md):
+//! `L = L_D + w_P L_P + L_mesh + w_O L_O + w_den L_denj3d`, `L_mesh = w_3D L_3D + mean_v L_2D`, paper
+//! weights `w_P = 10`, `w_O = 5`, `w_den = 1`, `w_3D = 100`.
+//!
+//! People are compared pairwise: predictions are already matched to ground truth and padded to `[B, K]`,
+//! with a mask that is 1 where a pair exists. Every L1/MSE term is the mean over the elements of the valid
+//! pairs (a person with many vertices does not outweigh one with few joints). Units: metres for 3D terms,
+//! network pixels for 2D terms, voxel units for the root offset.
+use burn::tensor::{Device, Int, Tensor, TensorData};
+
+use mvmp_geom::CameraTensors;
+
+/// Mean of `err` `[B, K, ...]` over the elements of pairs where `mask` `[B, K]` is 1.
+fn masked_mean<const D: usize>(err: Tensor<D>, mask: Tensor<2>) -> Tensor<1> {
+    let dims = err.dims();
+    let (b, k) = (dims[0], dims[1]);
+    let per: usize = dims[2..].iter().product();
+    let e = err.reshape([b, k, per]).sum_dim(2).reshape([b, k]);
+    let n = mask.clone().sum().clamp_min(1.0) * per as f32;
+    (e * mask).sum() / n
+}
+
+/// Detection loss: MSE between the root likelihood `[B, 1, X, Y, Z]` and its Gaussian target, plus L1 between
+/// the predicted offset `[B, 3, X, Y, Z]` at each ground-truth root's voxel (`voxels` `[B, R]` flat indices)
+/// and the root's sub-voxel offset `[B, R, 3]`, over valid roots (`mask` `[B, R]`).
+pub fn detection_loss(
+    likelihood: Tensor<5>,
+    target: Tensor<5>,
+    offset: Tensor<5>,
+    voxels: Tensor<2, Int>,
+    gt_offset: Tensor<3>,
+    mask: Tensor<2>,
+) -> Tensor<1> {
+    let mse = (likelihood - target).powi_scalar(2).mean();
+    let [b, _, x, y, z] = offset.dims();
+    let flat = offset.reshape([b, 3, x * y * z]);
+    let idx = voxels.unsqueeze_dim::<3>(1).repeat_dim(1, 3); // [B, 3, R]
+    let picked = flat.gather(2, idx).swap_dims(1, 2); // [B, R, 3]
+    mse + masked_mean((picked - gt_offset).abs(), mask)
+}
+
+/// Parameter loss: L1 on the rotation matrices of the 53 regressed joints `[B, K, 53, 3, 3]`, on betas and on
+/// expression `[B, K, 10]`, each a mean over elements, summed.
+pub fn parameter_loss(
+    rot: Tensor<5>,
+    gt_rot: Tensor<5>,
+    betas: Tensor<3>,
+    gt_betas: Tensor<3>,
+    expression: Tensor<3>,
+    gt_expression: Tensor<3>,
+    mask: Tensor<2>,
+) -> Tensor<1> {
+    masked_mean((rot - gt_rot).abs(), mask.clone())
+        + masked_mean((betas - gt_betas).abs(), mask.clone())
+        + masked_mean((expression - gt_expression).abs(), mask)
+}
+
+/// 3D mesh loss: L1 on points `[B, K, N, 3]` (joints and vertices, world metres).
+pub fn mesh_3d_loss(points: Tensor<4>, gt: Tensor<4>, mask: Tensor<2>) -> Tensor<1> {
+    masked_mean((points - gt).abs(), mask)
+}
+
+/// 2D mesh loss of one view: predicted world points `[B, K, N, 3]` projected with each sample's camera
+/// (with its letterbox, into network pixels of an `S x S` input), L1 against ground-truth pixels
+/// `[B, K, N, 2]`, counting only ground-truth points inside the image (`0 <= u, v < S`) of valid pairs.
+pub fn mesh_2d_loss(
+    points: Tensor<4>,
+    gt_uv: Tensor<4>,
+    cameras: &[CameraTensors],
+    size: f32,
+    mask: Tensor<2>,
+) -> Tensor<1> {
+    let [b, k, n, _] = points.dims();
+    let uv: Vec<Tensor<3>> = (0..b)
+        .map(|bi| {
+            let p = points.clone().narrow(0, bi, 1).reshape([k * n, 3]);
+            cameras[bi].project(p).uv.reshape([1, k * n, 2])
+        })
+        .collect();
+    let uv = Tensor::cat(uv, 0).reshape([b, k, n, 2]);
+    let ok = gt_uv
+        .clone()
+        .greater_equal_elem(0.0)
+        .bool_and(gt_uv.clone().lower_elem(size))
+        .float(); // [B, K, N, 2]
+    let inside = ok.clone().narrow(3, 0, 1) * ok.narrow(3, 1, 1); // [B, K, N, 1]
+    let w = inside * mask.clone().reshape([b, k, 1, 1]);
+    let err = ((uv - gt_uv).abs() * w.clone()).sum();
+    err / (w.sum() * 2.0).clamp_min(1.0)
+}
+
+/// The orientation vector `O = (J_lhip - J_rhip) x (J_spine1 - J_pelvis)` of joints `[B, K, J, 3]` in SMPL-X
+/// order (pelvis 0, left hip 1, right hip 2, spine1 3): `[B, K, 3]`.
+pub fn orientation(joints: Tensor<4>) -> Tensor<3> {
+    let [b, k, _, _] = joints.dims();
+    let j = |i: usize| joints.clone().narrow(2, i, 1).reshape([b, k, 3]);
+    let (a, c) = (j(1) - j(2), j(3) - j(0));
+    let e = |t: &Tensor<3>, i: usize| t.clone().narrow(2, i, 1);
+    Tensor::cat(
+        vec![
+            e(&a, 1) * e(&c, 2) - e(&a, 2) * e(&c, 1),
+            e(&a, 2) * e(&c, 0) - e(&a, 0) * e(&c, 2),
+            e(&a, 0) * e(&c, 1) - e(&a, 1) * e(&c, 0),
+        ],
+        2,
+    )
+}
+
+/// Orientation loss: L1 between predicted and ground-truth orientation vectors.
+pub fn orientation_loss(joints: Tensor<4>, gt_joints: Tensor<4>, mask: Tensor<2>) -> Tensor<1> {
+    masked_mean((orientation(joints) - orientation(gt_joints)).abs(), mask)
+}
+
+/// The local grid of the density loss: `side^3` points spanning `extent` metres, centred on the origin,
+/// voxel-centre convention, `[side^3, 3]`.
+pub fn density_grid(side: usize, extent: f64, device: &Device) -> Tensor<2> {
+    let step = extent / side as f64;
+    let mut v = Vec::with_capacity(side * side * side * 3);
+    for i in 0..side {
+        for j in 0..side {
+            for k in 0..side {
+                for idx in [i, j, k] {
+                    v.push((-extent / 2.0 + (idx as f64 + 0.5) * step) as f32);
+                }
+            }
+        }
+    }
+    Tensor::from_data(TensorData::new(v, [side * side * side, 3]), device)
+}
+
+/// Joint density `[B, K, G]`: at each local grid point `grid` `[G, 3]` around `centre` `[B, K, 3]`, the sum over
+/// joints `[B, K, J, 3]` of `exp(-|c - j|^2 / (2 sigma^2))`.
+pub fn joint_density(
+    joints: Tensor<4>,
+    centre: Tensor<3>,
+    grid: Tensor<2>,
+    sigma: f32,
+) -> Tensor<3> {
+    let [b, k, nj, _] = joints.dims();
+    let g = grid.dims()[0];
+    let pts = grid.reshape([1, 1, g, 1, 3]) + centre.reshape([b, k, 1, 1, 3]);
+    let d2 = (pts - joints.reshape([b, k, 1, nj, 3]))
+        .powi_scalar(2)
+        .sum_dim(4); // [B, K, G, J, 1]
+    (d2 / (-2.0 * sigma * sigma))
+        .exp()
+        .sum_dim(3)
+        .reshape([b, k, g])
+}
+
+/// 3D joint density loss: MSE between the densities of predicted and ground-truth joints on a local grid
+/// around the ground-truth pelvis.
+pub fn density_loss(
+    joints: Tensor<4>,
+    gt_joints: Tensor<4>,
+    gt_pelvis: Tensor<3>,
+    grid: Tensor<2>,
+    sigma: f32,
+    mask: Tensor<2>,
+) -> Tensor<1> {
+    let p = joint_density(joints, gt_pelvis.clone(), grid.clone(), sigma);
+    let t = joint_density(gt_joints, gt_pelvis, grid, sigma);
+    masked_mean((p - t).powi_scalar(2), mask)
+}

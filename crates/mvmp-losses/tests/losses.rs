@@ -1,0 +1,214 @@
+//! Each loss on hand-computed cases and against central finite differences of itself.
+use burn::tensor::{Device, Int, Tensor, TensorData};
+use mvmp_geom::{Camera, CameraTensors, Letterbox};
+use mvmp_losses::*;
+use nalgebra::{Matrix3, Vector3};
+
+fn t<const D: usize>(v: Vec<f32>, shape: [usize; D], d: &Device) -> Tensor<D> {
+    Tensor::from_data(TensorData::new(v, shape), d)
+}
+
+fn scalar(x: Tensor<1>) -> f32 {
+    x.into_scalar::<f32>()
+}
+
+fn mask(v: Vec<f32>, b: usize, k: usize, d: &Device) -> Tensor<2> {
+    t(v, [b, k], d)
+}
+
+#[test]
+fn parameter_loss_by_hand() {
+    let d = Device::flex();
+    let eye: Vec<f32> = (0..2 * 53)
+        .flat_map(|_| [1., 0., 0., 0., 1., 0., 0., 0., 1.])
+        .collect();
+    let mut other = eye.clone();
+    other[4] += 0.9; // person 0, joint 0, R[1][1]
+    other[53 * 9] += 5.0; // person 1 is masked out
+    let betas = vec![0.0f32; 20];
+    let mut gb = betas.clone();
+    gb[3] = 2.0;
+    let l = parameter_loss(
+        t(other, [1, 2, 53, 3, 3], &d),
+        t(eye, [1, 2, 53, 3, 3], &d),
+        t(betas.clone(), [1, 2, 10], &d),
+        t(gb, [1, 2, 10], &d),
+        t(betas.clone(), [1, 2, 10], &d),
+        t(betas, [1, 2, 10], &d),
+        mask(vec![1.0, 0.0], 1, 2, &d),
+    );
+    let want = 0.9 / 477.0 + 2.0 / 10.0;
+    assert!((scalar(l) - want).abs() < 1e-6, "{} vs {want}", 0);
+}
+
+#[test]
+fn orientation_by_hand() {
+    let d = Device::flex();
+    // GT: left hip +x, right hip -x, spine1 +y: O = (2, 0, 0) x (0, 1, 0) = (0, 0, 2).
+    let gt = vec![0., 0., 0., 1., 0., 0., -1., 0., 0., 0., 1., 0.];
+    let o: Vec<f32> = orientation(t(gt.clone(), [1, 1, 4, 3], &d))
+        .into_data()
+        .try_into_vec()
+        .unwrap();
+    assert_eq!(o, vec![0.0, 0.0, 2.0]);
+    // The person turned around (hips swapped): O = (0, 0, -2), L1 mean = 4 / 3.
+    let pred = vec![0., 0., 0., -1., 0., 0., 1., 0., 0., 0., 1., 0.];
+    let l = orientation_loss(
+        t(pred, [1, 1, 4, 3], &d),
+        t(gt, [1, 1, 4, 3], &d),
+        mask(vec![1.0], 1, 1, &d),
+    );
+    assert!((scalar(l) - 4.0 / 3.0).abs() < 1e-6);
+}
+
+#[test]
+fn density_by_hand() {
+    let d = Device::flex();
+    let grid = density_grid(1, 1.0, &d); // one point, at the centre
+    let (sigma, off) = (0.1f32, 0.05f32);
+    let l = density_loss(
+        t(vec![off, 0.0, 0.0], [1, 1, 1, 3], &d),
+        t(vec![0.0, 0.0, 0.0], [1, 1, 1, 3], &d),
+        t(vec![0.0, 0.0, 0.0], [1, 1, 3], &d),
+        grid,
+        sigma,
+        mask(vec![1.0], 1, 1, &d),
+    );
+    let want = (1.0 - (-(off * off) / (2.0 * sigma * sigma)).exp()).powi(2);
+    assert!((scalar(l) - want).abs() < 1e-6);
+    let g: Vec<f32> = density_grid(2, 1.0, &d).into_data().try_into_vec().unwrap();
+    assert_eq!(g[..6], [-0.25, -0.25, -0.25, -0.25, -0.25, 0.25]);
+}
+
+#[test]
+fn detection_by_hand() {
+    let d = Device::flex();
+    // A 2 x 2 x 1 volume: likelihood 0.5 everywhere, target 1 at voxel 3: MSE = (3 * 0.25 + 0.25) / 4.
+    let lik = t(vec![0.5; 4], [1, 1, 2, 2, 1], &d);
+    let target = t(vec![0.0, 0.0, 0.0, 1.0], [1, 1, 2, 2, 1], &d);
+    // Offsets: channel-major; at voxel 3 the prediction is (0.1, -0.2, 0.3), the truth (0.2, 0.2, 0.0).
+    let mut off = vec![0.0f32; 12];
+    off[3] = 0.1;
+    off[7] = -0.2;
+    off[11] = 0.3;
+    let l = detection_loss(
+        lik,
+        target,
+        t(off, [1, 3, 2, 2, 1], &d),
+        Tensor::<2, Int>::from_data(TensorData::new(vec![3i64, 0], [1, 2]), &d),
+        t(vec![0.2, 0.2, 0.0, 9.0, 9.0, 9.0], [1, 2, 3], &d),
+        mask(vec![1.0, 0.0], 1, 2, &d),
+    );
+    let want = 0.25 + (0.1 + 0.4 + 0.3) / 3.0;
+    assert!((scalar(l) - want).abs() < 1e-6, "{}", want);
+}
+
+fn camera() -> (Camera, Letterbox) {
+    let k = Matrix3::new(100.0, 0.0, 31.5, 0.0, 100.0, 31.5, 0.0, 0.0, 1.0);
+    let cam = Camera::new(
+        "c",
+        k,
+        Matrix3::identity(),
+        Vector3::zeros(),
+        [0.0; 5],
+        64,
+        64,
+    )
+    .unwrap();
+    (cam, Letterbox::new(64, 64, 64).unwrap())
+}
+
+#[test]
+fn mesh_2d_by_hand_counts_only_points_inside() {
+    let d = Device::flex();
+    let (cam, lb) = camera();
+    let ct = CameraTensors::new(&[cam], Some(&[lb]), &d);
+    // Points at depth 2: (0.1, 0, 2) -> u = 36.5, v = 31.5; (0, -0.2, 2) -> (31.5, 21.5).
+    let pts = t(
+        vec![0.1, 0.0, 2.0, 0.0, -0.2, 2.0, 0.0, 0.0, 2.0],
+        [1, 1, 3, 3],
+        &d,
+    );
+    // GT: off by (1, -2) and (0, 3); the third GT point is outside the image and must not count.
+    let gt = t(vec![37.5, 29.5, 31.5, 24.5, -5.0, 10.0], [1, 1, 3, 2], &d);
+    let l = mesh_2d_loss(pts, gt, &[ct], 64.0, mask(vec![1.0], 1, 1, &d));
+    let want = (1.0 + 2.0 + 0.0 + 3.0) / 4.0;
+    assert!((scalar(l) - want).abs() < 1e-4, "{}", want);
+}
+
+/// Central differences of `f` at `x` against the autodiff gradient.
+fn check_gradient(name: &str, x: Vec<f32>, shape: [usize; 4], f: &dyn Fn(Tensor<4>) -> Tensor<1>) {
+    let ad = Device::flex().autodiff();
+    let xt = t(x.clone(), shape, &ad).require_grad();
+    let grads = f(xt.clone()).backward();
+    let g: Vec<f32> = xt.grad(&grads).unwrap().into_data().try_into_vec().unwrap();
+    let plain = Device::flex();
+    let eval = |v: Vec<f32>| scalar(f(t(v, shape, &plain)));
+    let eps = 1e-3f32;
+    for i in (0..x.len()).step_by((x.len() / 12).max(1)) {
+        let (mut a, mut b) = (x.clone(), x.clone());
+        a[i] += eps;
+        b[i] -= eps;
+        let fd = (eval(a) - eval(b)) / (2.0 * eps);
+        assert!(
+            (g[i] - fd).abs() < 2e-2 * fd.abs().max(1.0),
+            "{name}[{i}]: autodiff {} vs fd {fd}",
+            g[i]
+        );
+    }
+}
+
+/// Scattered test joints from a hash (an arithmetic pattern in the index, like a sinusoid or a modular
+/// progression, puts the points on a curve where orientation vectors vanish or coincide).
+fn joints(seed: u64, n: usize) -> Vec<f32> {
+    (0..2 * n * 3)
+        .map(|i| {
+            let mut z = (i as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+                ^ seed.wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+            z ^= z >> 31;
+            ((z >> 40) as f32 / (1u64 << 24) as f32 - 0.5) * 0.8
+        })
+        .collect()
+}
+
+#[test]
+fn gradients_match_finite_differences() {
+    let plain = Device::flex();
+    let gt = joints(1, 6);
+    let gtm = |d: &Device| t(gt.clone(), [1, 2, 6, 3], d);
+    let m = |d: &Device| mask(vec![1.0, 1.0], 1, 2, d);
+    check_gradient("orientation", joints(0, 6), [1, 2, 6, 3], &|x| {
+        let d = x.device();
+        orientation_loss(x, gtm(&d), m(&d))
+    });
+    check_gradient("density", joints(0, 6), [1, 2, 6, 3], &|x| {
+        let d = x.device();
+        let pelvis = t(vec![0.0, 0.0, 0.0, 0.1, 0.0, 0.0], [1, 2, 3], &d);
+        density_loss(x, gtm(&d), pelvis, density_grid(4, 1.2, &d), 0.15, m(&d))
+    });
+    check_gradient("mesh_3d", joints(0, 6), [1, 2, 6, 3], &|x| {
+        let d = x.device();
+        mesh_3d_loss(x, gtm(&d), m(&d))
+    });
+    let (cam, lb) = camera();
+    check_gradient(
+        "mesh_2d",
+        joints(0, 6)
+            .iter()
+            .enumerate()
+            .map(|(i, v)| if i % 3 == 2 { v + 2.0 } else { *v })
+            .collect(),
+        [1, 2, 6, 3],
+        &|x| {
+            let d = x.device();
+            let ct = CameraTensors::new(std::slice::from_ref(&cam), Some(&[lb]), &d);
+            let gt2: Vec<f32> = (0..2 * 6 * 2)
+                .map(|i| 20.0 + (i as f32 * 1.3) % 25.0)
+                .collect();
+            mesh_2d_loss(x, t(gt2, [1, 2, 6, 2], &d), &[ct], 64.0, m(&d))
+        },
+    );
+    let _ = plain;
+}
