@@ -329,14 +329,27 @@ pub struct FrameBatch {
     pub joints_3d: Tensor<4>,
     /// `[B, V, P, J, 3]` network-pixel joints with visibility.
     pub joints_2d: Tensor<5>,
+    /// `[B, P, V, 3]` ground-truth vertices (world metres) when the batcher was asked for them.
+    pub vertices: Option<Tensor<4>>,
     /// Number of people per sample.
     pub counts: Vec<usize>,
     pub names: Vec<(String, String)>,
 }
 
-/// Pads people and stacks views.
+/// Pads people and stacks views; with a body model it also poses the ground truth into vertices.
 #[derive(Debug, Clone, Default)]
-pub struct FrameBatcher;
+pub struct FrameBatcher {
+    body: Option<std::sync::Arc<mvmp_smplx::BodyModel>>,
+}
+
+impl FrameBatcher {
+    /// A batcher that also returns ground-truth vertices, posed with `model` (the dataset's body model).
+    pub fn with_vertices(model: mvmp_smplx::BodyModel) -> Self {
+        FrameBatcher {
+            body: Some(std::sync::Arc::new(model)),
+        }
+    }
+}
 
 impl Batcher<FrameSample, FrameBatch> for FrameBatcher {
     fn batch(&self, items: Vec<FrameSample>, device: &Device) -> FrameBatch {
@@ -384,7 +397,22 @@ impl Batcher<FrameSample, FrameBatch> for FrameBatcher {
             }
         }
         let t = |data: Vec<f32>, shape: Vec<usize>| TensorData::new(data, shape);
+        let vertices = self.body.as_ref().map(|model| {
+            // The layer is cheap next to loading; it is built on the batch's device.
+            let layer = mvmp_smplx::SmplxLayer::new(model, device);
+            let n = b * p;
+            let out = layer.forward_axis_angle(
+                Tensor::from_data(t(pose.clone(), vec![n, 55, 3]), device),
+                Tensor::from_data(t(betas.clone(), vec![n, 10]), device),
+                Tensor::from_data(t(expr.clone(), vec![n, 10]), device),
+                Tensor::from_data(t(pelvis.clone(), vec![n, 3]), device),
+                mvmp_smplx::Translation::Pelvis,
+            );
+            let nv = layer.num_vertices();
+            out.vertices.reshape([b, p, nv, 3])
+        });
         FrameBatch {
+            vertices,
             images: Tensor::from_data(t(images, vec![b, v, 3, s, s]), device),
             cameras: items.iter().map(|i| i.cameras.clone()).collect(),
             letterboxes: items.iter().map(|i| i.letterboxes.clone()).collect(),
