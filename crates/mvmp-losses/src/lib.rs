@@ -162,3 +162,115 @@ pub fn density_loss(
     let t = joint_density(gt_joints, gt_pelvis, grid, sigma);
     masked_mean((p - t).powi_scalar(2), mask)
 }
+
+/// Loss weights and density-loss settings (the `[loss]` table of a training config). A weight of 0 switches
+/// its term off (ablations). Defaults are the paper's.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LossWeights {
+    pub detection: f32,
+    pub parameters: f32,
+    /// Weight of the 3D part of the mesh loss (joints and vertices).
+    pub mesh_3d: f32,
+    /// Weight of the 2D part (mean over views).
+    pub mesh_2d: f32,
+    pub orientation: f32,
+    pub density: f32,
+    /// Gaussian width of the joint densities (metres).
+    pub density_sigma: f32,
+    /// Points per side of the local density grid and its extent (metres) around the GT pelvis.
+    pub density_grid: usize,
+    pub density_extent: f64,
+}
+
+impl Default for LossWeights {
+    fn default() -> Self {
+        LossWeights {
+            detection: 1.0,
+            parameters: 10.0,
+            mesh_3d: 100.0,
+            mesh_2d: 1.0,
+            orientation: 5.0,
+            density: 1.0,
+            density_sigma: 0.1,
+            density_grid: 16,
+            density_extent: 2.2,
+        }
+    }
+}
+
+impl LossWeights {
+    /// Check values; errors name the key and the value.
+    pub fn validate(&self) -> Result<(), String> {
+        for (k, v) in [
+            ("detection", self.detection),
+            ("parameters", self.parameters),
+            ("mesh_3d", self.mesh_3d),
+            ("mesh_2d", self.mesh_2d),
+            ("orientation", self.orientation),
+            ("density", self.density),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(format!(
+                    "loss.{k} = {v}: a weight must be finite and non-negative"
+                ));
+            }
+        }
+        if !(self.density_sigma.is_finite() && self.density_sigma > 0.0) {
+            return Err(format!(
+                "loss.density_sigma = {}: must be positive",
+                self.density_sigma
+            ));
+        }
+        if self.density_grid == 0 || !(self.density_extent.is_finite() && self.density_extent > 0.0)
+        {
+            return Err(format!(
+                "loss.density_grid = {}, loss.density_extent = {}: must be positive",
+                self.density_grid, self.density_extent
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// The weighted terms of one step, each already multiplied by its weight (0-weight terms are skipped and
+/// reported as `None`), and their sum.
+#[derive(Debug, Clone)]
+pub struct LossTerms {
+    pub detection: Option<Tensor<1>>,
+    pub parameters: Option<Tensor<1>>,
+    pub mesh: Option<Tensor<1>>,
+    pub orientation: Option<Tensor<1>>,
+    pub density: Option<Tensor<1>>,
+}
+
+impl LossTerms {
+    /// The total `L_D + w_P L_P + L_mesh + w_O L_O + w_den L_denj3d`.
+    pub fn total(&self) -> Option<Tensor<1>> {
+        [
+            &self.detection,
+            &self.parameters,
+            &self.mesh,
+            &self.orientation,
+            &self.density,
+        ]
+        .into_iter()
+        .flatten()
+        .cloned()
+        .reduce(|a, b| a + b)
+    }
+
+    /// (name, value) of every active term, for logs.
+    pub fn named(&self) -> Vec<(&'static str, Tensor<1>)> {
+        [
+            ("detection", &self.detection),
+            ("parameters", &self.parameters),
+            ("mesh", &self.mesh),
+            ("orientation", &self.orientation),
+            ("density", &self.density),
+        ]
+        .into_iter()
+        .filter_map(|(n, t)| t.clone().map(|t| (n, t)))
+        .collect()
+    }
+}

@@ -212,3 +212,42 @@ fn gradients_match_finite_differences() {
     );
     let _ = plain;
 }
+
+#[test]
+fn weights_default_to_the_paper_and_terms_add_up() {
+    let w = LossWeights::default();
+    assert_eq!(
+        (
+            w.detection,
+            w.parameters,
+            w.mesh_3d,
+            w.orientation,
+            w.density
+        ),
+        (1.0, 10.0, 100.0, 5.0, 1.0)
+    );
+    assert!(w.validate().is_ok());
+    let bad = LossWeights {
+        orientation: -1.0,
+        ..Default::default()
+    };
+    assert!(
+        bad.validate()
+            .unwrap_err()
+            .contains("loss.orientation = -1")
+    );
+    let d = Device::flex();
+    let one = |v: f32| Some(t(vec![v], [1], &d));
+    let terms = LossTerms {
+        detection: one(1.0),
+        parameters: None,
+        mesh: one(2.5),
+        orientation: one(0.5),
+        density: None,
+    };
+    assert_eq!(scalar(terms.total().unwrap()), 4.0);
+    assert_eq!(
+        terms.named().iter().map(|(n, _)| *n).collect::<Vec<_>>(),
+        ["detection", "mesh", "orientation"]
+    );
+}
