@@ -7,6 +7,7 @@ use clap::{Parser, Subcommand};
 mod body;
 mod data;
 mod device;
+mod import;
 mod model;
 
 #[derive(Parser)]
@@ -31,12 +32,30 @@ enum Command {
     /// Datasets: synthesis, statistics, validation.
     #[command(subcommand)]
     Data(DataCommand),
+    /// Import pretrained weights into mvmp's format.
+    #[command(subcommand)]
+    Import(ImportCommand),
     /// The MVMP-HMR model: summaries.
     #[command(subcommand)]
     Model(ModelCommand),
     /// Benchmarks.
     #[command(subcommand)]
     Bench(BenchCommand),
+}
+
+#[derive(Subcommand)]
+enum ImportCommand {
+    /// DINOv2 ViT weights (torch-hub .pth/.safetensors or Hugging Face model.safetensors).
+    Dinov2 {
+        /// tiny, vit_small_14, vit_base_14 or vit_large_14.
+        #[arg(long, default_value = "vit_large_14")]
+        variant: String,
+        #[arg(long)]
+        from: PathBuf,
+        /// Output weights (safetensors, mvmp key names).
+        #[arg(long)]
+        out: PathBuf,
+    },
 }
 
 #[derive(Subcommand)]
@@ -183,6 +202,9 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         }
         Command::Data(DataCommand::Check { format, dir }) => data::check(&format, &dir),
         Command::Model(ModelCommand::Summary { config, views }) => model::summary(&config, views),
+        Command::Import(ImportCommand::Dinov2 { variant, from, out }) => {
+            import::dinov2(&variant, &from, &out)
+        }
         Command::Bench(BenchCommand::Model {
             config,
             views,

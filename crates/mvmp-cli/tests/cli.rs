@@ -324,3 +324,35 @@ fn data_synth_stats_check_end_to_end() {
     );
     assert!(!dir.path().join("x").exists());
 }
+
+#[test]
+fn import_rejects_missing_and_unknown_inputs() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("w.safetensors");
+    let missing = dir.path().join("dinov2_vitl14_pretrain.pth");
+    expect_error(
+        &[
+            "import",
+            "dinov2",
+            "--from",
+            missing.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        &["dinov2_vitl14_pretrain.pth"],
+    );
+    expect_error(
+        &[
+            "import",
+            "dinov2",
+            "--variant",
+            "vit_huge",
+            "--from",
+            missing.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        &["vit_huge"],
+    );
+    assert!(!out.exists());
+}

@@ -1,0 +1,223 @@
+//! Importing pretrained DINOv2 weights into [`ViT`].
+//!
+//! Accepted sources: the torch-hub checkpoint (`dinov2_vit*14_pretrain.pth`, or the same state dict saved
+//! as `.safetensors`) and the Hugging Face `facebook/dinov2-*` `model.safetensors`. Keys may carry a
+//! `module.`, `backbone.` or `encoder.` prefix (wrappers such as Multi-HMR's), which is removed.
+//! PyTorch layouts are adapted on the way in (Linear weights transposed; LayerNorm `weight`/`bias` become
+//! `gamma`/`beta`).
+//!
+//! | torch-hub key                      | Hugging Face key                                              | mvmp key |
+//! |------------------------------------|---------------------------------------------------------------|----------|
+//! | `cls_token`                        | `embeddings.cls_token`                                        | same as torch-hub |
+//! | `pos_embed`                        | `embeddings.position_embeddings`                              | |
+//! | `mask_token`                       | `embeddings.mask_token`                                       | |
+//! | `patch_embed.proj.{weight,bias}`   | `embeddings.patch_embeddings.projection.*`                    | |
+//! | `blocks.N.norm1.*`                 | `encoder.layer.N.norm1.*`                                     | `blocks.N.norm1.{gamma,beta}` |
+//! | `blocks.N.attn.qkv.*`              | `encoder.layer.N.attention.attention.{query,key,value}.*` (concatenated q, k, v) | |
+//! | `blocks.N.attn.proj.*`             | `encoder.layer.N.attention.output.dense.*`                    | |
+//! | `blocks.N.ls1.gamma`               | `encoder.layer.N.layer_scale1.lambda1`                        | |
+//! | `blocks.N.norm2.*`                 | `encoder.layer.N.norm2.*`                                     | |
+//! | `blocks.N.mlp.fc1.*`, `mlp.fc2.*`  | `encoder.layer.N.mlp.fc1.*`, `mlp.fc2.*`                      | |
+//! | `blocks.N.ls2.gamma`               | `encoder.layer.N.layer_scale2.lambda1`                        | |
+//! | `norm.*`                           | `layernorm.*`                                                 | `norm.{gamma,beta}` |
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use burn::store::{ModuleSnapshot, PyTorchToBurnAdapter, PytorchStore, SafetensorsStore};
+
+use crate::ViT;
+
+#[derive(Debug, thiserror::Error)]
+pub enum ImportError {
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{path}: {what}")]
+    Format { path: PathBuf, what: String },
+}
+
+/// What an import did.
+#[derive(Debug, Clone, Default)]
+pub struct ImportReport {
+    /// mvmp parameters that received a value.
+    pub loaded: Vec<String>,
+    /// mvmp parameters the file did not provide.
+    pub missing: Vec<String>,
+    /// File tensors that went nowhere.
+    pub unused: Vec<String>,
+    /// Tensors that matched a key but could not be applied (shape or dtype), with the reason.
+    pub errors: Vec<String>,
+}
+
+/// A tensor read from a file: dtype, shape, little-endian bytes.
+type Raw = (safetensors::Dtype, Vec<usize>, Vec<u8>);
+
+const PREFIXES: &str = r"^(module\.)?(backbone\.)?(encoder\.)?";
+
+/// Rename Hugging Face DINOv2 tensors to the torch-hub names, concatenating query, key and value.
+fn hf_to_hub(st: &safetensors::SafeTensors, path: &Path) -> Result<Vec<u8>, ImportError> {
+    let fmt = |what: String| ImportError::Format {
+        path: path.into(),
+        what,
+    };
+    let mut out: BTreeMap<String, Raw> = BTreeMap::new();
+    // (block, weight|bias) -> query, key, value.
+    let mut qkv: BTreeMap<(usize, String), [Option<Raw>; 3]> = BTreeMap::new();
+    for (name, view) in st.tensors() {
+        let key = name.trim_start_matches("dinov2.");
+        let entry = (view.dtype(), view.shape().to_vec(), view.data().to_vec());
+        let renamed = if let Some(rest) = key.strip_prefix("embeddings.") {
+            match rest {
+                "cls_token" => "cls_token".to_string(),
+                "mask_token" => "mask_token".to_string(),
+                "position_embeddings" => "pos_embed".to_string(),
+                r => match r.strip_prefix("patch_embeddings.projection.") {
+                    Some(p) => format!("patch_embed.proj.{p}"),
+                    None => key.to_string(),
+                },
+            }
+        } else if let Some(rest) = key.strip_prefix("encoder.layer.") {
+            let (n, tail) = rest
+                .split_once('.')
+                .ok_or_else(|| fmt(format!("unexpected key {name}")))?;
+            let n: usize = n
+                .parse()
+                .map_err(|_| fmt(format!("unexpected key {name}")))?;
+            if let Some(p) = tail.strip_prefix("attention.attention.") {
+                let (which, field) = p.split_once('.').unwrap_or((p, ""));
+                let slot = match which {
+                    "query" => 0,
+                    "key" => 1,
+                    "value" => 2,
+                    _ => return Err(fmt(format!("unexpected key {name}"))),
+                };
+                qkv.entry((n, field.to_string())).or_default()[slot] = Some(entry);
+                continue;
+            }
+            let t = tail
+                .replace("attention.output.dense.", "attn.proj.")
+                .replace("layer_scale1.lambda1", "ls1.gamma")
+                .replace("layer_scale2.lambda1", "ls2.gamma");
+            format!("blocks.{n}.{t}")
+        } else if let Some(p) = key.strip_prefix("layernorm.") {
+            format!("norm.{p}")
+        } else {
+            key.to_string()
+        };
+        out.insert(renamed, entry);
+    }
+    for ((n, field), parts) in qkv {
+        let [Some(q), Some(k), Some(v)] = parts else {
+            return Err(fmt(format!(
+                "block {n}: query, key and value {field} are not all present"
+            )));
+        };
+        // Stacked along the output dimension (rows): [q; k; v].
+        let mut shape = q.1.clone();
+        shape[0] *= 3;
+        let data = [q.2, k.2, v.2].concat();
+        out.insert(format!("blocks.{n}.attn.qkv.{field}"), (q.0, shape, data));
+    }
+    let views: Vec<(String, safetensors::tensor::TensorView)> = out
+        .iter()
+        .map(|(k, (dt, shape, data))| {
+            safetensors::tensor::TensorView::new(*dt, shape.clone(), data)
+                .map(|v| (k.clone(), v))
+                .map_err(|e| fmt(format!("{k}: {e}")))
+        })
+        .collect::<Result<_, _>>()?;
+    safetensors::serialize(views, None).map_err(|e| fmt(e.to_string()))
+}
+
+/// Load DINOv2 weights from `path` into `vit`.
+pub fn import_dinov2(vit: &mut ViT, path: &Path) -> Result<ImportReport, ImportError> {
+    let io = |source| ImportError::Io {
+        path: path.into(),
+        source,
+    };
+    let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("");
+    let result = match ext {
+        "safetensors" => {
+            let bytes = std::fs::read(path).map_err(io)?;
+            let st =
+                safetensors::SafeTensors::deserialize(&bytes).map_err(|e| ImportError::Format {
+                    path: path.into(),
+                    what: format!("not a safetensors file: {e}"),
+                })?;
+            let is_hf = st
+                .names()
+                .iter()
+                .any(|n| n.contains("embeddings.patch_embeddings"));
+            let bytes = if is_hf {
+                hf_to_hub(&st, path)?
+            } else {
+                bytes.clone()
+            };
+            let mut store = SafetensorsStore::from_bytes(Some(bytes))
+                .with_key_remapping(PREFIXES, "")
+                .with_from_adapter(PyTorchToBurnAdapter)
+                .allow_partial(true)
+                .validate(false);
+            vit.load_from(&mut store).map_err(|e| ImportError::Format {
+                path: path.into(),
+                what: e.to_string(),
+            })?
+        }
+        "pth" | "pt" | "bin" => {
+            if !path.exists() {
+                return Err(io(std::io::Error::new(
+                    std::io::ErrorKind::NotFound,
+                    "no such file",
+                )));
+            }
+            let mut store = PytorchStore::from_file(path)
+                .with_key_remapping(PREFIXES, "")
+                .allow_partial(true)
+                .validate(false);
+            vit.load_from(&mut store).map_err(|e| ImportError::Format {
+                path: path.into(),
+                what: e.to_string(),
+            })?
+        }
+        _ => {
+            return Err(ImportError::Format {
+                path: path.into(),
+                what: "expected a .safetensors or .pth checkpoint".into(),
+            });
+        }
+    };
+    Ok(ImportReport {
+        loaded: result.applied,
+        missing: result.missing.into_iter().map(|(k, _)| k).collect(),
+        unused: result.unused,
+        errors: result.errors.iter().map(|e| format!("{e:?}")).collect(),
+    })
+}
+
+/// Save a module in burn's native safetensors format (mvmp key names), atomically.
+pub fn save_native<M: burn::module::Module>(module: &M, path: &Path) -> Result<(), ImportError> {
+    let dir = path
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let tmp = dir.join(format!(
+        ".{}.tmp",
+        path.file_name()
+            .and_then(|f| f.to_str())
+            .unwrap_or("weights")
+    ));
+    let mut store = SafetensorsStore::from_file(&tmp);
+    module
+        .save_into(&mut store)
+        .map_err(|e| ImportError::Format {
+            path: path.into(),
+            what: e.to_string(),
+        })?;
+    std::fs::rename(&tmp, path).map_err(|source| ImportError::Io {
+        path: path.into(),
+        source,
+    })
+}

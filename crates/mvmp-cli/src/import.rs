@@ -1,0 +1,51 @@
+//! `mvmp import dinov2 --variant V --from FILE --out FILE`.
+use std::path::Path;
+
+use anyhow::{Result, bail};
+use burn::tensor::Device;
+
+use mvmp_backbone::ViTConfig;
+use mvmp_backbone::import::{import_dinov2, save_native};
+
+pub fn dinov2(variant: &str, from: &Path, out: &Path) -> Result<()> {
+    let Some(cfg) = ViTConfig::by_name(variant) else {
+        bail!("--variant {variant:?}: expected tiny, vit_small_14, vit_base_14 or vit_large_14");
+    };
+    let device = Device::flex();
+    let mut vit = cfg.init(&device);
+    let rep = import_dinov2(&mut vit, from)?;
+    println!("{}: loaded {} tensors", from.display(), rep.loaded.len());
+    if !rep.missing.is_empty() {
+        println!(
+            "missing ({}), left at their initial values:",
+            rep.missing.len()
+        );
+        for k in &rep.missing {
+            println!("  {k}");
+        }
+    }
+    if !rep.unused.is_empty() {
+        println!("unused ({}):", rep.unused.len());
+        for k in &rep.unused {
+            println!("  {k}");
+        }
+    }
+    if !rep.errors.is_empty() {
+        for e in &rep.errors {
+            eprintln!("  {e}");
+        }
+        bail!(
+            "{} tensors could not be applied (shape or dtype mismatch); is --variant right?",
+            rep.errors.len()
+        );
+    }
+    if rep.loaded.is_empty() {
+        bail!(
+            "{}: no tensor matched a DINOv2 {variant} parameter",
+            from.display()
+        );
+    }
+    save_native(&vit, out)?;
+    println!("wrote {} (mvmp {variant} weights)", out.display());
+    Ok(())
+}
