@@ -221,3 +221,104 @@ pub fn save_native<M: burn::module::Module>(module: &M, path: &Path) -> Result<(
         source,
     })
 }
+
+/// Source-key rewrites from the reference HRNet (`pose_hrnet.py`) names to mvmp's, applied in order:
+///
+/// | reference key                                   | mvmp key                                          |
+/// |-------------------------------------------------|---------------------------------------------------|
+/// | `layer1.N.downsample.{0,1}.*`                   | `layer1.N.downsample.{conv,bn}.*`                 |
+/// | `transitionT.B.0.{0,1}.*` (new branch, stride 2) | `transitionT.layers.B.{conv,bn}.*`               |
+/// | `transitionT.B.{0,1}.*` (width change)          | `transitionT.layers.B.{conv,bn}.*`                |
+/// | `stageS.M.fuse_layers.I.J.K.{0,1}.*` (J < I)    | `stageS.M.fuse_layers.I.J.down.K.cb.{conv,bn}.*`  |
+/// | `stageS.M.fuse_layers.I.J.{0,1}.*` (J > I)      | `stageS.M.fuse_layers.I.J.up.{conv,bn}.*`         |
+/// | everything else (`conv1`, `bn1`, `layerN`, `stageS.M.branches.B.K.*`, `final_layer`) | unchanged |
+///
+/// Batch norms: `weight`/`bias` become `gamma`/`beta`; `running_mean`/`running_var` load;
+/// `num_batches_tracked` is reported unused.
+const HRNET_RULES: [(&str, &str); 10] = [
+    (r"\.downsample\.0\.", ".downsample.conv."),
+    (r"\.downsample\.1\.", ".downsample.bn."),
+    (
+        r"^transition(\d)\.(\d)\.0\.0\.",
+        "transition${1}.layers.${2}.conv.",
+    ),
+    (
+        r"^transition(\d)\.(\d)\.0\.1\.",
+        "transition${1}.layers.${2}.bn.",
+    ),
+    (
+        r"^transition(\d)\.(\d)\.0\.",
+        "transition${1}.layers.${2}.conv.",
+    ),
+    (
+        r"^transition(\d)\.(\d)\.1\.",
+        "transition${1}.layers.${2}.bn.",
+    ),
+    (
+        r"fuse_layers\.(\d)\.(\d)\.(\d)\.0\.",
+        "fuse_layers.${1}.${2}.down.${3}.cb.conv.",
+    ),
+    (
+        r"fuse_layers\.(\d)\.(\d)\.(\d)\.1\.",
+        "fuse_layers.${1}.${2}.down.${3}.cb.bn.",
+    ),
+    (
+        r"fuse_layers\.(\d)\.(\d)\.0\.",
+        "fuse_layers.${1}.${2}.up.conv.",
+    ),
+    (
+        r"fuse_layers\.(\d)\.(\d)\.1\.",
+        "fuse_layers.${1}.${2}.up.bn.",
+    ),
+];
+
+/// Load reference HRNet weights (`.pth` or `.safetensors`) into `net`.
+pub fn import_hrnet(net: &mut crate::HRNet, path: &Path) -> Result<ImportReport, ImportError> {
+    let fmt = |what: String| ImportError::Format {
+        path: path.into(),
+        what,
+    };
+    let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("");
+    let result = match ext {
+        "safetensors" => {
+            let bytes = std::fs::read(path).map_err(|source| ImportError::Io {
+                path: path.into(),
+                source,
+            })?;
+            safetensors::SafeTensors::deserialize(&bytes)
+                .map_err(|e| fmt(format!("not a safetensors file: {e}")))?;
+            let mut store = SafetensorsStore::from_bytes(Some(bytes))
+                .with_key_remapping(PREFIXES, "")
+                .with_from_adapter(PyTorchToBurnAdapter)
+                .allow_partial(true)
+                .validate(false);
+            for (from, to) in HRNET_RULES {
+                store = store.with_key_remapping(from, to);
+            }
+            net.load_from(&mut store).map_err(|e| fmt(e.to_string()))?
+        }
+        "pth" | "pt" => {
+            if !path.exists() {
+                return Err(ImportError::Io {
+                    path: path.into(),
+                    source: std::io::Error::new(std::io::ErrorKind::NotFound, "no such file"),
+                });
+            }
+            let mut store = PytorchStore::from_file(path)
+                .with_key_remapping(PREFIXES, "")
+                .allow_partial(true)
+                .validate(false);
+            for (from, to) in HRNET_RULES {
+                store = store.with_key_remapping(from, to);
+            }
+            net.load_from(&mut store).map_err(|e| fmt(e.to_string()))?
+        }
+        _ => return Err(fmt("expected a .safetensors or .pth checkpoint".into())),
+    };
+    Ok(ImportReport {
+        loaded: result.applied,
+        missing: result.missing.into_iter().map(|(k, _)| k).collect(),
+        unused: result.unused,
+        errors: result.errors.iter().map(|e| format!("{e:?}")).collect(),
+    })
+}

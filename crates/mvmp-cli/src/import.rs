@@ -1,4 +1,4 @@
-//! `mvmp import dinov2 --variant V --from FILE --out FILE`.
+//! `mvmp import dinov2|hrnet --variant V --from FILE --out FILE`.
 use std::path::Path;
 
 use anyhow::{Result, bail};
@@ -14,6 +14,31 @@ pub fn dinov2(variant: &str, from: &Path, out: &Path) -> Result<()> {
     let device = Device::flex();
     let mut vit = cfg.init(&device);
     let rep = import_dinov2(&mut vit, from)?;
+    report(from, &rep)?;
+    save_native(&vit, out)?;
+    println!("wrote {} (mvmp {variant} weights)", out.display());
+    Ok(())
+}
+
+pub fn hrnet(variant: &str, joints: usize, from: &Path, out: &Path) -> Result<()> {
+    let Some(cfg) = mvmp_backbone::HRNetConfig::by_name(variant, joints) else {
+        bail!("--variant {variant:?}: expected tiny, hrnet_w32 or hrnet_w48");
+    };
+    if joints == 0 {
+        bail!("--joints must be at least 1");
+    }
+    let mut net = cfg.init(&Device::flex());
+    let rep = mvmp_backbone::import::import_hrnet(&mut net, from)?;
+    report(from, &rep)?;
+    save_native(&net, out)?;
+    println!(
+        "wrote {} (mvmp {variant} weights, {joints} joints)",
+        out.display()
+    );
+    Ok(())
+}
+
+fn report(from: &Path, rep: &mvmp_backbone::import::ImportReport) -> Result<()> {
     println!("{}: loaded {} tensors", from.display(), rep.loaded.len());
     if !rep.missing.is_empty() {
         println!(
@@ -35,17 +60,12 @@ pub fn dinov2(variant: &str, from: &Path, out: &Path) -> Result<()> {
             eprintln!("  {e}");
         }
         bail!(
-            "{} tensors could not be applied (shape or dtype mismatch); is --variant right?",
+            "{} tensors could not be applied (shape or dtype mismatch); are --variant and --joints right?",
             rep.errors.len()
         );
     }
     if rep.loaded.is_empty() {
-        bail!(
-            "{}: no tensor matched a DINOv2 {variant} parameter",
-            from.display()
-        );
+        bail!("{}: no tensor matched a parameter", from.display());
     }
-    save_native(&vit, out)?;
-    println!("wrote {} (mvmp {variant} weights)", out.display());
     Ok(())
 }

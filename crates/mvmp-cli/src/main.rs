@@ -56,6 +56,19 @@ enum ImportCommand {
         #[arg(long)]
         out: PathBuf,
     },
+    /// HRNet pose weights in the reference pose_hrnet layout (.pth or .safetensors).
+    Hrnet {
+        /// tiny, hrnet_w32 or hrnet_w48.
+        #[arg(long, default_value = "hrnet_w32")]
+        variant: String,
+        /// Heatmap joints of the checkpoint's head (17 for COCO).
+        #[arg(long, default_value_t = 17)]
+        joints: usize,
+        #[arg(long)]
+        from: PathBuf,
+        #[arg(long)]
+        out: PathBuf,
+    },
 }
 
 #[derive(Subcommand)]
@@ -177,7 +190,15 @@ fn main() -> ExitCode {
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            // Library errors often spell out their cause already; print each cause once.
+            let mut msg = e.to_string();
+            for cause in e.chain().skip(1) {
+                let c = cause.to_string();
+                if !msg.contains(&c) {
+                    msg = format!("{msg}: {c}");
+                }
+            }
+            eprintln!("error: {msg}");
             ExitCode::FAILURE
         }
     }
@@ -205,6 +226,12 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Import(ImportCommand::Dinov2 { variant, from, out }) => {
             import::dinov2(&variant, &from, &out)
         }
+        Command::Import(ImportCommand::Hrnet {
+            variant,
+            joints,
+            from,
+            out,
+        }) => import::hrnet(&variant, joints, &from, &out),
         Command::Bench(BenchCommand::Model {
             config,
             views,
