@@ -442,3 +442,22 @@ fn batches_with_vertices_load_in_several_workers() {
     }
     assert_eq!(frames, 6);
 }
+
+#[test]
+fn shipped_synth_configs_validate() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/synth");
+    let tiny = SynthConfig::read(&dir.join("tiny.toml")).unwrap();
+    assert_eq!((tiny.cameras.count, tiny.image_size), (4, [256, 256]));
+    let paper = SynthConfig::read(&dir.join("paper.toml")).unwrap();
+    assert_eq!(
+        (paper.scenes, paper.people, paper.area),
+        (15, [10, 30], [30.0, 30.0])
+    );
+    assert_eq!((paper.cameras.count, paper.image_size), (50, [1920, 1080]));
+    // Unknown keys are errors that name the key.
+    let bad = std::env::temp_dir().join(format!("mvmp-bad-synth-{}.toml", std::process::id()));
+    std::fs::write(&bad, "scenes = 2\nviews = 4\n").unwrap();
+    let e = SynthConfig::read(&bad).unwrap_err().to_string();
+    std::fs::remove_file(&bad).ok();
+    assert!(e.contains("views"), "{e}");
+}
