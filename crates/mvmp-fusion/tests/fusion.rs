@@ -49,12 +49,16 @@ fn expected_sample(cam: &Camera, lb: &Letterbox, p: [f64; 3]) -> Option<Vector2<
 }
 
 fn setup(device: &Device) -> (Vec<Camera>, Vec<Letterbox>, SamplingGrid) {
+    setup_with(device, grid())
+}
+
+fn setup_with(device: &Device, voxels: VoxelGrid) -> (Vec<Camera>, Vec<Letterbox>, SamplingGrid) {
     let cams = rig();
     let lbs: Vec<Letterbox> = cams
         .iter()
         .map(|c| Letterbox::new(c.width, c.height, S).unwrap())
         .collect();
-    let g = SamplingGrid::new(&grid(), &cams, &lbs, STRIDE, [MAP, MAP], device);
+    let g = SamplingGrid::new(&voxels, &cams, &lbs, STRIDE, [MAP, MAP], device);
     (cams, lbs, g)
 }
 
@@ -102,8 +106,18 @@ fn a_painted_pixel_lands_in_exactly_the_voxels_that_project_there() {
 
 #[test]
 fn mean_ignores_views_that_do_not_see_a_voxel_and_max_takes_the_largest() {
+    check_mean_and_max(grid());
+}
+
+#[test]
+fn fusion_on_a_finer_grid_matches_the_per_voxel_expectation() {
+    let fine = VoxelGrid::new([0.0, 0.0, 1.0], [4.0, 4.0, 2.0], [72, 72, 16]).unwrap();
+    check_mean_and_max(fine);
+}
+
+fn check_mean_and_max(voxels: VoxelGrid) {
     let d = Device::flex();
-    let (cams, lbs, g) = setup(&d);
+    let (cams, lbs, g) = setup_with(&d, voxels);
     let mut maps = vec![1f32; MAP * MAP];
     maps.extend(vec![3f32; MAP * MAP]);
     let maps = Tensor::<5>::from_data(TensorData::new(maps, [1, 2, 1, MAP, MAP]), &d);
@@ -114,7 +128,7 @@ fn mean_ignores_views_that_do_not_see_a_voxel_and_max_takes_the_largest() {
     ));
     let max = vals(fuse_views(maps, std::slice::from_ref(&g), FusionMode::Max));
     let mut cases = [0usize; 4];
-    for (k, c) in grid().centers().iter().enumerate() {
+    for (k, c) in voxels.centers().iter().enumerate() {
         let s0 = expected_sample(&cams[0], &lbs[0], *c).is_some();
         let s1 = expected_sample(&cams[1], &lbs[1], *c).is_some();
         let (wm, wx) = match (s0, s1) {
