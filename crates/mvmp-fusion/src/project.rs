@@ -19,6 +19,8 @@ pub enum FusionMode {
     Mean,
     /// Maximum over the views that see the voxel (ablation).
     Max,
+    /// Learned offsets and weights around each projected point (ablation; [`crate::DeformableFusion`]).
+    Deformable,
 }
 
 /// Cached sampling positions of every voxel in every view of one rig.
@@ -127,6 +129,9 @@ pub fn fuse_views(maps: Tensor<5>, grids: &[SamplingGrid], mode: FusionMode) -> 
                 }
                 let count = g.view_count().reshape([1, p]).clamp_min(1.0);
                 sum.expect("at least one view") / count
+            }
+            FusionMode::Deformable => {
+                panic!("deformable fusion has parameters: use DeformableFusion::forward")
             }
             FusionMode::Max => {
                 let mut acc: Option<Tensor<2>> = None;

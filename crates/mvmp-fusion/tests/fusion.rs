@@ -301,3 +301,49 @@ fn rootnet_shapes_and_gradients() {
         c.zero
     );
 }
+
+#[test]
+fn deformable_fusion_starts_as_mean_fusion_and_learns() {
+    use mvmp_fusion::DeformableFusionConfig;
+    let d = Device::flex();
+    let (_, _, g) = setup(&d);
+    let maps: Vec<f32> = (0..2 * 3 * MAP * MAP)
+        .map(|i| ((i * 37) % 101) as f32 / 101.0)
+        .collect();
+    let maps = Tensor::<5>::from_data(TensorData::new(maps, [1, 2, 3, MAP, MAP]), &d);
+    let def = DeformableFusionConfig::new().init(&d);
+    let a = vals(def.forward(maps.clone(), std::slice::from_ref(&g)));
+    let b = vals(fuse_views(maps, std::slice::from_ref(&g), FusionMode::Mean));
+    let worst = a
+        .iter()
+        .zip(&b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max);
+    assert!(
+        worst < 1e-5,
+        "deformable at initialisation vs mean: {worst}"
+    );
+    // Its offsets and weights receive gradients.
+    let ad = Device::flex().autodiff();
+    let (_, _, g) = setup(&ad);
+    let def = DeformableFusionConfig::new().init(&ad);
+    let maps: Vec<f32> = (0..2 * 3 * MAP * MAP)
+        .map(|i| ((i * 37) % 101) as f32 / 101.0)
+        .collect();
+    let maps = Tensor::<5>::from_data(TensorData::new(maps, [1, 2, 3, MAP, MAP]), &ad);
+    let target = Tensor::<5>::ones([1, 3, 12, 12, 6], &ad);
+    let loss = (def.forward(maps, std::slice::from_ref(&g)) - target)
+        .powi_scalar(2)
+        .sum();
+    let grads = loss.backward();
+    let gw: f32 = def
+        .proj
+        .weight
+        .val()
+        .grad(&grads)
+        .unwrap()
+        .abs()
+        .sum()
+        .into_scalar();
+    assert!(gw > 0.0);
+}

@@ -17,7 +17,8 @@ use mvmp_backbone::vit::PATCH;
 use mvmp_backbone::{HRNet, ViT};
 use mvmp_decoder::{Decoder, DecoderConfig};
 use mvmp_fusion::{
-    FusionMode, Root, RootNet, RootNetConfig, SamplingGrid, extract_roots, fuse_views,
+    DeformableFusion, DeformableFusionConfig, FusionMode, Root, RootNet, RootNetConfig,
+    SamplingGrid, extract_roots, fuse_views,
 };
 use mvmp_geom::rotation::rot6d_to_matrix;
 use mvmp_geom::{Camera, Letterbox};
@@ -33,6 +34,8 @@ pub struct MvmpHmr {
     pub hrnet: HRNet,
     pub rootnet: RootNet,
     pub decoder: Decoder,
+    /// Present when the config asks for deformable-attention fusion (ablation).
+    pub deformable: Option<DeformableFusion>,
 }
 
 /// Sampling grids of one rig: for the ViT feature maps (stride 14) and the HRNet heatmaps (stride 4).
@@ -115,6 +118,8 @@ impl ModelConfig {
                 .with_pool(self.decoder.pool)
                 .with_use_htb(self.decoder.use_htb)
                 .init(device),
+            deformable: (self.fusion == FusionMode::Deformable)
+                .then(|| DeformableFusionConfig::new().init(device)),
         }
     }
 }
@@ -141,7 +146,10 @@ impl MvmpHmr {
         let heatmaps = hm.reshape([b, v, j, hh, hw]);
         let fgrids: Vec<SamplingGrid> = grids.iter().map(|g| g.features.clone()).collect();
         let hgrids: Vec<SamplingGrid> = grids.iter().map(|g| g.heatmaps.clone()).collect();
-        let volume = fuse_views(feats, &fgrids, cfg.fusion);
+        let volume = match &self.deformable {
+            Some(d) => d.forward(feats, &fgrids),
+            None => fuse_views(feats, &fgrids, cfg.fusion),
+        };
         let hvol = fuse_views(heatmaps.clone(), &hgrids, FusionMode::Mean);
         let (likelihood, offset) = self.rootnet.forward(hvol);
         let k = cfg.max_people;

@@ -133,7 +133,8 @@ pub fn summarize(cfg: &ModelConfig, views: usize, device: &Device) -> Summary {
     let cf = cfg.feature_channels as f64;
     let j = cfg.heatmap_joints.len() as f64;
     // Bilinear sampling: 4 taps per channel, voxel and view.
-    let fusion_macs = v * p * 4.0 * (cf + j);
+    let points = net.deformable.as_ref().map_or(1.0, |d| d.points as f64);
+    let fusion_macs = v * p * 4.0 * (cf * points + j);
     let d = cfg.decoder.dim as f64;
     let k = cfg.max_people as f64;
     let pool = cfg.decoder.pool as f64;
@@ -157,7 +158,11 @@ pub fn summarize(cfg: &ModelConfig, views: usize, device: &Device) -> Summary {
         ("vit", count(&net.vit), vit_macs),
         ("reduce", count(&net.reduce), v * (c * cf) * (n - 1.0)),
         ("hrnet", count(&net.hrnet), v * hrnet_macs(cfg)),
-        ("fusion", (0, 0), fusion_macs),
+        (
+            "fusion",
+            net.deformable.as_ref().map_or((0, 0), count),
+            fusion_macs,
+        ),
         ("rootnet", count(&net.rootnet), v2v_macs(cfg)),
         ("decoder", count(&net.decoder), dec_macs),
         ("smplx", (0, 0), smplx_macs),

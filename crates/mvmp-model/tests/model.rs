@@ -70,8 +70,19 @@ fn images(d: &Device) -> Tensor<5> {
 
 #[test]
 fn forward_shapes_with_detected_and_given_roots() {
+    for fusion in [
+        mvmp_fusion::FusionMode::Mean,
+        mvmp_fusion::FusionMode::Max,
+        mvmp_fusion::FusionMode::Deformable,
+    ] {
+        let mut cfg = small_config();
+        cfg.fusion = fusion;
+        forward_shapes(cfg);
+    }
+}
+
+fn forward_shapes(cfg: ModelConfig) {
     let d = Device::flex();
-    let cfg = small_config();
     let net = cfg.init(&d);
     let layer = SmplxLayer::new(&standin_model(0), &d);
     let cams = rig();
