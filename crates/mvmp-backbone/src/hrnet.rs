@@ -211,7 +211,8 @@ impl HrModule {
         }
     }
 
-    fn forward(&self, xs: Vec<Tensor<4>>) -> Vec<Tensor<4>> {
+    /// Branch inputs `[B, C_b, H_b, W_b]` -> fused outputs (one per output resolution).
+    pub fn forward(&self, xs: Vec<Tensor<4>>) -> Vec<Tensor<4>> {
         let xs: Vec<Tensor<4>> = xs
             .into_iter()
             .zip(&self.branches)

@@ -23,7 +23,9 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use burn::store::{ModuleSnapshot, PyTorchToBurnAdapter, PytorchStore, SafetensorsStore};
+use burn::store::{
+    BurnpackStore, ModuleSnapshot, PyTorchToBurnAdapter, PytorchStore, SafetensorsStore,
+};
 
 use crate::ViT;
 
@@ -197,7 +199,7 @@ pub fn import_dinov2(vit: &mut ViT, path: &Path) -> Result<ImportReport, ImportE
     })
 }
 
-/// Save a module in burn's native safetensors format (mvmp key names), atomically.
+/// Save a module in burn-store's native burnpack format (mvmp key names), atomically.
 pub fn save_native<M: burn::module::Module>(module: &M, path: &Path) -> Result<(), ImportError> {
     let dir = path
         .parent()
@@ -209,7 +211,9 @@ pub fn save_native<M: burn::module::Module>(module: &M, path: &Path) -> Result<(
             .and_then(|f| f.to_str())
             .unwrap_or("weights")
     ));
-    let mut store = SafetensorsStore::from_file(&tmp);
+    let mut store = BurnpackStore::from_file(&tmp)
+        .auto_extension(false)
+        .overwrite(true);
     module
         .save_into(&mut store)
         .map_err(|e| ImportError::Format {
@@ -219,6 +223,32 @@ pub fn save_native<M: burn::module::Module>(module: &M, path: &Path) -> Result<(
     std::fs::rename(&tmp, path).map_err(|source| ImportError::Io {
         path: path.into(),
         source,
+    })
+}
+
+/// Load weights written by [`save_native`].
+pub fn load_native<M: burn::module::Module>(
+    module: &mut M,
+    path: &Path,
+) -> Result<ImportReport, ImportError> {
+    if !path.exists() {
+        return Err(ImportError::Io {
+            path: path.into(),
+            source: std::io::Error::new(std::io::ErrorKind::NotFound, "no such file"),
+        });
+    }
+    let mut store = BurnpackStore::from_file(path).auto_extension(false);
+    let r = module
+        .load_from(&mut store)
+        .map_err(|e| ImportError::Format {
+            path: path.into(),
+            what: e.to_string(),
+        })?;
+    Ok(ImportReport {
+        loaded: r.applied,
+        missing: r.missing.into_iter().map(|(k, _)| k).collect(),
+        unused: r.unused,
+        errors: r.errors.iter().map(|e| format!("{e:?}")).collect(),
     })
 }
 

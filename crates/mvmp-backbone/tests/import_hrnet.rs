@@ -125,7 +125,11 @@ fn write(path: &std::path::Path, keys: &[(String, Vec<usize>)]) {
 #[test]
 fn reference_layout_loads_completely() {
     let d = Device::flex();
-    for cfg in [HRNetConfig::tiny(17), HRNetConfig::hrnet_w32(17)] {
+    for cfg in [
+        HRNetConfig::tiny(17),
+        HRNetConfig::hrnet_w32(17),
+        HRNetConfig::hrnet_w48(17),
+    ] {
         let keys = reference_keys(&cfg);
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("pose_hrnet.safetensors");

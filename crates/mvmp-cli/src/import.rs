@@ -16,7 +16,7 @@ pub fn dinov2(variant: &str, from: &Path, out: &Path) -> Result<()> {
     let rep = import_dinov2(&mut vit, from)?;
     report(from, &rep)?;
     save_native(&vit, out)?;
-    println!("wrote {} (mvmp {variant} weights)", out.display());
+    println!("wrote {} (burnpack, mvmp {variant} weights)", out.display());
     Ok(())
 }
 
@@ -32,7 +32,7 @@ pub fn hrnet(variant: &str, joints: usize, from: &Path, out: &Path) -> Result<()
     report(from, &rep)?;
     save_native(&net, out)?;
     println!(
-        "wrote {} (mvmp {variant} weights, {joints} joints)",
+        "wrote {} (burnpack, mvmp {variant} weights, {joints} joints)",
         out.display()
     );
     Ok(())

