@@ -68,6 +68,9 @@ pub fn extract_roots(
         .collect()
 }
 
+/// The default width of the Gaussian root target (metres), as VoxelPose and the paper use.
+pub const DEFAULT_SIGMA: f64 = 0.2;
+
 /// The Gaussian target volume `[X, Y, Z]` (flat, in flat-index order) for roots in the world:
 /// `exp(-|c - mu|^2 / (2 sigma^2))` at every voxel centre `c` within 3 sigma, people merged by maximum.
 pub fn gaussian_target_values(grid: &VoxelGrid, roots: &[[f64; 3]], sigma: f64) -> Vec<f32> {

@@ -159,3 +159,34 @@ fn a_loss_reaches_every_trainable_parameter() {
         c.1
     );
 }
+
+#[test]
+fn every_shipped_config_builds_and_summarises() {
+    // Building every configuration (paper scale included) checks that all module shapes fit together;
+    // the summary reports the main tensors of a forward at that configuration.
+    let d = Device::flex().autodiff();
+    for dir in [configs_dir(), configs_dir().join("ablations")] {
+        for e in std::fs::read_dir(&dir).unwrap() {
+            let p = e.unwrap().path();
+            if p.extension().is_none_or(|x| x != "toml") {
+                continue;
+            }
+            let cfg = ModelConfig::read(&p).unwrap();
+            let s = mvmp_model::summary::summarize(&cfg, 5, &d);
+            let params: usize = s.rows.iter().map(|r| r.params).sum();
+            assert!(params > 1_000_000, "{}: {params} parameters", p.display());
+            let fused = s
+                .activations
+                .iter()
+                .find(|(n, _)| n.starts_with("fused volume"))
+                .unwrap()
+                .1;
+            assert_eq!(
+                fused,
+                cfg.feature_channels * cfg.grid.num_voxels() * 4,
+                "{}",
+                p.display()
+            );
+        }
+    }
+}
