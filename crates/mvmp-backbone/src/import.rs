@@ -57,6 +57,17 @@ pub struct ImportReport {
 /// A tensor read from a file: dtype, shape, little-endian bytes.
 type Raw = (safetensors::Dtype, Vec<usize>, Vec<u8>);
 
+impl From<burn::store::ApplyResult> for ImportReport {
+    fn from(r: burn::store::ApplyResult) -> Self {
+        ImportReport {
+            loaded: r.applied,
+            missing: r.missing.into_iter().map(|(k, _)| k).collect(),
+            unused: r.unused,
+            errors: r.errors.iter().map(|e| format!("{e:?}")).collect(),
+        }
+    }
+}
+
 const PREFIXES: &str = r"^(module\.)?(backbone\.)?(encoder\.)?";
 
 /// Rename Hugging Face DINOv2 tensors to the torch-hub names, concatenating query, key and value.
@@ -191,12 +202,7 @@ pub fn import_dinov2(vit: &mut ViT, path: &Path) -> Result<ImportReport, ImportE
             });
         }
     };
-    Ok(ImportReport {
-        loaded: result.applied,
-        missing: result.missing.into_iter().map(|(k, _)| k).collect(),
-        unused: result.unused,
-        errors: result.errors.iter().map(|e| format!("{e:?}")).collect(),
-    })
+    Ok(result.into())
 }
 
 /// Save a module in burn-store's native burnpack format (mvmp key names), atomically.
@@ -244,12 +250,7 @@ pub fn load_native<M: burn::module::Module>(
             path: path.into(),
             what: e.to_string(),
         })?;
-    Ok(ImportReport {
-        loaded: r.applied,
-        missing: r.missing.into_iter().map(|(k, _)| k).collect(),
-        unused: r.unused,
-        errors: r.errors.iter().map(|e| format!("{e:?}")).collect(),
-    })
+    Ok(r.into())
 }
 
 /// Source-key rewrites from the reference HRNet (`pose_hrnet.py`) names to mvmp's, applied in order:
@@ -345,10 +346,5 @@ pub fn import_hrnet(net: &mut crate::HRNet, path: &Path) -> Result<ImportReport,
         }
         _ => return Err(fmt("expected a .safetensors or .pth checkpoint".into())),
     };
-    Ok(ImportReport {
-        loaded: result.applied,
-        missing: result.missing.into_iter().map(|(k, _)| k).collect(),
-        unused: result.unused,
-        errors: result.errors.iter().map(|e| format!("{e:?}")).collect(),
-    })
+    Ok(result.into())
 }
