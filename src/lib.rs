@@ -5,6 +5,7 @@
 pub use mvmp_backbone as backbone;
 pub use mvmp_data as data;
 pub use mvmp_decoder as decoder;
+pub use mvmp_eval as eval;
 pub use mvmp_fusion as fusion;
 pub use mvmp_geom as geom;
 pub use mvmp_losses as losses;
