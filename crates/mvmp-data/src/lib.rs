@@ -4,6 +4,7 @@ pub mod check;
 pub mod error;
 pub mod layout;
 pub mod loader;
+pub mod panoptic;
 pub mod stats;
 pub mod synth;
 
