@@ -339,14 +339,29 @@ pub struct FrameBatch {
 /// Pads people and stacks views; with a body model it also poses the ground truth into vertices.
 #[derive(Debug, Clone, Default)]
 pub struct FrameBatcher {
-    body: Option<std::sync::Arc<mvmp_smplx::BodyModel>>,
+    body: Option<Arc<mvmp_smplx::BodyModel>>,
+    /// The body layer of the last device used (building one transposes the pose correctives).
+    layer: Arc<std::sync::Mutex<Option<mvmp_smplx::SmplxLayer>>>,
 }
 
 impl FrameBatcher {
     /// A batcher that also returns ground-truth vertices, posed with `model` (the dataset's body model).
     pub fn with_vertices(model: mvmp_smplx::BodyModel) -> Self {
         FrameBatcher {
-            body: Some(std::sync::Arc::new(model)),
+            body: Some(Arc::new(model)),
+            layer: Default::default(),
+        }
+    }
+
+    fn layer(&self, model: &mvmp_smplx::BodyModel, device: &Device) -> mvmp_smplx::SmplxLayer {
+        let mut cached = self.layer.lock().unwrap_or_else(|e| e.into_inner());
+        match cached.as_ref() {
+            Some(l) if l.device() == device => l.clone(),
+            _ => {
+                let l = mvmp_smplx::SmplxLayer::new(model, device);
+                *cached = Some(l.clone());
+                l
+            }
         }
     }
 }
@@ -398,8 +413,7 @@ impl Batcher<FrameSample, FrameBatch> for FrameBatcher {
         }
         let t = |data: Vec<f32>, shape: Vec<usize>| TensorData::new(data, shape);
         let vertices = self.body.as_ref().map(|model| {
-            // The layer is cheap next to loading; it is built on the batch's device.
-            let layer = mvmp_smplx::SmplxLayer::new(model, device);
+            let layer = self.layer(model, device);
             let n = b * p;
             let out = layer.forward_axis_angle(
                 Tensor::from_data(t(pose.clone(), vec![n, 55, 3]), device),
