@@ -11,3 +11,4 @@ pub use mvmp_geom as geom;
 pub use mvmp_losses as losses;
 pub use mvmp_model as model;
 pub use mvmp_smplx as smplx;
+pub use mvmp_train as train;

@@ -346,7 +346,14 @@ impl HRNetConfig {
             stage3: stage(3, self.modules[1], false),
             transition3: Transition::new(&w[..3], &w[..4], device),
             stage4: stage(4, self.modules[2], true),
-            final_layer: conv(c, self.joints, 1, 1, true, device),
+            // The reference initialises convolutions with N(0, 0.001): heatmaps start near zero, not at the
+            // unit scale of a default init that the MSE would first have to undo.
+            final_layer: Conv2dConfig::new([c, self.joints], [1, 1])
+                .with_initializer(burn::nn::Initializer::Normal {
+                    mean: 0.0,
+                    std: 0.001,
+                })
+                .init(device),
         }
     }
 }

@@ -9,6 +9,8 @@ mod data;
 mod device;
 mod import;
 mod model;
+mod run;
+mod train;
 
 #[derive(Parser)]
 #[command(
@@ -41,6 +43,84 @@ enum Command {
     /// Benchmarks.
     #[command(subcommand)]
     Bench(BenchCommand),
+    /// Score a run (or stored predictions, or the mean-pose reference) on a dataset split.
+    Eval {
+        /// Run directory made by `mvmp train`.
+        #[arg(long, conflicts_with_all = ["predictions", "baseline"])]
+        run: Option<PathBuf>,
+        /// Predictions in infer's layout: PRED_DIR/<scene>/<frame>/people.npz.
+        #[arg(long, conflicts_with = "baseline")]
+        predictions: Option<PathBuf>,
+        /// A reference instead of a model: `mean-pose` (the mean pose at each ground-truth pelvis).
+        #[arg(long)]
+        baseline: Option<String>,
+        /// Dataset root (mvmp layout).
+        #[arg(long)]
+        data: PathBuf,
+        /// train, test or all.
+        #[arg(long, default_value = "test")]
+        split: String,
+        /// Views per frame (the first N cameras; default: the run's test_views).
+        #[arg(long)]
+        views: Option<usize>,
+        /// Score only the first N frames (0 = all).
+        #[arg(long, default_value_t = 0)]
+        frames: usize,
+        /// Matching gate on pelvis distance (metres).
+        #[arg(long, default_value_t = mvmp_eval::DEFAULT_GATE)]
+        gate: f64,
+        /// Write the JSON report here (default: RUN_DIR/eval-<split>.json for a run).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Also write each frame's predictions (infer's layout) under this directory.
+        #[arg(long)]
+        save_predictions: Option<PathBuf>,
+        /// Body model for --predictions (`standin:SEED` or an SMPLX npz; default: the dataset's).
+        #[arg(long)]
+        body_model: Option<String>,
+    },
+    /// Recover every person's SMPL-X mesh from calibrated views of a frame (or a sequence of frames).
+    Infer {
+        /// Run directory made by `mvmp train`.
+        #[arg(long)]
+        run: PathBuf,
+        /// Camera rig (mvmp-rig JSON).
+        #[arg(long)]
+        rig: PathBuf,
+        /// One image per camera, in rig order.
+        #[arg(long, num_args = 1..)]
+        images: Vec<PathBuf>,
+        /// A sequence: one sub-directory per frame, each with one image per camera.
+        #[arg(long)]
+        frames: Option<PathBuf>,
+        /// Output directory.
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// The end-to-end demo: synthesise the tiny dataset, train both stages on the CPU, evaluate, infer.
+    Demo {
+        /// Output directory (must not exist or be empty).
+        #[arg(long, default_value = "out/demo")]
+        out: PathBuf,
+    },
+    /// Train MVMP-HMR (stage 1: HRNet + RootNet; stage 2: the whole model), or resume a run.
+    Train {
+        /// Training config (TOML), e.g. configs/train/tiny.toml.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Dataset root (overrides the config's `data`).
+        #[arg(long)]
+        data: Option<PathBuf>,
+        /// Run directory to create (default: out/runs/<config name>).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Continue the run in this directory from its last checkpoint.
+        #[arg(long)]
+        resume: Option<PathBuf>,
+        /// Stop with a checkpoint once the run has made this many optimizer steps.
+        #[arg(long)]
+        stop_after_steps: Option<u64>,
+    },
 }
 
 #[derive(Subcommand)]
@@ -232,6 +312,90 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             from,
             out,
         }) => import::hrnet(&variant, joints, &from, &out),
+        Command::Eval {
+            run,
+            predictions,
+            baseline,
+            data,
+            split,
+            views,
+            frames,
+            gate,
+            out,
+            save_predictions,
+            body_model,
+        } => {
+            let source = match (&run, &predictions, baseline.as_deref()) {
+                (Some(r), None, None) => run::Source::Run(r),
+                (None, Some(p), None) => run::Source::Predictions(p),
+                (None, None, Some("mean-pose")) => run::Source::MeanPose,
+                (None, None, Some(other)) => {
+                    anyhow::bail!("--baseline {other:?}: the only baseline is mean-pose")
+                }
+                _ => anyhow::bail!(
+                    "pass one of --run RUN_DIR, --predictions DIR, --baseline mean-pose"
+                ),
+            };
+            let split_v = run::parse_split(&split)?;
+            let out = out.or_else(|| run.as_ref().map(|r| r.join(format!("eval-{split}.json"))));
+            let args = run::EvalArgs {
+                source,
+                data: &data,
+                split: split_v,
+                views,
+                frames,
+                gate,
+                out: out.as_deref(),
+                save_predictions: save_predictions.as_deref(),
+                body_model: body_model.as_deref(),
+            };
+            let (m, _) = run::eval(&args, &device, false)?;
+            print!("{}", run::table(&[(format!("{split} split"), m.clone())]));
+            println!(
+                "matched {} of {} ground-truth people, {} predictions",
+                m.matched, m.ground_truth, m.predictions
+            );
+            if let Some(o) = &out {
+                println!("report {}", o.display());
+            }
+            Ok(())
+        }
+        Command::Infer {
+            run,
+            rig,
+            images,
+            frames,
+            out,
+        } => run::infer(
+            &run::InferArgs {
+                run: &run,
+                rig: &rig,
+                images: &images,
+                frames: frames.as_deref(),
+                out: &out,
+            },
+            &device,
+            false,
+        ),
+        Command::Demo { out } => run::demo(&out, &device),
+        Command::Train {
+            config,
+            data,
+            out,
+            resume,
+            stop_after_steps,
+        } => train::train(
+            train::TrainArgs {
+                config: config.as_deref(),
+                data: data.as_deref(),
+                out: out.as_deref(),
+                resume: resume.as_deref(),
+                stop_after_steps,
+            },
+            &device,
+            &mut train::BarMonitor::new(false),
+        )
+        .map(|_| ()),
         Command::Bench(BenchCommand::Model {
             config,
             views,

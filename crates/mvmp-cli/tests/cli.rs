@@ -356,3 +356,154 @@ fn import_rejects_missing_and_unknown_inputs() {
     );
     assert!(!out.exists());
 }
+
+/// Ground-truth parameters of every frame stored as predictions (infer's layout), with `shift` added to
+/// each person's translation.
+fn write_gt_predictions(data: &Path, pred: &Path, shift: [f64; 3]) {
+    let layout = mvmp_data::DatasetLayout::open(data).unwrap();
+    for f in layout.frames() {
+        let rig = &layout.scenes[f.scene].rig;
+        let ann = mvmp_data::Annotation::read(&f.dir.join("annotation.json"), rig.len()).unwrap();
+        let people: Vec<mvmp_train::PersonPrediction> = ann
+            .people
+            .iter()
+            .map(|p| {
+                let s = &p.smplx;
+                let arr = |v: &[f64]| -> [f32; 10] {
+                    std::array::from_fn(|i| v.get(i).copied().unwrap_or(0.0) as f32)
+                };
+                mvmp_train::PersonPrediction {
+                    score: 1.0,
+                    pose: s.full_pose().iter().map(|&x| x as f32).collect(),
+                    betas: arr(&s.betas),
+                    expression: arr(&s.expression),
+                    pelvis: std::array::from_fn(|a| (p.pelvis[a] + shift[a]) as f32),
+                    transl: std::array::from_fn(|a| (s.transl[a] + shift[a]) as f32),
+                    joints: Vec::new(),
+                    vertices: Vec::new(),
+                }
+            })
+            .collect();
+        let scene = &layout.scenes[f.scene].name;
+        let frame = f.dir.file_name().unwrap();
+        let dir = pred.join(scene).join(frame);
+        std::fs::create_dir_all(&dir).unwrap();
+        mvmp_train::output::write_people_npz(&dir.join("people.npz"), &people).unwrap();
+    }
+}
+
+#[test]
+fn eval_scores_planted_predictions_exactly() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("s.toml");
+    std::fs::write(
+        &cfg,
+        "scenes = 2\nframes_per_scene = 2\npeople = [2, 3]\narea = [4.0, 4.0]\nimage_size = [96, 64]\n[cameras]\ncount = 2\nrings = [{ height = 2.5, radius = 6.0 }]\n",
+    )
+    .unwrap();
+    let data = dir.path().join("ds");
+    let o = mvmp(&[
+        "data",
+        "synth",
+        "--config",
+        cfg.to_str().unwrap(),
+        "--out",
+        data.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let eval = |pred: &Path, report: &Path| -> serde_json::Value {
+        let o = mvmp(&[
+            "eval",
+            "--predictions",
+            pred.to_str().unwrap(),
+            "--data",
+            data.to_str().unwrap(),
+            "--split",
+            "all",
+            "--out",
+            report.to_str().unwrap(),
+        ]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        assert!(String::from_utf8_lossy(&o.stdout).contains("MPJPE"));
+        serde_json::from_str(&std::fs::read_to_string(report).unwrap()).unwrap()
+    };
+    // The ground truth itself: zero error, everyone found, AP 1 at every threshold.
+    let exact = dir.path().join("exact");
+    write_gt_predictions(&data, &exact, [0.0; 3]);
+    let r = eval(&exact, &dir.path().join("r0.json"));
+    assert!(r["mpjpe_mm"].as_f64().unwrap() < 0.05, "{r}");
+    assert!(r["pve_mm"].as_f64().unwrap() < 0.05, "{r}");
+    assert_eq!(r["recall_500"].as_f64().unwrap(), 1.0);
+    for t in ["25", "50", "75", "100", "125", "150"] {
+        assert_eq!(r["ap"][t].as_f64().unwrap(), 1.0, "AP{t}");
+    }
+    assert_eq!(r["protocol"]["gate_m"].as_f64().unwrap(), 0.5);
+    assert!(r["protocol"]["joints"].as_str().unwrap().contains("127"));
+    // Everyone moved by 3 cm, 4 cm, 0: every joint and vertex is 50 mm off; Procrustes removes it.
+    let moved = dir.path().join("moved");
+    write_gt_predictions(&data, &moved, [0.03, 0.04, 0.0]);
+    let r = eval(&moved, &dir.path().join("r1.json"));
+    assert!((r["mpjpe_mm"].as_f64().unwrap() - 50.0).abs() < 0.05, "{r}");
+    assert!((r["pve_mm"].as_f64().unwrap() - 50.0).abs() < 0.05, "{r}");
+    assert!(r["pa_pve_mm"].as_f64().unwrap() < 0.05, "{r}");
+    assert_eq!(r["ap"]["25"].as_f64().unwrap(), 0.0);
+    assert_eq!(r["ap"]["75"].as_f64().unwrap(), 1.0);
+    // A frame without predictions is named.
+    std::fs::remove_file(moved.join("scene_000/frame_000001/people.npz")).unwrap();
+    expect_error(
+        &[
+            "eval",
+            "--predictions",
+            moved.to_str().unwrap(),
+            "--data",
+            data.to_str().unwrap(),
+            "--split",
+            "all",
+        ],
+        &["scene_000/frame_000001/people.npz", "no predictions"],
+    );
+    // The reference baseline runs and reports every person matched (it sits on the GT pelvis).
+    let o = mvmp(&[
+        "eval",
+        "--baseline",
+        "mean-pose",
+        "--data",
+        data.to_str().unwrap(),
+        "--split",
+        "all",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    // Bad arguments are refused clearly.
+    expect_error(
+        &["eval", "--data", data.to_str().unwrap()],
+        &["--run", "--predictions"],
+    );
+    expect_error(
+        &[
+            "eval",
+            "--baseline",
+            "zero",
+            "--data",
+            data.to_str().unwrap(),
+        ],
+        &["mean-pose"],
+    );
+    expect_error(
+        &["train", "--config", config("model/tiny.toml").as_str()],
+        &["model/tiny.toml"],
+    );
+    expect_error(
+        &[
+            "infer",
+            "--run",
+            dir.path().to_str().unwrap(),
+            "--rig",
+            "x.json",
+            "--images",
+            "a.png",
+            "--out",
+            "o",
+        ],
+        &["x.json"],
+    );
+}

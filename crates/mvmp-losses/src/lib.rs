@@ -31,12 +31,27 @@ pub fn detection_loss(
     gt_offset: Tensor<3>,
     mask: Tensor<2>,
 ) -> Tensor<1> {
+    detection_loss_weighted(likelihood, target, offset, voxels, gt_offset, mask, 1.0)
+}
+
+/// [`detection_loss`] with the offset term weighted by `offset_weight` (the paper: 1). The volume MSE is
+/// a mean over every voxel, so its gradient is small beside the offset L1's; a smaller offset weight lets
+/// the likelihood learn first in short trainings.
+pub fn detection_loss_weighted(
+    likelihood: Tensor<5>,
+    target: Tensor<5>,
+    offset: Tensor<5>,
+    voxels: Tensor<2, Int>,
+    gt_offset: Tensor<3>,
+    mask: Tensor<2>,
+    offset_weight: f32,
+) -> Tensor<1> {
     let mse = (likelihood - target).powi_scalar(2).mean();
     let [b, _, x, y, z] = offset.dims();
     let flat = offset.reshape([b, 3, x * y * z]);
     let idx = voxels.unsqueeze_dim::<3>(1).repeat_dim(1, 3); // [B, 3, R]
     let picked = flat.gather(2, idx).swap_dims(1, 2); // [B, R, 3]
-    mse + masked_mean((picked - gt_offset).abs(), mask)
+    mse + masked_mean((picked - gt_offset).abs(), mask) * offset_weight
 }
 
 /// Parameter loss: L1 on the rotation matrices of the 53 regressed joints `[B, K, 53, 3, 3]`, on betas and on
@@ -163,6 +178,49 @@ pub fn density_loss(
     masked_mean((p - t).powi_scalar(2), mask)
 }
 
+/// 2D heatmap loss of the pose network (stage 1 pre-training, as HRNet's and VoxelPose's joint MSE):
+/// the MSE between heatmaps `[B, V, J, H, W]` and their Gaussian targets per joint, weighted by
+/// `weight` `[B, V, J]` (1 for a visible joint, 0 otherwise), averaged over `B x V x J`.
+pub fn heatmap_loss(pred: Tensor<5>, target: Tensor<5>, weight: Tensor<3>) -> Tensor<1> {
+    let [b, v, j, h, w] = pred.dims();
+    let per_joint = (pred - target)
+        .powi_scalar(2)
+        .reshape([b, v, j, h * w])
+        .mean_dim(3)
+        .reshape([b, v, j]);
+    (per_joint * weight).mean()
+}
+
+/// Gaussian heatmap targets `[J, H, W]` (flat) of one view for joints at network pixels `(u, v)`, on maps of
+/// `stride` network pixels per map pixel (map coordinate `(u + 0.5) / stride - 0.5`, as the fusion samples),
+/// `exp(-d^2 / (2 sigma^2))` with `sigma` in map pixels, cut at 3 sigma. Joints with `None` stay zero.
+pub fn heatmap_target(
+    joints: &[Option<[f32; 2]>],
+    hw: [usize; 2],
+    stride: f32,
+    sigma: f32,
+) -> Vec<f32> {
+    let [h, w] = hw;
+    let mut out = vec![0f32; joints.len() * h * w];
+    for (ji, p) in joints.iter().enumerate() {
+        let Some([u, v]) = *p else { continue };
+        let (x, y) = ((u + 0.5) / stride - 0.5, (v + 0.5) / stride - 0.5);
+        let r = 3.0 * sigma;
+        let (x0, x1) = ((x - r).floor().max(0.0), (x + r).ceil().min(w as f32 - 1.0));
+        let (y0, y1) = ((y - r).floor().max(0.0), (y + r).ceil().min(h as f32 - 1.0));
+        if x0 > x1 || y0 > y1 {
+            continue;
+        }
+        for iy in y0 as usize..=y1 as usize {
+            for ix in x0 as usize..=x1 as usize {
+                let d2 = (ix as f32 - x).powi(2) + (iy as f32 - y).powi(2);
+                out[(ji * h + iy) * w + ix] = (-d2 / (2.0 * sigma * sigma)).exp();
+            }
+        }
+    }
+    out
+}
+
 /// Loss weights and density-loss settings (the `[loss]` table of a training config). A weight of 0 switches
 /// its term off (ablations). Defaults are the paper's.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -181,6 +239,12 @@ pub struct LossWeights {
     /// Points per side of the local density grid and its extent (metres) around the GT pelvis.
     pub density_grid: usize,
     pub density_extent: f64,
+    /// Weight of the offset L1 inside the detection loss (the paper: 1).
+    pub detection_offset: f32,
+    /// Weight of the 2D heatmap loss of stage 1 (the pose network's pre-training; not one of the five).
+    pub heatmap_2d: f32,
+    /// Width of the 2D heatmap targets in heatmap pixels (HRNet: 2).
+    pub heatmap_sigma: f32,
 }
 
 impl Default for LossWeights {
@@ -195,6 +259,9 @@ impl Default for LossWeights {
             density_sigma: 0.1,
             density_grid: 16,
             density_extent: 2.2,
+            detection_offset: 1.0,
+            heatmap_2d: 1.0,
+            heatmap_sigma: 2.0,
         }
     }
 }
@@ -209,6 +276,8 @@ impl LossWeights {
             ("mesh_2d", self.mesh_2d),
             ("orientation", self.orientation),
             ("density", self.density),
+            ("heatmap_2d", self.heatmap_2d),
+            ("detection_offset", self.detection_offset),
         ] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(format!(
@@ -220,6 +289,12 @@ impl LossWeights {
             return Err(format!(
                 "loss.density_sigma = {}: must be positive",
                 self.density_sigma
+            ));
+        }
+        if !(self.heatmap_sigma.is_finite() && self.heatmap_sigma > 0.0) {
+            return Err(format!(
+                "loss.heatmap_sigma = {}: must be positive",
+                self.heatmap_sigma
             ));
         }
         if self.density_grid == 0 || !(self.density_extent.is_finite() && self.density_extent > 0.0)

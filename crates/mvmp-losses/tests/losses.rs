@@ -251,3 +251,32 @@ fn weights_default_to_the_paper_and_terms_add_up() {
         ["detection", "mesh", "orientation"]
     );
 }
+
+#[test]
+fn heatmap_loss_by_hand_weights_joints() {
+    let d = Device::flex();
+    // B=1, V=1, J=2, 1x2 maps. Joint 0 errors (1, 3): MSE 5; joint 1 errors (2, 0): MSE 2, weight 0.
+    let pred = t(vec![1.0, 3.0, 2.0, 0.0], [1, 1, 2, 1, 2], &d);
+    let target = t(vec![0.0; 4], [1, 1, 2, 1, 2], &d);
+    let w = t(vec![1.0, 0.0], [1, 1, 2], &d);
+    assert!((scalar(heatmap_loss(pred, target, w)) - 2.5).abs() < 1e-6);
+}
+
+#[test]
+fn heatmap_target_peaks_where_the_fusion_samples() {
+    // Network pixel u = 9.5 at stride 4 is map coordinate (9.5 + 0.5) / 4 - 0.5 = 2.0 exactly.
+    let h = heatmap_target(&[Some([9.5, 5.5]), None], [4, 6], 4.0, 1.0);
+    assert_eq!(h.len(), 2 * 4 * 6);
+    // (u, v) -> map (2.0, 1.0): the peak is 1 at row 1, column 2; a neighbour is exp(-1/2).
+    assert!((h[6 + 2] - 1.0).abs() < 1e-6);
+    assert!((h[6 + 3] - (-0.5f32).exp()).abs() < 1e-6);
+    assert!((h[2 * 6 + 3] - (-1.0f32).exp()).abs() < 1e-6);
+    assert!(
+        h[24..].iter().all(|&x| x == 0.0),
+        "a missing joint stays zero"
+    );
+    // Beyond 3 sigma nothing is written: sigma 0.5 reaches columns 0..=4 of row 1, not column 5.
+    let h = heatmap_target(&[Some([9.5, 5.5])], [4, 6], 4.0, 0.5);
+    assert!(h[6 + 4] > 0.0);
+    assert_eq!(h[6 + 5], 0.0);
+}

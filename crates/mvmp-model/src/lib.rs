@@ -4,4 +4,4 @@ pub mod model;
 pub mod summary;
 
 pub use config::{ModelConfig, ModelConfigError};
-pub use model::{MvmpHmr, MvmpOutput, RigGrids};
+pub use model::{Detection, MvmpHmr, MvmpOutput, RigGrids, roots_tensor};

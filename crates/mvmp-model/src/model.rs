@@ -83,7 +83,7 @@ pub struct MvmpOutput {
     /// `[B, 1, X, Y, Z]` and `[B, 3, X, Y, Z]`
     pub likelihood: Tensor<5>,
     pub offset: Tensor<5>,
-    /// Detected roots per batch item (empty when roots were given).
+    /// Detected roots per batch item, best first (also when the roots to decode at were given).
     pub detections: Vec<Vec<Root>>,
     /// `[B, K, 3]` roots the people were decoded at, `[B, K]` which slots hold a person.
     pub roots: Tensor<3>,
@@ -124,9 +124,35 @@ impl ModelConfig {
     }
 }
 
+/// The detection branch's outputs (stage 1 trains only this branch).
+#[derive(Debug, Clone)]
+pub struct Detection {
+    /// `[B, V, J, S/4, S/4]`
+    pub heatmaps: Tensor<5>,
+    /// `[B, 1, X, Y, Z]` and `[B, 3, X, Y, Z]`
+    pub likelihood: Tensor<5>,
+    pub offset: Tensor<5>,
+}
+
 impl MvmpHmr {
+    /// The detection branch alone: HRNet heatmaps, their mean fusion and the RootNet.
+    pub fn detect(&self, images: Tensor<5>, grids: &[RigGrids]) -> Detection {
+        let [b, v, _, s, _] = images.dims();
+        let hm = self.hrnet.forward(images.reshape([b * v, 3, s, s])); // [B*V, J, S/4, S/4]
+        let [_, j, hh, hw] = hm.dims();
+        let heatmaps = hm.reshape([b, v, j, hh, hw]);
+        let hgrids: Vec<SamplingGrid> = grids.iter().map(|g| g.heatmaps.clone()).collect();
+        let hvol = fuse_views(heatmaps.clone(), &hgrids, FusionMode::Mean);
+        let (likelihood, offset) = self.rootnet.forward(hvol);
+        Detection {
+            heatmaps,
+            likelihood,
+            offset,
+        }
+    }
+
     /// Forward. `grids`: one [`RigGrids`] per batch item. `roots`: decode at these roots `[B, K, 3]` with
-    /// presence `[B, K]` (training with ground-truth roots); `None` detects them from the likelihood.
+    /// presence `[B, K]` (training with ground-truth roots); `None` decodes at the detected roots.
     pub fn forward(
         &self,
         images: Tensor<5>,
@@ -135,51 +161,51 @@ impl MvmpHmr {
         layer: &SmplxLayer,
         roots: Option<(Tensor<3>, Tensor<2, Bool>)>,
     ) -> MvmpOutput {
+        match roots {
+            Some(r) => self.forward_select(images, grids, cfg, layer, |_| r),
+            None => {
+                let (k, device) = (cfg.max_people, images.device());
+                self.forward_select(images, grids, cfg, layer, |det| {
+                    roots_tensor(det, k, &device)
+                })
+            }
+        }
+    }
+
+    /// Forward that lets `select` choose where to decode people from the detected roots (best first, at
+    /// most `max_people` per batch item): it returns roots `[B, K, 3]` and presence `[B, K]`. Training
+    /// uses it to match detections to the ground truth.
+    pub fn forward_select(
+        &self,
+        images: Tensor<5>,
+        grids: &[RigGrids],
+        cfg: &ModelConfig,
+        layer: &SmplxLayer,
+        select: impl FnOnce(&[Vec<Root>]) -> (Tensor<3>, Tensor<2, Bool>),
+    ) -> MvmpOutput {
         let [b, v, _, s, _] = images.dims();
-        let device = images.device();
-        let x = images.reshape([b * v, 3, s, s]);
-        let feats = self.reduce.forward(self.vit.forward(x.clone())); // [B*V, Cf, h, w]
+        let x = images.clone().reshape([b * v, 3, s, s]);
+        let feats = self.reduce.forward(self.vit.forward(x)); // [B*V, Cf, h, w]
         let [_, cf, h, w] = feats.dims();
         let feats = feats.reshape([b, v, cf, h, w]);
-        let hm = self.hrnet.forward(x); // [B*V, J, S/4, S/4]
-        let [_, j, hh, hw] = hm.dims();
-        let heatmaps = hm.reshape([b, v, j, hh, hw]);
         let fgrids: Vec<SamplingGrid> = grids.iter().map(|g| g.features.clone()).collect();
-        let hgrids: Vec<SamplingGrid> = grids.iter().map(|g| g.heatmaps.clone()).collect();
         let volume = match &self.deformable {
             Some(d) => d.forward(feats, &fgrids),
             None => fuse_views(feats, &fgrids, cfg.fusion),
         };
-        let hvol = fuse_views(heatmaps.clone(), &hgrids, FusionMode::Mean);
-        let (likelihood, offset) = self.rootnet.forward(hvol);
-        let k = cfg.max_people;
-        let (roots, present, detections) = match roots {
-            Some((r, p)) => (r, p, Vec::new()),
-            None => {
-                let det = extract_roots(
-                    likelihood.clone().detach(),
-                    Some(offset.clone().detach()),
-                    &cfg.grid,
-                    k,
-                    cfg.root_threshold,
-                );
-                let mut r = vec![0f32; b * k * 3];
-                let mut p = vec![false; b * k];
-                for (bi, d) in det.iter().enumerate() {
-                    for (ki, root) in d.iter().enumerate().take(k) {
-                        p[bi * k + ki] = true;
-                        for a in 0..3 {
-                            r[(bi * k + ki) * 3 + a] = root.position[a] as f32;
-                        }
-                    }
-                }
-                (
-                    Tensor::from_data(TensorData::new(r, [b, k, 3]), &device),
-                    Tensor::from_data(TensorData::new(p, [b, k]), &device),
-                    det,
-                )
-            }
-        };
+        let Detection {
+            heatmaps,
+            likelihood,
+            offset,
+        } = self.detect(images, grids);
+        let detections = extract_roots(
+            likelihood.clone().detach(),
+            Some(offset.clone().detach()),
+            &cfg.grid,
+            cfg.max_people,
+            cfg.root_threshold,
+        );
+        let (roots, present) = select(&detections);
         let kk = roots.dims()[1];
         let dec = self
             .decoder
@@ -216,4 +242,28 @@ impl MvmpHmr {
             joints: body.joints.reshape([b, kk, nj, 3]),
         }
     }
+}
+
+/// Roots `[B, K, 3]` and presence `[B, K]` from per-item root lists (at most `k` each, in order).
+pub fn roots_tensor(
+    roots: &[Vec<Root>],
+    k: usize,
+    device: &Device,
+) -> (Tensor<3>, Tensor<2, Bool>) {
+    let b = roots.len();
+    let k = k.max(1);
+    let mut r = vec![0f32; b * k * 3];
+    let mut p = vec![false; b * k];
+    for (bi, d) in roots.iter().enumerate() {
+        for (ki, root) in d.iter().enumerate().take(k) {
+            p[bi * k + ki] = true;
+            for a in 0..3 {
+                r[(bi * k + ki) * 3 + a] = root.position[a] as f32;
+            }
+        }
+    }
+    (
+        Tensor::from_data(TensorData::new(r, [b, k, 3]), device),
+        Tensor::from_data(TensorData::new(p, [b, k]), device),
+    )
 }

@@ -1,0 +1,546 @@
+//! `mvmp eval`, `mvmp infer` and `mvmp demo`.
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use burn::tensor::{Device, Tensor, TensorData};
+use indicatif::{ProgressBar, ProgressStyle};
+use serde_json::json;
+
+use mvmp_data::loader::{Split, letterbox_into};
+use mvmp_eval::{AP_THRESHOLDS, Evaluator, Metrics};
+use mvmp_geom::io::write_atomic;
+use mvmp_geom::{Camera, Letterbox, Rig};
+use mvmp_smplx::SmplxLayer;
+use mvmp_train::output::{read_people_npz, write_frame};
+use mvmp_train::predict::{evaluate_frames, mean_pose_at, pose_params};
+use mvmp_train::run::file_hash;
+use mvmp_train::{EvalOptions, Predictor, RunDir};
+
+pub fn parse_split(s: &str) -> Result<Split> {
+    match s {
+        "train" => Ok(Split::Train),
+        "test" => Ok(Split::Test),
+        "all" => Ok(Split::All),
+        other => bail!("--split {other:?}: expected train, test or all"),
+    }
+}
+
+fn bar(n: usize, what: &str) -> ProgressBar {
+    let b = ProgressBar::new(n as u64);
+    b.set_style(
+        ProgressStyle::with_template(&format!(
+            "{what} [{{bar:30}}] {{pos}}/{{len}} {{elapsed_precise}} eta {{eta_precise}}"
+        ))
+        .expect("valid template")
+        .progress_chars("=> "),
+    );
+    b
+}
+
+/// The evaluation protocol, as stated in every report.
+pub fn protocol(gate: f64) -> serde_json::Value {
+    json!({
+        "matching": "Hungarian assignment of predictions to ground truth on pelvis distance",
+        "gate_m": gate,
+        "joints": "SMPL-X, 127 (55 LBS joints, 21 vertex joints, 51 face landmarks)",
+        "mpjpe": "mean joint L2 on matched pairs, world frame, mm, no alignment",
+        "pve": "mean vertex L2 on matched pairs, world frame, mm, no alignment",
+        "pa_pve": "mean vertex L2 after a similarity Procrustes alignment (scale, rotation, translation) per person, mm",
+        "ap_thresholds_mm": AP_THRESHOLDS,
+        "ap": "VOC-style AP: predictions by descending score, each to its nearest ground truth by MPJPE",
+        "recall_500": "fraction of ground-truth people with a prediction within 500 mm MPJPE",
+    })
+}
+
+/// Where the predictions came from.
+pub enum Source<'a> {
+    Run(&'a Path),
+    Predictions(&'a Path),
+    MeanPose,
+}
+
+pub struct EvalArgs<'a> {
+    pub source: Source<'a>,
+    pub data: &'a Path,
+    pub split: Split,
+    pub views: Option<usize>,
+    pub frames: usize,
+    pub gate: f64,
+    pub out: Option<&'a Path>,
+    pub save_predictions: Option<&'a Path>,
+    pub body_model: Option<&'a str>,
+}
+
+fn fmt(x: Option<f64>) -> String {
+    x.map_or("-".into(), |v| format!("{v:.1}"))
+}
+
+/// A table of figures, one row per named set.
+pub fn table(rows: &[(String, Metrics)]) -> String {
+    let mut s = format!(
+        "{:<28} {:>9} {:>9} {:>9} {:>8} {:>7} {:>7} {:>7}\n",
+        "", "MPJPE", "PVE", "PA-PVE", "recall", "AP25", "AP100", "AP150"
+    );
+    for (name, m) in rows {
+        s += &format!(
+            "{:<28} {:>9} {:>9} {:>9} {:>8} {:>7.3} {:>7.3} {:>7.3}\n",
+            name,
+            fmt(m.mpjpe_mm),
+            fmt(m.pve_mm),
+            fmt(m.pa_pve_mm),
+            m.recall_500.map_or("-".into(), |r| format!("{r:.3}")),
+            m.ap.get("25").copied().unwrap_or(0.0),
+            m.ap.get("100").copied().unwrap_or(0.0),
+            m.ap.get("150").copied().unwrap_or(0.0),
+        );
+    }
+    s
+}
+
+/// Run an evaluation; returns the overall figures and the report.
+pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, serde_json::Value)> {
+    let split_name = match args.split {
+        Split::Train => "train",
+        Split::Test => "test",
+        Split::All => "all",
+    };
+    let layout = mvmp_data::DatasetLayout::open(args.data)?;
+    let min_views = layout.scenes.iter().map(|s| s.rig.len()).min().unwrap_or(0);
+    let (ev, source, views): (Evaluator, serde_json::Value, usize) = match args.source {
+        Source::Run(run_dir) => {
+            let (run, cfg, _) = RunDir::open(run_dir)?;
+            let (pred, weights) = Predictor::from_run(run_dir, device)?;
+            let views = args.views.unwrap_or(cfg.test_views.min(min_views));
+            let opts = EvalOptions {
+                split: args.split,
+                views,
+                max_frames: args.frames,
+                gate: args.gate,
+            };
+            let mut pb: Option<ProgressBar> = None;
+            let faces = pred.layer.faces().to_vec();
+            let ev = mvmp_train::evaluate(&pred, args.data, &opts, |i, n, fp| {
+                let b = pb.get_or_insert_with(|| {
+                    if quiet {
+                        ProgressBar::hidden()
+                    } else {
+                        bar(n, "eval")
+                    }
+                });
+                if let Some(dir) = args.save_predictions {
+                    let d = dir.join(&fp.scene).join(&fp.frame);
+                    write_frame(&d, &fp.people, &faces, &fp.cameras, None, &pred.cfg.grid)?;
+                }
+                b.set_position(i as u64 + 1);
+                Ok(())
+            })?;
+            if let Some(b) = pb {
+                b.finish_and_clear();
+            }
+            let source = json!({
+                "run": run.root.display().to_string(),
+                "checkpoint": weights.display().to_string(),
+                "checkpoint_sha256": file_hash(&weights)?,
+                "config_sha256": run.config_hash()?,
+            });
+            (ev, source, views)
+        }
+        Source::Predictions(dir) => {
+            let body = match args.body_model {
+                Some(r) => mvmp_data::layout::load_body_model(r, Path::new("."))?,
+                None => layout.body_model()?,
+            };
+            let layer = SmplxLayer::new(&body, device);
+            let views = args.views.unwrap_or(1).min(min_views.max(1));
+            let opts = EvalOptions {
+                split: args.split,
+                views,
+                max_frames: args.frames,
+                gate: args.gate,
+            };
+            // Images are not needed here: a small input size keeps loading cheap.
+            let ev = evaluate_frames(args.data, &opts, 28, device, |_, _, batch| {
+                let (scene, frame) = &batch.names[0];
+                let path = dir.join(scene).join(frame).join("people.npz");
+                if !path.exists() {
+                    return Err(mvmp_train::TrainError::file(
+                        &path,
+                        "no predictions for this frame (expected PRED_DIR/<scene>/<frame>/people.npz)",
+                    ));
+                }
+                let people: Vec<_> = read_people_npz(&path)?
+                    .into_iter()
+                    .map(|p| (p.params, p.score))
+                    .collect();
+                Ok(pose_params(&layer, &people))
+            })?;
+            (ev, json!({"predictions": dir.display().to_string()}), views)
+        }
+        Source::MeanPose => {
+            let layer = SmplxLayer::new(&layout.body_model()?, device);
+            let opts = EvalOptions {
+                split: args.split,
+                views: 1,
+                max_frames: args.frames,
+                gate: args.gate,
+            };
+            let ev = evaluate_frames(args.data, &opts, 28, device, |_, _, batch| {
+                let [_, p, _] = batch.pelvis.dims();
+                let pel: Vec<f32> = batch
+                    .pelvis
+                    .to_data()
+                    .convert::<f32>()
+                    .try_into_vec()
+                    .unwrap();
+                let pelvis: Vec<[f32; 3]> = (0..batch.counts[0])
+                    .take(p)
+                    .map(|i| [pel[i * 3], pel[i * 3 + 1], pel[i * 3 + 2]])
+                    .collect();
+                Ok(mean_pose_at(&layer, &pelvis))
+            })?;
+            (
+                ev,
+                json!({"baseline": "mean pose at the ground-truth pelvis"}),
+                1,
+            )
+        }
+    };
+    let overall = ev.overall();
+    let report = json!({
+        "format": "mvmp-eval-report",
+        "version": 1,
+        "source": source,
+        "data": std::path::absolute(args.data).unwrap_or(args.data.into()).display().to_string(),
+        "split": split_name,
+        "views": views,
+        "protocol": protocol(args.gate),
+        "mpjpe_mm": overall.mpjpe_mm,
+        "pve_mm": overall.pve_mm,
+        "pa_pve_mm": overall.pa_pve_mm,
+        "recall_500": overall.recall_500,
+        "ap": overall.ap,
+        "matched": overall.matched,
+        "ground_truth": overall.ground_truth,
+        "predictions": overall.predictions,
+        "per_scene": ev.per_scene(),
+    });
+    if let Some(out) = args.out {
+        if let Some(d) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
+        }
+        write_atomic(out, serde_json::to_string_pretty(&report)?.as_bytes())?;
+    }
+    Ok((overall, report))
+}
+
+/// The images of one frame directory: the annotation's list when there is one, else the image files in
+/// name order (depth_* and mask_* skipped).
+pub fn frame_images(dir: &Path, views: usize) -> Result<Vec<PathBuf>> {
+    let ann = dir.join("annotation.json");
+    if ann.exists() {
+        let a = mvmp_data::Annotation::read(&ann, views)?;
+        return Ok(a.images.iter().map(|i| dir.join(i)).collect());
+    }
+    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+        .with_context(|| format!("reading {}", dir.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| {
+            let name = p.file_name().and_then(|f| f.to_str()).unwrap_or("");
+            let ext = p
+                .extension()
+                .and_then(|e| e.to_str())
+                .unwrap_or("")
+                .to_ascii_lowercase();
+            matches!(ext.as_str(), "png" | "jpg" | "jpeg")
+                && !name.starts_with("depth_")
+                && !name.starts_with("mask_")
+        })
+        .collect();
+    files.sort();
+    if files.len() != views {
+        bail!(
+            "{}: {} images, but the rig has {views} cameras (one image per camera, in rig order)",
+            dir.display(),
+            files.len()
+        );
+    }
+    Ok(files)
+}
+
+fn load_images(paths: &[PathBuf], cams: &[Camera]) -> Result<Vec<image::RgbImage>> {
+    if paths.len() != cams.len() {
+        bail!(
+            "{} images for a rig of {} cameras: pass one image per camera, in rig order",
+            paths.len(),
+            cams.len()
+        );
+    }
+    paths
+        .iter()
+        .zip(cams)
+        .map(|(p, c)| {
+            let img = image::open(p)
+                .with_context(|| format!("reading image {}", p.display()))?
+                .to_rgb8();
+            if img.dimensions() != (c.width, c.height) {
+                bail!(
+                    "{}: the image is {}x{} but camera {:?} of the rig is {}x{}",
+                    p.display(),
+                    img.width(),
+                    img.height(),
+                    c.name,
+                    c.width,
+                    c.height
+                );
+            }
+            Ok(img)
+        })
+        .collect()
+}
+
+/// Infer one frame; returns the number of people.
+fn infer_frame(
+    pred: &Predictor,
+    rig: &Rig,
+    lbs: &[Letterbox],
+    paths: &[PathBuf],
+    out: &Path,
+) -> Result<usize> {
+    let imgs = load_images(paths, &rig.cameras)?;
+    let s = pred.cfg.image_size as usize;
+    let mut data = vec![0f32; imgs.len() * 3 * s * s];
+    for (i, (img, lb)) in imgs.iter().zip(lbs).enumerate() {
+        letterbox_into(img, lb, &mut data[i * 3 * s * s..(i + 1) * 3 * s * s]);
+    }
+    let images = Tensor::<5>::from_data(
+        TensorData::new(data, [1, imgs.len(), 3, s, s]),
+        &pred.device,
+    );
+    let people = pred
+        .predict(images, std::slice::from_ref(&rig.cameras), &[lbs.to_vec()])
+        .remove(0);
+    write_frame(
+        out,
+        &people,
+        pred.layer.faces(),
+        &rig.cameras,
+        Some(&imgs),
+        &pred.cfg.grid,
+    )?;
+    Ok(people.len())
+}
+
+pub struct InferArgs<'a> {
+    pub run: &'a Path,
+    pub rig: &'a Path,
+    pub images: &'a [PathBuf],
+    pub frames: Option<&'a Path>,
+    pub out: &'a Path,
+}
+
+pub fn infer(args: &InferArgs, device: &Device, quiet: bool) -> Result<()> {
+    let rig = Rig::read(args.rig)?;
+    let (pred, weights) = Predictor::from_run(args.run, device)?;
+    let lbs: Vec<Letterbox> = rig
+        .cameras
+        .iter()
+        .map(|c| Letterbox::new(c.width, c.height, pred.cfg.image_size))
+        .collect::<Result<_, _>>()?;
+    match (args.frames, args.images.is_empty()) {
+        (Some(dir), true) => {
+            let mut frames: Vec<PathBuf> = std::fs::read_dir(dir)
+                .with_context(|| format!("reading {}", dir.display()))?
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|p| p.is_dir())
+                .collect();
+            frames.sort();
+            if frames.is_empty() {
+                bail!(
+                    "{}: no frame directories (expected one sub-directory per frame holding one image per camera)",
+                    dir.display()
+                );
+            }
+            let b = if quiet {
+                ProgressBar::hidden()
+            } else {
+                bar(frames.len(), "infer")
+            };
+            let mut total = 0;
+            for f in &frames {
+                let paths = frame_images(f, rig.len())?;
+                let name = f.file_name().expect("a directory name");
+                total += infer_frame(&pred, &rig, &lbs, &paths, &args.out.join(name))?;
+                b.inc(1);
+            }
+            b.finish_and_clear();
+            eprintln!(
+                "{} frames, {total} people in all, weights {}; outputs in {}",
+                frames.len(),
+                weights.display(),
+                args.out.display()
+            );
+        }
+        (None, false) => {
+            let n = infer_frame(&pred, &rig, &lbs, args.images, args.out)?;
+            eprintln!(
+                "{n} people (weights {}); outputs in {}",
+                weights.display(),
+                args.out.display()
+            );
+        }
+        (Some(_), false) => bail!("pass either --images or --frames, not both"),
+        (None, true) => bail!("pass --images (one per camera, in rig order) or --frames DIR"),
+    }
+    Ok(())
+}
+
+/// The demo's embedded configs (the repository's tiny configs), so `mvmp demo` runs from anywhere.
+const DEMO_SYNTH: &str = include_str!("../../../configs/synth/tiny.toml");
+const DEMO_MODEL: &str = include_str!("../../../configs/model/tiny.toml");
+const DEMO_TRAIN: &str = include_str!("../../../configs/train/tiny.toml");
+
+/// `mvmp demo`: synthesise, train both stages, evaluate on held-out scenes beside two references, infer.
+pub fn demo(out: &Path, device: &Device) -> Result<()> {
+    let t0 = std::time::Instant::now();
+    if out.exists()
+        && std::fs::read_dir(out)
+            .with_context(|| format!("reading {}", out.display()))?
+            .next()
+            .is_some()
+    {
+        bail!(
+            "{} exists and is not empty: remove it or pass --out to a new directory",
+            out.display()
+        );
+    }
+    let cfg_dir = out.join("configs");
+    std::fs::create_dir_all(&cfg_dir).with_context(|| format!("creating {}", cfg_dir.display()))?;
+    let train_text = DEMO_TRAIN.replace("\"../model/tiny.toml\"", "\"model.toml\"");
+    for (name, text) in [
+        ("synth.toml", DEMO_SYNTH),
+        ("model.toml", DEMO_MODEL),
+        ("train.toml", train_text.as_str()),
+    ] {
+        write_atomic(&cfg_dir.join(name), text.as_bytes())?;
+    }
+    let data = out.join("data");
+    let run_dir = out.join("run");
+    eprintln!("[1/5] synthetic dataset -> {}", data.display());
+    crate::data::synth(&cfg_dir.join("synth.toml"), &data)?;
+
+    eprintln!(
+        "[2/5] references on the held-out scenes: the untrained model, the mean pose at the GT pelvis"
+    );
+    let (train_cfg, model_cfg) = mvmp_train::TrainConfig::read(&cfg_dir.join("train.toml"))?;
+    let body = mvmp_data::layout::load_body_model(&model_cfg.body_model, &cfg_dir)?;
+    // The same initial weights the training run starts from.
+    let init = mvmp_train::seeded_init(&model_cfg, device, train_cfg.seed);
+    let untrained = Predictor::new(init, model_cfg.clone(), body, device);
+    let opts = EvalOptions {
+        split: Split::Test,
+        views: train_cfg.test_views,
+        max_frames: 0,
+        gate: mvmp_eval::DEFAULT_GATE,
+    };
+    let m_untrained = mvmp_train::evaluate(&untrained, &data, &opts, |_, _, _| Ok(()))?.overall();
+    drop(untrained);
+    let base = EvalArgs {
+        source: Source::MeanPose,
+        data: &data,
+        split: Split::Test,
+        views: None,
+        frames: 0,
+        gate: mvmp_eval::DEFAULT_GATE,
+        out: Some(&out.join("eval-mean-pose.json")),
+        save_predictions: None,
+        body_model: None,
+    };
+    let (m_mean, _) = eval(&base, device, true)?;
+
+    eprintln!("[3/5] training -> {}", run_dir.display());
+    crate::train::train(
+        crate::train::TrainArgs {
+            config: Some(&cfg_dir.join("train.toml")),
+            data: Some(&data),
+            out: Some(&run_dir),
+            resume: None,
+            stop_after_steps: None,
+        },
+        device,
+        &mut crate::train::BarMonitor::new(false),
+    )?;
+    if !run_dir.join("model.bpk").exists() {
+        bail!(
+            "training stopped before the end; continue with `mvmp train --resume {}`",
+            run_dir.display()
+        );
+    }
+
+    eprintln!("[4/5] evaluation on the held-out scenes");
+    let eval_path = out.join("eval.json");
+    let args = EvalArgs {
+        source: Source::Run(&run_dir),
+        data: &data,
+        split: Split::Test,
+        views: None,
+        frames: 0,
+        gate: mvmp_eval::DEFAULT_GATE,
+        out: Some(&eval_path),
+        save_predictions: Some(&out.join("predictions")),
+        body_model: None,
+    };
+    let (m_trained, _) = eval(&args, device, false)?;
+
+    eprintln!("[5/5] inference on a held-out frame");
+    let layout = mvmp_data::DatasetLayout::open(&data)?;
+    let test = mvmp_data::loader::split_scenes(&layout, Split::Test)?;
+    let scene = &layout.scenes[*test.first().context("the dataset has no test scene")?];
+    let frame = scene
+        .index
+        .frames
+        .first()
+        .context("the first test scene has no frames")?;
+    let frame_dir = scene.dir.join(frame);
+    let infer_dir = out.join("infer");
+    let images = frame_images(&frame_dir, scene.rig.len())?;
+    infer(
+        &InferArgs {
+            run: &run_dir,
+            rig: &scene.dir.join("cameras.json"),
+            images: &images,
+            frames: None,
+            out: &infer_dir,
+        },
+        device,
+        true,
+    )?;
+
+    println!(
+        "\nheld-out scenes ({} people matched of {}), errors in mm:",
+        m_trained.matched, m_trained.ground_truth
+    );
+    print!(
+        "{}",
+        table(&[
+            ("untrained model".into(), m_untrained),
+            ("mean pose at GT pelvis".into(), m_mean),
+            ("trained (this demo)".into(), m_trained),
+        ])
+    );
+    println!("\ndataset      {}", data.display());
+    println!(
+        "run          {}  (metrics.jsonl, checkpoints/, model.bpk)",
+        run_dir.display()
+    );
+    println!(
+        "evaluation   {}  (predictions in {})",
+        eval_path.display(),
+        out.join("predictions").display()
+    );
+    println!(
+        "inference    {}  (people.npz, person_XX.obj/.ply, overlay_XX.png, topdown.png)",
+        infer_dir.display()
+    );
+    println!("total time   {:.1} min", t0.elapsed().as_secs_f64() / 60.0);
+    Ok(())
+}

@@ -1,0 +1,190 @@
+//! `mvmp train`: run or resume a training run with a progress bar; Ctrl-C checkpoints and stops.
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use anyhow::{Context, Result};
+use burn::tensor::Device;
+use indicatif::{ProgressBar, ProgressStyle};
+
+use mvmp_train::{Monitor, Outcome, RunDir, StepRecord, TrainConfig, TrainOptions, ValRecord};
+
+/// A progress bar per stage with ETA and the live loss terms; validations and checkpoints as lines.
+pub struct BarMonitor {
+    bar: Option<ProgressBar>,
+    pub quiet: bool,
+}
+
+impl BarMonitor {
+    pub fn new(quiet: bool) -> Self {
+        BarMonitor { bar: None, quiet }
+    }
+
+    fn line(&self, s: String) {
+        // A hidden bar (no terminal) drops println; print plainly then.
+        match &self.bar {
+            Some(b) if !b.is_hidden() => b.println(s),
+            _ => eprintln!("{s}"),
+        }
+    }
+}
+
+impl Monitor for BarMonitor {
+    fn stage(&mut self, stage: u32, epochs: usize, steps_per_epoch: usize, done: usize) {
+        if let Some(b) = self.bar.take() {
+            b.finish_and_clear();
+        }
+        let what = if stage == 1 {
+            "HRNet + RootNet"
+        } else {
+            "whole model"
+        };
+        eprintln!("stage {stage} ({what}): {epochs} epochs of {steps_per_epoch} steps");
+        let bar = if self.quiet {
+            ProgressBar::hidden()
+        } else {
+            ProgressBar::new((epochs * steps_per_epoch) as u64)
+        };
+        bar.set_style(
+            ProgressStyle::with_template(
+                "stage {prefix} [{bar:30}] {pos}/{len} {elapsed_precise} eta {eta_precise} {msg}",
+            )
+            .expect("valid template")
+            .progress_chars("=> "),
+        );
+        bar.set_prefix(stage.to_string());
+        bar.set_position(done as u64);
+        self.bar = Some(bar);
+    }
+
+    fn step(&mut self, s: &StepRecord) {
+        if let Some(b) = &self.bar {
+            let terms: Vec<String> = s.terms.iter().map(|(k, v)| format!("{k} {v:.4}")).collect();
+            b.set_message(format!(
+                "epoch {} loss {:.4} ({}) {:.2} s/step",
+                s.epoch,
+                s.total,
+                terms.join(", "),
+                s.seconds
+            ));
+            b.inc(1);
+        }
+    }
+
+    fn validation(&mut self, v: &ValRecord) {
+        let m: Vec<String> = v
+            .metrics
+            .iter()
+            .map(|(k, x)| format!("{k} {x:.3}"))
+            .collect();
+        self.line(format!(
+            "stage {} epoch {} validation: {}",
+            v.stage,
+            v.epoch,
+            m.join(", ")
+        ));
+    }
+
+    fn checkpoint(&mut self, path: &Path) {
+        if !self.quiet {
+            self.line(format!("checkpoint {}", path.display()));
+        }
+    }
+}
+
+impl Drop for BarMonitor {
+    fn drop(&mut self) {
+        if let Some(b) = self.bar.take() {
+            b.finish_and_clear();
+        }
+    }
+}
+
+/// The stop flag Ctrl-C sets (a second Ctrl-C exits at once).
+pub fn stop_flag() -> Arc<AtomicBool> {
+    let stop = Arc::new(AtomicBool::new(false));
+    let s = stop.clone();
+    // A handler can only be installed once per process; a failure leaves Ctrl-C at its default.
+    let _ = ctrlc::set_handler(move || {
+        if s.swap(true, Ordering::SeqCst) {
+            std::process::exit(130);
+        }
+        eprintln!("\ninterrupted: writing a checkpoint after this step (Ctrl-C again to quit now)");
+    });
+    stop
+}
+
+pub struct TrainArgs<'a> {
+    pub config: Option<&'a Path>,
+    pub data: Option<&'a Path>,
+    pub out: Option<&'a Path>,
+    pub resume: Option<&'a Path>,
+    pub stop_after_steps: Option<u64>,
+}
+
+/// Start or resume a run; returns its directory.
+pub fn train(args: TrainArgs, device: &Device, monitor: &mut BarMonitor) -> Result<PathBuf> {
+    let (run, cfg, model) = match (args.resume, args.config) {
+        (Some(dir), None) => {
+            let (run, cfg, model) = RunDir::open(dir)?;
+            if args.data.is_some() {
+                anyhow::bail!(
+                    "--data cannot change the dataset of a resumed run ({} trains on {})",
+                    dir.display(),
+                    cfg.data.as_deref().unwrap_or("?")
+                );
+            }
+            eprintln!("resuming {}", dir.display());
+            (run, cfg, model)
+        }
+        (None, Some(config)) => {
+            let (mut cfg, model) = TrainConfig::read(config)?;
+            if let Some(d) = args.data {
+                cfg.data = Some(d.to_string_lossy().into_owned());
+            }
+            let data = cfg.data.clone().with_context(|| {
+                format!(
+                    "training config {}: key `data` is not set; pass --data DIR",
+                    config.display()
+                )
+            })?;
+            mvmp_data::DatasetLayout::open(Path::new(&data))?;
+            let out = match args.out {
+                Some(o) => o.to_path_buf(),
+                None => {
+                    let stem = config.file_stem().and_then(|s| s.to_str()).unwrap_or("run");
+                    PathBuf::from("out/runs").join(stem)
+                }
+            };
+            let run = RunDir::create(&out, &cfg, &model, Path::new(&data))?;
+            eprintln!("run directory {}", out.display());
+            let (run2, cfg, model) = RunDir::open(&run.root)?;
+            (run2, cfg, model)
+        }
+        (Some(_), Some(_)) => {
+            anyhow::bail!("pass either --config (a new run) or --resume RUN_DIR, not both")
+        }
+        (None, None) => anyhow::bail!("pass --config FILE for a new run or --resume RUN_DIR"),
+    };
+    let opts = TrainOptions {
+        device: device.clone(),
+        stop: stop_flag(),
+        stop_after_steps: args.stop_after_steps,
+    };
+    match mvmp_train::train(&run, &cfg, &model, &opts, monitor)? {
+        Outcome::Finished => {
+            eprintln!("finished: {}", run.root.join("model.bpk").display());
+        }
+        Outcome::Interrupted {
+            checkpoint,
+            global_step,
+        } => {
+            eprintln!(
+                "stopped after step {global_step}; checkpoint {}; continue with `mvmp train --resume {}`",
+                checkpoint.display(),
+                run.root.display()
+            );
+        }
+    }
+    Ok(run.root)
+}

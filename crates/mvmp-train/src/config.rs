@@ -1,0 +1,182 @@
+//! The training config (`configs/train/*.toml`): what to train on, the two stages and the loss weights.
+//! Unknown keys are rejected; every error names the key and the bad value.
+use std::path::{Path, PathBuf};
+
+use mvmp_losses::LossWeights;
+use mvmp_model::ModelConfig;
+use serde::{Deserialize, Serialize};
+
+use crate::TrainError;
+
+/// Where stage 2 decodes people during training.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum QueryMode {
+    /// At detected roots matched to a ground-truth person within the gate (unmatched ones get no loss).
+    Detected,
+    /// At the ground-truth roots.
+    Gt,
+    /// Detected roots matched within the gate, plus the ground-truth root of every person no detection
+    /// reached (early in training the RootNet finds few people; this keeps every person supervised).
+    Mixed,
+}
+
+/// One training stage.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StageConfig {
+    /// Passes over the training split (0 skips the stage).
+    pub epochs: usize,
+    /// Adam learning rate (constant).
+    pub lr: f64,
+    /// Clip the global gradient norm to this value (0 = off).
+    #[serde(default)]
+    pub grad_clip: f32,
+    /// Keep the ViT backbone fixed (stage 2 only; stage 1 never touches it).
+    #[serde(default)]
+    pub freeze_backbone: bool,
+}
+
+/// A training run's configuration.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrainConfig {
+    /// Model config, relative to this file's directory (or absolute).
+    pub model: String,
+    /// Dataset root in the mvmp layout, relative to the working directory; `--data` overrides it.
+    #[serde(default)]
+    pub data: Option<String>,
+    /// Seed of initialisation, data order and view choice.
+    #[serde(default)]
+    pub seed: u64,
+    #[serde(default = "one")]
+    pub batch_size: usize,
+    /// Views drawn at random per training sample (paper: 5).
+    #[serde(default = "five")]
+    pub train_views: usize,
+    /// Views used for validation and evaluation: the first N cameras of each rig.
+    #[serde(default = "five")]
+    pub test_views: usize,
+    /// Gate (metres) of the matching of predicted to ground-truth roots in training and evaluation.
+    #[serde(default = "gate")]
+    pub match_gate: f64,
+    #[serde(default = "mixed")]
+    pub queries: QueryMode,
+    /// Model checkpoints kept (the newest ones; the final weights are always kept).
+    #[serde(default = "three")]
+    pub keep_checkpoints: usize,
+    /// Validation frames per epoch (the first N of the test split; 0 = all).
+    #[serde(default)]
+    pub val_frames: usize,
+    pub stage1: StageConfig,
+    pub stage2: StageConfig,
+    #[serde(default)]
+    pub loss: LossWeights,
+}
+
+fn one() -> usize {
+    1
+}
+fn three() -> usize {
+    3
+}
+fn five() -> usize {
+    5
+}
+fn gate() -> f64 {
+    0.5
+}
+fn mixed() -> QueryMode {
+    QueryMode::Mixed
+}
+
+impl TrainConfig {
+    /// Read and validate a config; returns it with the model config it names.
+    pub fn read(path: &Path) -> Result<(TrainConfig, ModelConfig), TrainError> {
+        let text = std::fs::read_to_string(path).map_err(|e| TrainError::io(path, e))?;
+        let cfg: TrainConfig = toml::from_str(&text).map_err(|e| TrainError::Config {
+            path: path.into(),
+            key: "(parse)".into(),
+            what: e.to_string(),
+        })?;
+        cfg.validate(path)?;
+        let model_path = cfg.model_path(path);
+        let model = ModelConfig::read(&model_path)?;
+        Ok((cfg, model))
+    }
+
+    /// The model config's path for a config read from `path`.
+    pub fn model_path(&self, path: &Path) -> PathBuf {
+        let m = Path::new(&self.model);
+        if m.is_absolute() {
+            m.into()
+        } else {
+            path.parent().unwrap_or(Path::new(".")).join(m)
+        }
+    }
+
+    pub fn validate(&self, path: &Path) -> Result<(), TrainError> {
+        let bad = |key: &str, what: String| TrainError::Config {
+            path: path.into(),
+            key: key.into(),
+            what,
+        };
+        if self.batch_size == 0 {
+            return Err(bad("batch_size", "0: must be at least 1".into()));
+        }
+        if self.train_views == 0 {
+            return Err(bad("train_views", "0: must be at least 1".into()));
+        }
+        if self.test_views == 0 {
+            return Err(bad("test_views", "0: must be at least 1".into()));
+        }
+        if !(self.match_gate.is_finite() && self.match_gate > 0.0) {
+            return Err(bad(
+                "match_gate",
+                format!("{}: must be positive", self.match_gate),
+            ));
+        }
+        if self.keep_checkpoints == 0 {
+            return Err(bad("keep_checkpoints", "0: must be at least 1".into()));
+        }
+        for (name, s) in [("stage1", &self.stage1), ("stage2", &self.stage2)] {
+            if !(s.lr.is_finite() && s.lr > 0.0) {
+                return Err(bad(
+                    &format!("{name}.lr"),
+                    format!("{}: must be positive", s.lr),
+                ));
+            }
+            if !(s.grad_clip.is_finite() && s.grad_clip >= 0.0) {
+                return Err(bad(
+                    &format!("{name}.grad_clip"),
+                    format!("{}: must be 0 (off) or positive", s.grad_clip),
+                ));
+            }
+        }
+        if self.stage1.freeze_backbone {
+            return Err(bad(
+                "stage1.freeze_backbone",
+                "true: stage 1 trains HRNet and the RootNet only; set it in stage2".into(),
+            ));
+        }
+        if self.stage1.epochs + self.stage2.epochs == 0 {
+            return Err(bad(
+                "stage1.epochs, stage2.epochs",
+                "both 0: nothing to train".into(),
+            ));
+        }
+        self.loss.validate().map_err(|what| TrainError::Config {
+            path: path.into(),
+            key: "loss".into(),
+            what,
+        })
+    }
+
+    pub fn stage(&self, stage: u32) -> &StageConfig {
+        if stage == 1 {
+            &self.stage1
+        } else {
+            &self.stage2
+        }
+    }
+}

@@ -1,0 +1,55 @@
+use std::path::PathBuf;
+
+/// Errors of training, prediction and output writing. Each names the file, key or step involved.
+#[derive(Debug, thiserror::Error)]
+pub enum TrainError {
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{path}: {what}")]
+    File { path: PathBuf, what: String },
+    #[error("training config {path}: key `{key}`: {what}")]
+    Config {
+        path: PathBuf,
+        key: String,
+        what: String,
+    },
+    #[error(
+        "stage {stage}, epoch {epoch}, step {step}: loss term `{term}` is {value}; training stopped, the last good checkpoint is {checkpoint}"
+    )]
+    NonFinite {
+        stage: u32,
+        epoch: usize,
+        step: u64,
+        term: String,
+        value: f32,
+        checkpoint: String,
+    },
+    #[error(transparent)]
+    Data(#[from] mvmp_data::DataError),
+    #[error(transparent)]
+    Model(#[from] mvmp_model::ModelConfigError),
+    #[error(transparent)]
+    Smplx(#[from] mvmp_smplx::SmplxError),
+    #[error(transparent)]
+    Geom(#[from] mvmp_geom::GeomError),
+}
+
+impl TrainError {
+    pub fn file(path: impl Into<PathBuf>, what: impl Into<String>) -> Self {
+        TrainError::File {
+            path: path.into(),
+            what: what.into(),
+        }
+    }
+
+    pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
+        TrainError::Io {
+            path: path.into(),
+            source,
+        }
+    }
+}

@@ -1,0 +1,14 @@
+//! Training, prediction and evaluation runs of MVMP-HMR, and the files inference writes.
+pub mod config;
+pub mod error;
+pub mod output;
+pub mod predict;
+pub mod run;
+pub mod step;
+pub mod train;
+
+pub use config::{QueryMode, StageConfig, TrainConfig};
+pub use error::TrainError;
+pub use predict::{EvalOptions, PersonPrediction, Predictor, evaluate};
+pub use run::{RunDir, RunState};
+pub use train::{Monitor, Outcome, Quiet, StepRecord, TrainOptions, ValRecord, seeded_init, train};

@@ -1,0 +1,431 @@
+//! What inference writes for a frame, and reading it back (so `mvmp eval --predictions` can score any
+//! method's results stored this way):
+//!
+//! ```text
+//! FRAME_OUT/
+//!   people.npz          per person (N rows) the standard smplx keys, axis-angle: global_orient [N,3],
+//!                       body_pose [N,63], jaw_pose, leye_pose, reye_pose [N,3], left_hand_pose,
+//!                       right_hand_pose [N,45], betas [N,10], expression [N,10], transl [N,3] (smplx's
+//!                       meaning: added to the model origin); and pelvis [N,3] (T_wld), scores [N]
+//!   person_XX.obj/.ply  each mesh in world coordinates (metres, z up)
+//!   overlay_VV.png      the meshes drawn over view VV
+//!   topdown.png         the capture area from above: each person's position and heading, the cameras
+//! ```
+use std::path::Path;
+
+use image::{Rgb, RgbImage};
+use mvmp_geom::io::write_atomic_with;
+use mvmp_geom::raster::{Frame, Light, MeshRef, draw};
+use mvmp_geom::{Camera, VoxelGrid};
+use mvmp_smplx::SmplxParams;
+use mvmp_smplx::names::POSE_KEYS;
+use nalgebra::Vector3;
+use npyz::WriterBuilder;
+
+use crate::TrainError;
+use crate::predict::PersonPrediction;
+
+/// Person colours (linear RGB), shared by overlays and the top-down view.
+pub const PALETTE: [[f32; 3]; 8] = [
+    [0.90, 0.35, 0.25],
+    [0.25, 0.55, 0.90],
+    [0.35, 0.80, 0.35],
+    [0.95, 0.75, 0.20],
+    [0.70, 0.40, 0.85],
+    [0.20, 0.80, 0.80],
+    [0.95, 0.50, 0.70],
+    [0.60, 0.60, 0.60],
+];
+
+fn npz_err(path: &Path, e: impl std::fmt::Display) -> TrainError {
+    TrainError::file(path, e.to_string())
+}
+
+/// Write `people.npz` (atomically).
+pub fn write_people_npz(path: &Path, people: &[PersonPrediction]) -> Result<(), TrainError> {
+    let n = people.len();
+    let params: Vec<SmplxParams> = people.iter().map(|p| p.params()).collect();
+    write_atomic_with(path, |w| {
+        let mut w = npyz::npz::NpzWriter::new(w);
+        let mut put = |name: &str, width: usize, data: Vec<f32>| -> std::io::Result<()> {
+            let opts = npyz::zip::write::FileOptions::default()
+                .compression_method(npyz::zip::CompressionMethod::Deflated);
+            let shape: Vec<u64> = if width == 0 {
+                vec![n as u64]
+            } else {
+                vec![n as u64, width as u64]
+            };
+            let mut out = w
+                .array::<f32>(name, opts)?
+                .default_dtype()
+                .shape(&shape)
+                .begin_nd()?;
+            out.extend(data)?;
+            out.finish()
+        };
+        for (key, _, count) in POSE_KEYS {
+            let data = params
+                .iter()
+                .flat_map(|p| {
+                    let full = p.full_pose();
+                    let first = POSE_KEYS.iter().find(|k| k.0 == key).unwrap().1;
+                    full[first * 3..(first + count) * 3]
+                        .iter()
+                        .map(|&x| x as f32)
+                        .collect::<Vec<_>>()
+                })
+                .collect();
+            put(key, count * 3, data)?;
+        }
+        put("betas", 10, people.iter().flat_map(|p| p.betas).collect())?;
+        put(
+            "expression",
+            10,
+            people.iter().flat_map(|p| p.expression).collect(),
+        )?;
+        put("transl", 3, people.iter().flat_map(|p| p.transl).collect())?;
+        put("pelvis", 3, people.iter().flat_map(|p| p.pelvis).collect())?;
+        put("scores", 0, people.iter().map(|p| p.score).collect())?;
+        w.zip_writer().finish()?;
+        Ok(())
+    })?;
+    Ok(())
+}
+
+/// An npz array: shape and values.
+type Array = (Vec<u64>, Vec<f64>);
+
+/// One person read back from `people.npz`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StoredPerson {
+    pub params: SmplxParams,
+    pub score: f64,
+}
+
+/// Read `people.npz`: the standard smplx keys (missing pose keys are zero; `betas` and `expression` may
+/// have up to 10 columns), optional `scores` (default 1). Any float dtype.
+pub fn read_people_npz(path: &Path) -> Result<Vec<StoredPerson>, TrainError> {
+    let mut npz = npyz::npz::NpzArchive::open(path).map_err(|e| npz_err(path, e))?;
+    let mut read = |name: &str| -> Result<Option<Array>, TrainError> {
+        let Some(arr) = npz.by_name(name).map_err(|e| npz_err(path, e))? else {
+            return Ok(None);
+        };
+        let shape = arr.shape().to_vec();
+        let fortran = matches!(arr.order(), npyz::Order::Fortran);
+        let data: Vec<f64> = match arr.dtype() {
+            npyz::DType::Plain(t)
+                if t.type_char() == npyz::TypeChar::Float && t.size_field() == 4 =>
+            {
+                arr.into_vec::<f32>()
+                    .map_err(|e| npz_err(path, format!("key `{name}`: {e}")))?
+                    .into_iter()
+                    .map(|x| x as f64)
+                    .collect()
+            }
+            _ => arr.into_vec::<f64>().map_err(|e| {
+                npz_err(
+                    path,
+                    format!("key `{name}`: {e} (expected float32 or float64)"),
+                )
+            })?,
+        };
+        // numpy may store column-major arrays; rows are read in C order below.
+        let data = if fortran && shape.len() == 2 {
+            let (r, c) = (shape[0] as usize, shape[1] as usize);
+            (0..r * c).map(|i| data[(i % c) * r + i / c]).collect()
+        } else {
+            data
+        };
+        Ok(Some((shape, data)))
+    };
+    let (shape, transl) = read("transl")?.ok_or_else(|| npz_err(path, "missing key `transl`"))?;
+    if shape.len() != 2 || shape[1] != 3 {
+        return Err(npz_err(
+            path,
+            format!("key `transl` has shape {shape:?}; expected [N, 3]"),
+        ));
+    }
+    let n = shape[0] as usize;
+    let mut people: Vec<StoredPerson> = (0..n)
+        .map(|i| StoredPerson {
+            params: SmplxParams {
+                transl: transl[i * 3..i * 3 + 3].to_vec(),
+                ..Default::default()
+            },
+            score: 1.0,
+        })
+        .collect();
+    let mut keys: Vec<(&str, usize)> = POSE_KEYS.iter().map(|k| (k.0, k.2 * 3)).collect();
+    keys.push(("betas", 0));
+    keys.push(("expression", 0));
+    for (key, width) in keys {
+        let Some((shape, data)) = read(key)? else {
+            continue;
+        };
+        let ok = shape.len() == 2
+            && shape[0] as usize == n
+            && (if width == 0 {
+                shape[1] <= 10
+            } else {
+                shape[1] as usize == width
+            });
+        if !ok {
+            let want = if width == 0 {
+                "[N, <=10]".to_string()
+            } else {
+                format!("[N, {width}]")
+            };
+            return Err(npz_err(
+                path,
+                format!("key `{key}` has shape {shape:?}; expected {want} with N = {n}"),
+            ));
+        }
+        let c = shape[1] as usize;
+        for (i, p) in people.iter_mut().enumerate() {
+            let row = data[i * c..(i + 1) * c].to_vec();
+            match key {
+                "global_orient" => p.params.global_orient = row,
+                "body_pose" => p.params.body_pose = row,
+                "jaw_pose" => p.params.jaw_pose = row,
+                "leye_pose" => p.params.leye_pose = row,
+                "reye_pose" => p.params.reye_pose = row,
+                "left_hand_pose" => p.params.left_hand_pose = row,
+                "right_hand_pose" => p.params.right_hand_pose = row,
+                "betas" => p.params.betas = row,
+                _ => p.params.expression = row,
+            }
+        }
+    }
+    if let Some((shape, data)) = read("scores")? {
+        if shape != [n as u64] {
+            return Err(npz_err(
+                path,
+                format!("key `scores` has shape {shape:?}; expected [{n}]"),
+            ));
+        }
+        for (p, s) in people.iter_mut().zip(data) {
+            p.score = s;
+        }
+    }
+    for (i, p) in people.iter().enumerate() {
+        p.params
+            .validate(&format!("person {i}"))
+            .map_err(|e| npz_err(path, e))?;
+    }
+    Ok(people)
+}
+
+/// Blend the people's meshes over an image seen by `camera` (same size as the camera's image).
+pub fn overlay(
+    image: &RgbImage,
+    camera: &Camera,
+    people: &[PersonPrediction],
+    faces: &[[u32; 3]],
+) -> RgbImage {
+    let mut frame = Frame::new(camera.width, camera.height, [0.0; 3]);
+    let meshes: Vec<MeshRef> = people
+        .iter()
+        .enumerate()
+        .map(|(i, p)| MeshRef {
+            vertices: &p.vertices,
+            faces,
+            color: PALETTE[i % PALETTE.len()],
+            face_colors: None,
+        })
+        .collect();
+    // Light from behind the camera, so what the camera sees is lit.
+    let axis = camera.r.row(2).transpose();
+    let light = Light {
+        dir: [axis[0] as f32, axis[1] as f32, axis[2] as f32 - 0.5],
+        ambient: 0.3,
+        color: [1.0; 3],
+    };
+    draw(&mut frame, camera, &meshes, &light);
+    let shaded = frame.to_rgb8();
+    let mut out = image.clone();
+    for (i, px) in out.pixels_mut().enumerate() {
+        if frame.mesh[i] >= 0 {
+            for c in 0..3 {
+                let m = shaded[i * 3 + c] as f32;
+                px.0[c] = (0.35 * px.0[c] as f32 + 0.65 * m).round() as u8;
+            }
+        }
+    }
+    out
+}
+
+/// The forward (facing) direction on the ground of a person from their joints: the orientation vector
+/// `(J_lhip - J_rhip) x (J_spine1 - J_pelvis)` of the losses, projected to the xy-plane and normalised.
+pub fn heading(joints: &[[f32; 3]]) -> Option<[f64; 2]> {
+    let j = |i: usize| {
+        Vector3::new(
+            joints[i][0] as f64,
+            joints[i][1] as f64,
+            joints[i][2] as f64,
+        )
+    };
+    let o = (j(1) - j(2)).cross(&(j(3) - j(0)));
+    let n = (o.x * o.x + o.y * o.y).sqrt();
+    (n > 1e-9).then(|| [o.x / n, o.y / n])
+}
+
+/// A top-down picture (`size` pixels square) of `grid`'s ground area: a 1 m grid, the cameras (grey
+/// squares), each person as a disc at the pelvis with a heading stroke, in the overlay colours.
+pub fn topdown(
+    grid: &VoxelGrid,
+    cameras: &[Camera],
+    people: &[PersonPrediction],
+    size: u32,
+) -> RgbImage {
+    let mut img = RgbImage::from_pixel(size, size, Rgb([248, 248, 245]));
+    // Fit the grid and the cameras with a margin.
+    let (mut lo, mut hi) = (
+        [
+            grid.center[0] - grid.size[0] / 2.0,
+            grid.center[1] - grid.size[1] / 2.0,
+        ],
+        [
+            grid.center[0] + grid.size[0] / 2.0,
+            grid.center[1] + grid.size[1] / 2.0,
+        ],
+    );
+    for c in cameras {
+        let p = c.centre();
+        lo = [lo[0].min(p.x), lo[1].min(p.y)];
+        hi = [hi[0].max(p.x), hi[1].max(p.y)];
+    }
+    let span = (hi[0] - lo[0]).max(hi[1] - lo[1]) * 1.1;
+    let mid = [(lo[0] + hi[0]) / 2.0, (lo[1] + hi[1]) / 2.0];
+    let s = size as f64 / span;
+    // x to the right, y up the picture.
+    let to_px = |x: f64, y: f64| -> (f64, f64) {
+        (
+            (x - mid[0]) * s + size as f64 / 2.0,
+            size as f64 / 2.0 - (y - mid[1]) * s,
+        )
+    };
+    let grey = Rgb([215, 215, 210]);
+    let (gx0, gx1) = (lo[0].floor() as i64 - 1, hi[0].ceil() as i64 + 1);
+    let (gy0, gy1) = (lo[1].floor() as i64 - 1, hi[1].ceil() as i64 + 1);
+    for gx in gx0..=gx1 {
+        let (a, b) = (to_px(gx as f64, gy0 as f64), to_px(gx as f64, gy1 as f64));
+        line(&mut img, a, b, 1.0, grey);
+    }
+    for gy in gy0..=gy1 {
+        let (a, b) = (to_px(gx0 as f64, gy as f64), to_px(gx1 as f64, gy as f64));
+        line(&mut img, a, b, 1.0, grey);
+    }
+    // The grid's area.
+    let corners = [
+        to_px(
+            grid.center[0] - grid.size[0] / 2.0,
+            grid.center[1] - grid.size[1] / 2.0,
+        ),
+        to_px(
+            grid.center[0] + grid.size[0] / 2.0,
+            grid.center[1] - grid.size[1] / 2.0,
+        ),
+        to_px(
+            grid.center[0] + grid.size[0] / 2.0,
+            grid.center[1] + grid.size[1] / 2.0,
+        ),
+        to_px(
+            grid.center[0] - grid.size[0] / 2.0,
+            grid.center[1] + grid.size[1] / 2.0,
+        ),
+    ];
+    for i in 0..4 {
+        line(
+            &mut img,
+            corners[i],
+            corners[(i + 1) % 4],
+            2.0,
+            Rgb([150, 150, 145]),
+        );
+    }
+    for c in cameras {
+        let p = c.centre();
+        let (u, v) = to_px(p.x, p.y);
+        disc(&mut img, (u, v), 5.0, Rgb([90, 90, 90]));
+    }
+    let r = (0.25 * s).max(3.0);
+    for (i, p) in people.iter().enumerate() {
+        let col = PALETTE[i % PALETTE.len()].map(|c| (c.powf(1.0 / 2.2) * 255.0) as u8);
+        let (u, v) = to_px(p.pelvis[0] as f64, p.pelvis[1] as f64);
+        disc(&mut img, (u, v), r, Rgb(col));
+        if let Some(h) = heading(&p.joints) {
+            let tip = to_px(
+                p.pelvis[0] as f64 + 0.6 * h[0],
+                p.pelvis[1] as f64 + 0.6 * h[1],
+            );
+            line(&mut img, (u, v), tip, (r / 3.0).max(2.0), Rgb([30, 30, 30]));
+        }
+    }
+    img
+}
+
+fn disc(img: &mut RgbImage, c: (f64, f64), r: f64, col: Rgb<u8>) {
+    let (w, h) = (img.width() as i64, img.height() as i64);
+    for y in (c.1 - r).floor() as i64..=(c.1 + r).ceil() as i64 {
+        for x in (c.0 - r).floor() as i64..=(c.0 + r).ceil() as i64 {
+            let d = ((x as f64 - c.0).powi(2) + (y as f64 - c.1).powi(2)).sqrt();
+            if d <= r && x >= 0 && y >= 0 && x < w && y < h {
+                img.put_pixel(x as u32, y as u32, col);
+            }
+        }
+    }
+}
+
+fn line(img: &mut RgbImage, a: (f64, f64), b: (f64, f64), width: f64, col: Rgb<u8>) {
+    let len = ((b.0 - a.0).powi(2) + (b.1 - a.1).powi(2)).sqrt();
+    let steps = (len * 2.0).ceil().max(1.0) as usize;
+    for i in 0..=steps {
+        let t = i as f64 / steps as f64;
+        disc(
+            img,
+            (a.0 + t * (b.0 - a.0), a.1 + t * (b.1 - a.1)),
+            width / 2.0,
+            col,
+        );
+    }
+}
+
+/// Save a PNG atomically.
+pub fn save_png(path: &Path, img: &RgbImage) -> Result<(), TrainError> {
+    write_atomic_with(path, |w| {
+        img.write_to(w, image::ImageFormat::Png)
+            .map_err(std::io::Error::other)
+    })?;
+    Ok(())
+}
+
+/// Write everything inference produces for one frame into `dir`: people.npz, meshes, overlays (when the
+/// input images are given), topdown.png.
+pub fn write_frame(
+    dir: &Path,
+    people: &[PersonPrediction],
+    faces: &[[u32; 3]],
+    cameras: &[Camera],
+    images: Option<&[RgbImage]>,
+    grid: &VoxelGrid,
+) -> Result<(), TrainError> {
+    std::fs::create_dir_all(dir).map_err(|e| TrainError::io(dir, e))?;
+    write_people_npz(&dir.join("people.npz"), people)?;
+    for (i, p) in people.iter().enumerate() {
+        mvmp_smplx::export::write_obj(&dir.join(format!("person_{i:02}.obj")), &p.vertices, faces)?;
+        mvmp_smplx::export::write_ply(&dir.join(format!("person_{i:02}.ply")), &p.vertices, faces)?;
+    }
+    if let Some(images) = images {
+        for (v, (img, cam)) in images.iter().zip(cameras).enumerate() {
+            save_png(
+                &dir.join(format!("overlay_{v:02}.png")),
+                &overlay(img, cam, people, faces),
+            )?;
+        }
+    }
+    save_png(
+        &dir.join("topdown.png"),
+        &topdown(grid, cameras, people, 640),
+    )?;
+    Ok(())
+}

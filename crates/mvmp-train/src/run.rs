@@ -1,0 +1,199 @@
+//! A run directory: the resolved configs, checkpoints, the state cursor and the metrics log.
+//!
+//! ```text
+//! RUN/
+//!   train.toml          the resolved training config (model = "model.toml", data absolute)
+//!   model.toml          the resolved model config
+//!   state.json          where training stands: stage, epoch, step, the checkpoint to resume from
+//!   metrics.jsonl       one JSON object per step ("kind": "step") and per validation ("kind": "val")
+//!   checkpoints/        model weights (burnpack) per epoch / interruption, the optimizer state beside
+//!   model.bpk           the final weights, written when training finishes
+//! ```
+//! Every file is written to a temporary name and renamed, so a crash leaves the previous state whole.
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+
+use crate::TrainError;
+use crate::config::TrainConfig;
+use mvmp_geom::io::write_atomic;
+use mvmp_model::ModelConfig;
+
+pub const STATE_FORMAT: &str = "mvmp-run-state";
+
+/// The training cursor: everything before it is in the checkpoint it names.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RunState {
+    pub format: String,
+    pub version: u32,
+    /// Stage (1 or 2) and epochs completed in it.
+    pub stage: u32,
+    pub epoch: usize,
+    /// Batches of the next epoch already trained (non-zero after an interruption).
+    pub step_in_epoch: usize,
+    /// Optimizer steps over the whole run.
+    pub global_step: u64,
+    /// Model weights, relative to the run directory.
+    pub checkpoint: String,
+    /// Optimizer state of the current stage, relative to the run directory.
+    pub optimizer: Option<String>,
+    pub finished: bool,
+}
+
+/// An open run directory.
+#[derive(Debug, Clone)]
+pub struct RunDir {
+    pub root: PathBuf,
+}
+
+impl RunDir {
+    /// Make a new run directory (it must not exist or be empty) holding the resolved configs.
+    pub fn create(
+        root: &Path,
+        cfg: &TrainConfig,
+        model: &ModelConfig,
+        data: &Path,
+    ) -> Result<RunDir, TrainError> {
+        if root.exists() {
+            let empty = std::fs::read_dir(root)
+                .map_err(|e| TrainError::io(root, e))?
+                .next()
+                .is_none();
+            if !empty {
+                return Err(TrainError::file(
+                    root,
+                    "the run directory exists and is not empty; pass --resume to continue it, or choose a new --out",
+                ));
+            }
+        }
+        std::fs::create_dir_all(root.join("checkpoints")).map_err(|e| TrainError::io(root, e))?;
+        let data = std::path::absolute(data).map_err(|e| TrainError::io(data, e))?;
+        let mut resolved = cfg.clone();
+        resolved.model = "model.toml".into();
+        resolved.data = Some(data.to_string_lossy().into_owned());
+        let run = RunDir { root: root.into() };
+        let text = toml::to_string(&resolved)
+            .map_err(|e| TrainError::file(run.root.join("train.toml"), e.to_string()))?;
+        write_atomic(&run.root.join("train.toml"), text.as_bytes())?;
+        let text = toml::to_string(model)
+            .map_err(|e| TrainError::file(run.root.join("model.toml"), e.to_string()))?;
+        write_atomic(&run.root.join("model.toml"), text.as_bytes())?;
+        Ok(run)
+    }
+
+    /// Open an existing run: its resolved configs.
+    pub fn open(root: &Path) -> Result<(RunDir, TrainConfig, ModelConfig), TrainError> {
+        let path = root.join("train.toml");
+        if !path.exists() {
+            return Err(TrainError::file(
+                root,
+                "not a run directory (no train.toml); runs are made by `mvmp train`",
+            ));
+        }
+        let (cfg, model) = TrainConfig::read(&path)?;
+        Ok((RunDir { root: root.into() }, cfg, model))
+    }
+
+    pub fn state_path(&self) -> PathBuf {
+        self.root.join("state.json")
+    }
+
+    pub fn state(&self) -> Result<Option<RunState>, TrainError> {
+        let path = self.state_path();
+        if !path.exists() {
+            return Ok(None);
+        }
+        let text = std::fs::read_to_string(&path).map_err(|e| TrainError::io(&path, e))?;
+        let s: RunState =
+            serde_json::from_str(&text).map_err(|e| TrainError::file(&path, e.to_string()))?;
+        if s.format != STATE_FORMAT || s.version != 1 {
+            return Err(TrainError::file(
+                &path,
+                format!(
+                    "format {:?} version {}: expected {STATE_FORMAT:?} version 1",
+                    s.format, s.version
+                ),
+            ));
+        }
+        Ok(Some(s))
+    }
+
+    pub fn write_state(&self, s: &RunState) -> Result<(), TrainError> {
+        let text = serde_json::to_string_pretty(s).expect("state serialises");
+        write_atomic(&self.state_path(), text.as_bytes())?;
+        Ok(())
+    }
+
+    /// The weights to predict with: the final weights, else the newest checkpoint.
+    pub fn weights(&self) -> Result<PathBuf, TrainError> {
+        let fin = self.root.join("model.bpk");
+        if fin.exists() {
+            return Ok(fin);
+        }
+        match self.state()? {
+            Some(s) => Ok(self.root.join(s.checkpoint)),
+            None => Err(TrainError::file(
+                &self.root,
+                "the run has no checkpoint yet (no model.bpk, no state.json)",
+            )),
+        }
+    }
+
+    pub fn metrics_path(&self) -> PathBuf {
+        self.root.join("metrics.jsonl")
+    }
+
+    /// Append one line to the metrics log.
+    pub fn log(&self, value: &serde_json::Value) -> Result<(), TrainError> {
+        let path = self.metrics_path();
+        let mut f = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&path)
+            .map_err(|e| TrainError::io(&path, e))?;
+        writeln!(f, "{value}").map_err(|e| TrainError::io(&path, e))
+    }
+
+    /// Drop log lines written after `global_step` (steps a crash lost, trained again on resume).
+    pub fn truncate_log(&self, global_step: u64) -> Result<(), TrainError> {
+        let path = self.metrics_path();
+        if !path.exists() {
+            return Ok(());
+        }
+        let text = std::fs::read_to_string(&path).map_err(|e| TrainError::io(&path, e))?;
+        let mut kept = String::new();
+        for line in text.lines() {
+            let v: serde_json::Value =
+                serde_json::from_str(line).map_err(|e| TrainError::file(&path, e.to_string()))?;
+            if v.get("global_step").and_then(|s| s.as_u64()).unwrap_or(0) <= global_step {
+                kept.push_str(line);
+                kept.push('\n');
+            }
+        }
+        write_atomic(&path, kept.as_bytes())?;
+        Ok(())
+    }
+
+    /// SHA-256 of the resolved configs (train.toml then model.toml).
+    pub fn config_hash(&self) -> Result<String, TrainError> {
+        let mut h = Sha256::new();
+        for f in ["train.toml", "model.toml"] {
+            let p = self.root.join(f);
+            h.update(std::fs::read(&p).map_err(|e| TrainError::io(&p, e))?);
+        }
+        Ok(hex(&h.finalize()))
+    }
+}
+
+/// SHA-256 of a file, hex.
+pub fn file_hash(path: &Path) -> Result<String, TrainError> {
+    let bytes = std::fs::read(path).map_err(|e| TrainError::io(path, e))?;
+    Ok(hex(&Sha256::digest(&bytes)))
+}
+
+fn hex(b: &[u8]) -> String {
+    b.iter().map(|x| format!("{x:02x}")).collect()
+}

@@ -1,0 +1,451 @@
+//! One training step's losses: the ground truth of a batch turned into targets, the queries chosen
+//! (detected roots matched to people, ground-truth roots, or both), and the weighted loss terms.
+use burn::tensor::{Bool, Device, Int, Tensor, TensorData};
+
+use mvmp_data::loader::FrameBatch;
+use mvmp_fusion::Root;
+use mvmp_fusion::roots::{DEFAULT_SIGMA, gaussian_target, root_voxel_and_offset};
+use mvmp_geom::CameraTensors;
+use mvmp_geom::rotation::axis_angle_to_matrix;
+use mvmp_losses::{
+    LossWeights, density_grid, density_loss, detection_loss_weighted, heatmap_loss, heatmap_target,
+    mesh_2d_loss, mesh_3d_loss, orientation_loss, parameter_loss,
+};
+use mvmp_model::{Detection, ModelConfig, MvmpHmr, RigGrids};
+use mvmp_smplx::SmplxLayer;
+use mvmp_smplx::names::{NUM_JOINTS, NUM_REGRESSED, REGRESSED_TO_JOINT};
+
+use crate::config::QueryMode;
+
+/// The weighted loss terms of a step and their sum.
+#[derive(Debug, Clone)]
+pub struct StepLoss {
+    pub total: Tensor<1>,
+    /// (name, weighted value) of every active term.
+    pub terms: Vec<(&'static str, Tensor<1>)>,
+    /// People decoded and people supervised (stage 2), for logs.
+    pub queries: usize,
+    /// Detection diagnostics (not losses): the highest root likelihood in the volume and the mean
+    /// likelihood at the ground-truth root voxels; detection works once both pass the root threshold.
+    pub root_peak: f32,
+    pub root_at_gt: f32,
+}
+
+/// The ground truth of a batch on the host, as the targets need it.
+#[derive(Debug, Clone)]
+pub struct HostGt {
+    pub counts: Vec<usize>,
+    /// Padded people per item.
+    pub padded: usize,
+    /// `[b][p][j]` world joints.
+    pub joints: Vec<Vec<Vec<[f64; 3]>>>,
+    /// `[b][v][p][j]` network-pixel joints with visibility.
+    pub joints_2d: Vec<Vec<Vec<Vec<[f32; 3]>>>>,
+}
+
+impl HostGt {
+    pub fn new(batch: &FrameBatch) -> Self {
+        let [b, p, j, _] = batch.joints_3d.dims();
+        let v = batch.joints_2d.dims()[1];
+        let j3: Vec<f32> = batch
+            .joints_3d
+            .to_data()
+            .convert::<f32>()
+            .try_into_vec()
+            .expect("f32 joints");
+        let j2: Vec<f32> = batch
+            .joints_2d
+            .to_data()
+            .convert::<f32>()
+            .try_into_vec()
+            .expect("f32 joints");
+        let joints = (0..b)
+            .map(|bi| {
+                (0..batch.counts[bi])
+                    .map(|pi| {
+                        (0..j)
+                            .map(|ji| {
+                                let o = ((bi * p + pi) * j + ji) * 3;
+                                [j3[o] as f64, j3[o + 1] as f64, j3[o + 2] as f64]
+                            })
+                            .collect()
+                    })
+                    .collect()
+            })
+            .collect();
+        let joints_2d = (0..b)
+            .map(|bi| {
+                (0..v)
+                    .map(|vi| {
+                        (0..batch.counts[bi])
+                            .map(|pi| {
+                                (0..j)
+                                    .map(|ji| {
+                                        let o = (((bi * v + vi) * p + pi) * j + ji) * 3;
+                                        [j2[o], j2[o + 1], j2[o + 2]]
+                                    })
+                                    .collect()
+                            })
+                            .collect()
+                    })
+                    .collect()
+            })
+            .collect();
+        HostGt {
+            counts: batch.counts.clone(),
+            padded: p,
+            joints,
+            joints_2d,
+        }
+    }
+
+    /// Every person's primary joint (the root the detection branch finds), per item.
+    pub fn roots(&self, primary: usize) -> Vec<Vec<[f64; 3]>> {
+        self.joints
+            .iter()
+            .map(|people| people.iter().map(|j| j[primary]).collect())
+            .collect()
+    }
+}
+
+/// Sampling grids of each batch item's selected views.
+pub fn batch_grids(cfg: &ModelConfig, batch: &FrameBatch, device: &Device) -> Vec<RigGrids> {
+    batch
+        .cameras
+        .iter()
+        .zip(&batch.letterboxes)
+        .map(|(c, l)| RigGrids::new(cfg, c, l, device))
+        .collect()
+}
+
+/// The detection loss of a batch (Gaussian root volume + sub-voxel offsets of the ground-truth roots).
+pub fn detection_term(
+    det: &Detection,
+    gt: &HostGt,
+    cfg: &ModelConfig,
+    offset_weight: f32,
+    device: &Device,
+) -> (Tensor<1>, [f32; 2]) {
+    let roots = gt.roots(cfg.primary_joint.joint());
+    let target = gaussian_target(&cfg.grid, &roots, DEFAULT_SIGMA, device);
+    let b = roots.len();
+    let r = roots.iter().map(Vec::len).max().unwrap_or(0).max(1);
+    let mut vox = vec![0i64; b * r];
+    let mut off = vec![0f32; b * r * 3];
+    let mut mask = vec![0f32; b * r];
+    for (bi, people) in roots.iter().enumerate() {
+        for (pi, root) in people.iter().enumerate() {
+            if let Some((v, o)) = root_voxel_and_offset(&cfg.grid, *root) {
+                let k = bi * r + pi;
+                vox[k] = cfg.grid.flat_index(v) as i64;
+                for a in 0..3 {
+                    off[k * 3 + a] = o[a] as f32;
+                }
+                mask[k] = 1.0;
+            }
+        }
+    }
+    let vox = Tensor::<2, Int>::from_data(TensorData::new(vox, [b, r]), device);
+    let maskt = Tensor::<2>::from_data(TensorData::new(mask.clone(), [b, r]), device);
+    let lik = det
+        .likelihood
+        .clone()
+        .detach()
+        .reshape([b, cfg.grid.num_voxels()]);
+    let peak: f32 = lik.clone().max_dim(1).mean().into_scalar();
+    let at: f32 = (lik.gather(1, vox.clone()) * maskt.clone())
+        .sum()
+        .into_scalar::<f32>()
+        / mask.iter().sum::<f32>().max(1.0);
+    let loss = detection_loss_weighted(
+        det.likelihood.clone(),
+        target,
+        det.offset.clone(),
+        vox,
+        Tensor::from_data(TensorData::new(off, [b, r, 3]), device),
+        maskt,
+        offset_weight,
+    );
+    (loss, [peak, at])
+}
+
+/// The 2D heatmap loss of the pose network: targets drawn at the visible ground-truth joints.
+pub fn heatmap_term(
+    det: &Detection,
+    gt: &HostGt,
+    cfg: &ModelConfig,
+    sigma: f32,
+    device: &Device,
+) -> Tensor<1> {
+    let [b, v, j, h, w] = det.heatmaps.dims();
+    let mut target = Vec::with_capacity(b * v * j * h * w);
+    for bi in 0..b {
+        for vi in 0..v {
+            let mut map = vec![0f32; j * h * w];
+            for person in &gt.joints_2d[bi][vi] {
+                let pts: Vec<Option<[f32; 2]>> = cfg
+                    .heatmap_joints
+                    .iter()
+                    .map(|&ji| {
+                        let [u, vv, vis] = person[ji];
+                        (vis > 0.5).then_some([u, vv])
+                    })
+                    .collect();
+                let one = heatmap_target(&pts, [h, w], 4.0, sigma);
+                for (m, x) in map.iter_mut().zip(one) {
+                    *m = m.max(x);
+                }
+            }
+            target.extend(map);
+        }
+    }
+    let target = Tensor::from_data(TensorData::new(target, [b, v, j, h, w]), device);
+    heatmap_loss(
+        det.heatmaps.clone(),
+        target,
+        Tensor::ones([b, v, j], device),
+    )
+}
+
+/// Stage 1: HRNet and the RootNet alone.
+pub fn stage1_loss(
+    model: &MvmpHmr,
+    batch: &FrameBatch,
+    cfg: &ModelConfig,
+    weights: &LossWeights,
+    device: &Device,
+) -> StepLoss {
+    let gt = HostGt::new(batch);
+    let grids = batch_grids(cfg, batch, device);
+    let det = model.detect(batch.images.clone(), &grids);
+    let mut terms = Vec::new();
+    let (d, diag) = detection_term(&det, &gt, cfg, weights.detection_offset, device);
+    if weights.detection > 0.0 {
+        terms.push(("detection", d * weights.detection));
+    }
+    if weights.heatmap_2d > 0.0 {
+        terms.push((
+            "heatmap_2d",
+            heatmap_term(&det, &gt, cfg, weights.heatmap_sigma, device) * weights.heatmap_2d,
+        ));
+    }
+    finish(terms, 0, diag, device)
+}
+
+fn finish(
+    terms: Vec<(&'static str, Tensor<1>)>,
+    queries: usize,
+    diag: [f32; 2],
+    device: &Device,
+) -> StepLoss {
+    let total = terms
+        .iter()
+        .map(|(_, t)| t.clone())
+        .reduce(|a, b| a + b)
+        .unwrap_or_else(|| Tensor::zeros([1], device));
+    StepLoss {
+        total,
+        terms,
+        queries,
+        root_peak: diag[0],
+        root_at_gt: diag[1],
+    }
+}
+
+/// Where to decode people in a training step, and which ground-truth person each query is compared with.
+/// Returns per item the (root, gt index) of each query.
+pub fn choose_queries(
+    detections: &[Vec<Root>],
+    gt_roots: &[Vec<[f64; 3]>],
+    mode: QueryMode,
+    gate: f64,
+) -> Vec<Vec<([f64; 3], usize)>> {
+    detections
+        .iter()
+        .zip(gt_roots)
+        .map(|(det, gt)| {
+            let mut out: Vec<([f64; 3], usize)> = Vec::new();
+            if mode != QueryMode::Gt {
+                let pred: Vec<[f64; 3]> = det.iter().map(|r| r.position).collect();
+                for (pi, gi) in mvmp_eval::match_people(&pred, gt, gate) {
+                    out.push((pred[pi], gi));
+                }
+            }
+            if mode != QueryMode::Detected {
+                for (gi, g) in gt.iter().enumerate() {
+                    if !out.iter().any(|&(_, m)| m == gi) {
+                        out.push((*g, gi));
+                    }
+                }
+            }
+            out
+        })
+        .collect()
+}
+
+/// Stage 2: the whole model and the five losses.
+#[allow(clippy::too_many_arguments)]
+pub fn stage2_loss(
+    model: &MvmpHmr,
+    batch: &FrameBatch,
+    cfg: &ModelConfig,
+    layer: &SmplxLayer,
+    weights: &LossWeights,
+    mode: QueryMode,
+    gate: f64,
+    device: &Device,
+) -> StepLoss {
+    let gt = HostGt::new(batch);
+    let grids = batch_grids(cfg, batch, device);
+    let gt_roots = gt.roots(cfg.primary_joint.joint());
+    let b = gt.counts.len();
+    let p = gt.padded;
+    let mut slots: Vec<Vec<([f64; 3], usize)>> = Vec::new();
+    let out = model.forward_select(batch.images.clone(), &grids, cfg, layer, |det| {
+        slots = choose_queries(det, &gt_roots, mode, gate);
+        let k = slots.iter().map(Vec::len).max().unwrap_or(0).max(1);
+        let mut r = vec![0f32; b * k * 3];
+        let mut present = vec![false; b * k];
+        for (bi, s) in slots.iter().enumerate() {
+            for (ki, (root, _)) in s.iter().enumerate() {
+                present[bi * k + ki] = true;
+                for a in 0..3 {
+                    r[(bi * k + ki) * 3 + a] = root[a] as f32;
+                }
+            }
+        }
+        (
+            Tensor::from_data(TensorData::new(r, [b, k, 3]), device),
+            Tensor::<2, Bool>::from_data(TensorData::new(present, [b, k]), device),
+        )
+    });
+    let k = out.roots.dims()[1];
+    let queries: usize = slots.iter().map(Vec::len).sum();
+    // Which padded ground-truth row each query compares with (0 for empty slots, masked out).
+    let mut idx = vec![0i64; b * k];
+    let mut mask = vec![0f32; b * k];
+    for (bi, s) in slots.iter().enumerate() {
+        for (ki, &(_, gi)) in s.iter().enumerate() {
+            idx[bi * k + ki] = (bi * p + gi) as i64;
+            mask[bi * k + ki] = 1.0;
+        }
+    }
+    let idx = Tensor::<1, Int>::from_data(TensorData::new(idx, [b * k]), device);
+    let mask = Tensor::<2>::from_data(TensorData::new(mask, [b, k]), device);
+    let pick4 = |t: Tensor<4>| {
+        let [_, _, n, c] = t.dims();
+        t.reshape([b * p, n, c])
+            .select(0, idx.clone())
+            .reshape([b, k, n, c])
+    };
+    let pick3 = |t: Tensor<3>| {
+        let c = t.dims()[2];
+        t.reshape([b * p, c])
+            .select(0, idx.clone())
+            .reshape([b, k, c])
+    };
+
+    let mut terms = Vec::new();
+    let det = Detection {
+        heatmaps: out.heatmaps.clone(),
+        likelihood: out.likelihood.clone(),
+        offset: out.offset.clone(),
+    };
+    let (d, diag) = detection_term(&det, &gt, cfg, weights.detection_offset, device);
+    if weights.detection > 0.0 {
+        terms.push(("detection", d * weights.detection));
+    }
+    let gt_joints = pick4(batch.joints_3d.clone());
+    if weights.parameters > 0.0 {
+        let rot = axis_angle_to_matrix(batch.pose.clone().reshape([b * p * NUM_JOINTS, 3]))
+            .reshape([b * p, NUM_JOINTS, 3, 3]);
+        let sel: Vec<i64> = REGRESSED_TO_JOINT.iter().map(|&j| j as i64).collect();
+        let sel = Tensor::<1, Int>::from_data(TensorData::new(sel, [NUM_REGRESSED]), device);
+        let gt_rot = rot
+            .select(1, sel)
+            .reshape([b * p, NUM_REGRESSED * 9])
+            .select(0, idx.clone())
+            .reshape([b, k, NUM_REGRESSED, 3, 3]);
+        terms.push((
+            "parameters",
+            parameter_loss(
+                out.rotmats.clone(),
+                gt_rot,
+                out.betas.clone(),
+                pick3(batch.betas.clone()),
+                out.expression.clone(),
+                pick3(batch.expression.clone()),
+                mask.clone(),
+            ) * weights.parameters,
+        ));
+    }
+    if weights.mesh_3d > 0.0 || weights.mesh_2d > 0.0 {
+        let mut points = vec![(out.joints.clone(), gt_joints.clone())];
+        if let Some(v) = &batch.vertices {
+            points.push((out.vertices.clone(), pick4(v.clone())));
+        }
+        let mut mesh: Option<Tensor<1>> = None;
+        let mut add = |t: Tensor<1>| mesh = Some(mesh.take().map_or(t.clone(), |m| m + t));
+        if weights.mesh_3d > 0.0 {
+            for (pred, g) in &points {
+                add(mesh_3d_loss(pred.clone(), g.clone(), mask.clone()) * weights.mesh_3d);
+            }
+        }
+        if weights.mesh_2d > 0.0 {
+            let views = batch.cameras[0].len();
+            let size = batch.images.dims()[3] as f32;
+            let mut sum: Option<Tensor<1>> = None;
+            for v in 0..views {
+                let cams: Vec<CameraTensors> = (0..b)
+                    .map(|bi| {
+                        CameraTensors::new(
+                            &batch.cameras[bi][v..v + 1],
+                            Some(&batch.letterboxes[bi][v..v + 1]),
+                            device,
+                        )
+                    })
+                    .collect();
+                for (pred, g) in &points {
+                    let [_, _, n, _] = g.dims();
+                    let uv: Vec<Tensor<3>> = (0..b)
+                        .map(|bi| {
+                            let pts = g.clone().narrow(0, bi, 1).reshape([k * n, 3]);
+                            cams[bi].project(pts).uv.reshape([1, k * n, 2])
+                        })
+                        .collect();
+                    let gt_uv = Tensor::cat(uv, 0).reshape([b, k, n, 2]).detach();
+                    let l = mesh_2d_loss(pred.clone(), gt_uv, &cams, size, mask.clone());
+                    sum = Some(sum.take().map_or(l.clone(), |s| s + l));
+                }
+            }
+            if let Some(s) = sum {
+                add(s * (weights.mesh_2d / views as f32));
+            }
+        }
+        if let Some(m) = mesh {
+            terms.push(("mesh", m));
+        }
+    }
+    if weights.orientation > 0.0 {
+        terms.push((
+            "orientation",
+            orientation_loss(out.joints.clone(), gt_joints.clone(), mask.clone())
+                * weights.orientation,
+        ));
+    }
+    if weights.density > 0.0 {
+        let grid = density_grid(weights.density_grid, weights.density_extent, device);
+        terms.push((
+            "density",
+            density_loss(
+                out.joints.clone(),
+                gt_joints,
+                pick3(batch.pelvis.clone()),
+                grid,
+                weights.density_sigma,
+                mask,
+            ) * weights.density,
+        ));
+    }
+    finish(terms, queries, diag, device)
+}

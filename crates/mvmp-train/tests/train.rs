@@ -1,0 +1,452 @@
+//! Training end to end on a small synthetic dataset and a small model: one batch is overfitted, an
+//! interrupted run resumes to exactly the weights of an uninterrupted one, a diverging run stops naming the
+//! term and the step, and inference outputs load back and reproject into their overlays.
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::OnceLock;
+use std::sync::atomic::AtomicBool;
+
+use burn::data::dataloader::batcher::Batcher;
+use burn::module::{Module, ModuleVisitor, Param};
+use burn::optim::{AdamConfig, GradientsParams};
+use burn::tensor::{Device, Tensor};
+use mvmp_data::loader::{FrameBatcher, FrameDataset, Split, ViewChoice};
+use mvmp_data::synth::{SynthConfig, generate};
+use mvmp_geom::VoxelGrid;
+use mvmp_model::{ModelConfig, MvmpHmr};
+use mvmp_smplx::SmplxLayer;
+use mvmp_train::output::{read_people_npz, write_frame};
+use mvmp_train::predict::{load_weights, pose_params};
+use mvmp_train::step::{stage1_loss, stage2_loss};
+use mvmp_train::{
+    Outcome, Predictor, QueryMode, Quiet, RunDir, TrainConfig, TrainError, TrainOptions,
+};
+
+fn dataset() -> &'static Path {
+    static DIR: OnceLock<(tempfile::TempDir, PathBuf)> = OnceLock::new();
+    let (_, p) = DIR.get_or_init(|| {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("ds");
+        let mut c = SynthConfig {
+            name: "train-test".into(),
+            seed: 5,
+            scenes: 3,
+            frames_per_scene: 2,
+            people: [2, 3],
+            area: [3.0, 3.0],
+            image_size: [160, 120],
+            ..Default::default()
+        };
+        c.cameras.count = 3;
+        c.cameras.rings[0].radius = 5.0;
+        generate(&c, &out, Path::new("."), &|| {}).unwrap();
+        (dir, out)
+    });
+    p
+}
+
+fn model_config() -> ModelConfig {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/model/tiny.toml");
+    let mut c = ModelConfig::read(&path).unwrap();
+    c.image_size = 64;
+    c.grid = VoxelGrid::new([0.0, 0.0, 1.0], [4.0, 4.0, 2.0], [16, 16, 4]).unwrap();
+    c.max_people = 3;
+    c.decoder.dim = 32;
+    c.rootnet_width = 0.25;
+    // Every top-K peak counts as a person, so inference always has people to write.
+    c.root_threshold = -1e9;
+    c
+}
+
+/// A run config written beside its model config; `edit` adjusts the TOML text.
+fn write_configs(dir: &Path, edit: &dyn Fn(String) -> String) -> PathBuf {
+    std::fs::write(
+        dir.join("model.toml"),
+        toml::to_string(&model_config()).unwrap(),
+    )
+    .unwrap();
+    let text = format!(
+        r#"model = "model.toml"
+data = "{}"
+seed = 3
+train_views = 2
+test_views = 3
+keep_checkpoints = 2
+[stage1]
+epochs = 1
+lr = 1e-3
+[stage2]
+epochs = 1
+lr = 1e-3
+"#,
+        dataset().display()
+    );
+    let path = dir.join("train.toml");
+    std::fs::write(&path, edit(text)).unwrap();
+    path
+}
+
+fn options(stop_after: Option<u64>) -> TrainOptions {
+    TrainOptions {
+        device: Device::flex(),
+        stop: Arc::new(AtomicBool::new(false)),
+        stop_after_steps: stop_after,
+    }
+}
+
+fn new_run(
+    dir: &Path,
+    name: &str,
+    edit: &dyn Fn(String) -> String,
+) -> (RunDir, TrainConfig, ModelConfig) {
+    let (cfg, model) = TrainConfig::read(&write_configs(dir, edit)).unwrap();
+    let run = RunDir::create(&dir.join(name), &cfg, &model, dataset()).unwrap();
+    RunDir::open(&run.root).unwrap()
+}
+
+/// Every float parameter, in visiting order.
+fn weights(m: &MvmpHmr) -> Vec<f32> {
+    struct All(Vec<f32>);
+    impl ModuleVisitor for All {
+        fn visit_float<const D: usize>(&mut self, p: &Param<Tensor<D>>) {
+            self.0
+                .extend(p.val().into_data().convert::<f32>().iter::<f32>());
+        }
+    }
+    let mut a = All(Vec::new());
+    m.visit(&mut a);
+    a.0
+}
+
+fn load(run: &Path, cfg: &ModelConfig) -> Vec<f32> {
+    let mut m = mvmp_train::seeded_init(cfg, &Device::flex(), 0);
+    load_weights(&mut m, &run.join("model.bpk")).unwrap();
+    weights(&m)
+}
+
+#[test]
+fn a_few_steps_on_one_batch_lower_the_loss() {
+    let ad = Device::flex().autodiff();
+    let cfg = model_config();
+    let mut model = mvmp_train::seeded_init(&cfg, &ad, 1);
+    let ds =
+        FrameDataset::open(dataset(), Split::Train, ViewChoice::Fixed(vec![0, 1]), 64).unwrap();
+    let body = ds.layout().body_model().unwrap();
+    let layer = SmplxLayer::new(&body, &ad);
+    let batch = FrameBatcher::with_vertices(body).batch(vec![ds.load(0).unwrap()], &ad);
+    let weights = mvmp_losses::LossWeights::default();
+    let mut optim = AdamConfig::new().init();
+    let mut totals = Vec::new();
+    for _ in 0..8 {
+        let l = stage2_loss(
+            &model,
+            &batch,
+            &cfg,
+            &layer,
+            &weights,
+            QueryMode::Gt,
+            0.5,
+            &ad,
+        );
+        assert_eq!(l.queries, batch.counts[0]);
+        totals.push(l.total.clone().into_scalar::<f32>());
+        let g = GradientsParams::from_grads(l.total.backward(), &model);
+        model = optim.step(1e-3, model, g);
+    }
+    assert!(
+        totals[7] < 0.75 * totals[0],
+        "stage 2 total loss did not fall clearly: {totals:?}"
+    );
+    // Stage 1 as the demo trains it: the offset L1 down-weighted so the volume MSE and heatmaps lead.
+    let weights = mvmp_losses::LossWeights {
+        detection_offset: 0.02,
+        ..weights
+    };
+    let mut optim = AdamConfig::new().init();
+    let mut totals = Vec::new();
+    for _ in 0..10 {
+        let l = stage1_loss(&model, &batch, &cfg, &weights, &ad);
+        totals.push(l.total.clone().into_scalar::<f32>());
+        let g = GradientsParams::from_grads(l.total.backward(), &model);
+        model = optim.step(1e-3, model, g);
+    }
+    assert!(
+        totals[9] < 0.75 * totals[0],
+        "stage 1 total loss did not fall clearly: {totals:?}"
+    );
+}
+
+#[test]
+fn an_interrupted_run_resumes_to_the_same_weights_and_log() {
+    let dir = tempfile::tempdir().unwrap();
+    let keep = |s: String| s;
+    // Straight through: 4 training frames, 1 epoch per stage = 8 steps.
+    let (run_a, cfg, model) = new_run(dir.path(), "a", &keep);
+    let out = mvmp_train::train(&run_a, &cfg, &model, &options(None), &mut Quiet).unwrap();
+    assert_eq!(out, Outcome::Finished);
+    // Stopped mid stage 1 and again mid stage 2, resumed each time.
+    let (run_b, cfg_b, model_b) = new_run(dir.path(), "b", &keep);
+    for (stop, step) in [(Some(3), 3), (Some(6), 6)] {
+        match mvmp_train::train(&run_b, &cfg_b, &model_b, &options(stop), &mut Quiet).unwrap() {
+            Outcome::Interrupted {
+                global_step,
+                checkpoint,
+            } => {
+                assert_eq!(global_step, step);
+                assert!(checkpoint.exists());
+            }
+            o => panic!("expected an interruption, got {o:?}"),
+        }
+        let s = run_b.state().unwrap().unwrap();
+        assert_eq!((s.global_step, s.finished), (step, false));
+    }
+    let (run_b, cfg_b, model_b) = RunDir::open(&run_b.root).unwrap();
+    let out = mvmp_train::train(&run_b, &cfg_b, &model_b, &options(None), &mut Quiet).unwrap();
+    assert_eq!(out, Outcome::Finished);
+    // The logs agree step for step (losses of the same batches with the same weights).
+    let steps = |r: &RunDir| -> Vec<(u64, f64)> {
+        std::fs::read_to_string(r.metrics_path())
+            .unwrap()
+            .lines()
+            .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+            .filter(|v| v["kind"] == "step")
+            .map(|v| {
+                (
+                    v["global_step"].as_u64().unwrap(),
+                    v["total"].as_f64().unwrap(),
+                )
+            })
+            .collect()
+    };
+    let (la, lb) = (steps(&run_a), steps(&run_b));
+    assert_eq!(la.len(), 8);
+    assert_eq!(
+        la.iter().map(|x| x.0).collect::<Vec<_>>(),
+        lb.iter().map(|x| x.0).collect::<Vec<_>>()
+    );
+    for (a, b) in la.iter().zip(&lb) {
+        assert!(
+            (a.1 - b.1).abs() <= 1e-5 * a.1.abs().max(1.0),
+            "{a:?} vs {b:?}"
+        );
+    }
+    let (wa, wb) = (load(&run_a.root, &model), load(&run_b.root, &model));
+    assert_eq!(wa.len(), wb.len());
+    let max = wa
+        .iter()
+        .zip(&wb)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0f32, f32::max);
+    assert!(max <= 1e-6, "resumed weights differ by up to {max}");
+    // Validation ran every epoch of both stages.
+    let log = std::fs::read_to_string(run_a.metrics_path()).unwrap();
+    assert!(log.contains("\"root_recall\""), "stage 1 validation");
+    assert!(log.contains("\"recall_500\""), "stage 2 validation");
+    // Only the newest checkpoints are kept; the final weights and resolved configs are there.
+    let ckpts: Vec<_> = std::fs::read_dir(run_a.root.join("checkpoints"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    assert_eq!(
+        ckpts.iter().filter(|f| f.starts_with("step")).count(),
+        2,
+        "{ckpts:?}"
+    );
+    assert_eq!(
+        ckpts.iter().filter(|f| f.starts_with("optim-")).count(),
+        1,
+        "{ckpts:?}"
+    );
+    assert!(run_a.state().unwrap().unwrap().finished);
+    // A finished run resumes to "finished" without training.
+    let n = log.lines().count();
+    assert_eq!(
+        mvmp_train::train(&run_a, &cfg, &model, &options(None), &mut Quiet).unwrap(),
+        Outcome::Finished
+    );
+    assert_eq!(
+        std::fs::read_to_string(run_a.metrics_path())
+            .unwrap()
+            .lines()
+            .count(),
+        n
+    );
+}
+
+#[test]
+fn a_diverging_run_stops_naming_the_term_and_the_step() {
+    let dir = tempfile::tempdir().unwrap();
+    let (run, cfg, model) = new_run(dir.path(), "nan", &|s| {
+        s.replacen("lr = 1e-3", "lr = 1e30", 1)
+    });
+    let err = mvmp_train::train(&run, &cfg, &model, &options(None), &mut Quiet).unwrap_err();
+    match &err {
+        TrainError::NonFinite {
+            stage, step, term, ..
+        } => {
+            assert_eq!(*stage, 1);
+            assert!(*step >= 2, "the first step's loss is finite: {err}");
+            assert!(
+                ["detection", "heatmap_2d"].contains(&term.as_str()),
+                "{err}"
+            );
+        }
+        e => panic!("expected a non-finite loss error, got {e}"),
+    }
+    let msg = err.to_string();
+    assert!(msg.contains("step") && msg.contains("checkpoint"), "{msg}");
+}
+
+#[test]
+fn bad_configs_name_the_key() {
+    let dir = tempfile::tempdir().unwrap();
+    for (edit, key) in [
+        (("lr = 1e-3", "lr = -1.0"), "stage1.lr"),
+        (("seed = 3", "seed = 3\nbatch_size = 0"), "batch_size"),
+        (("seed = 3", "seed = 3\nlearning_rate = 1"), "learning_rate"),
+        (("seed = 3", "seed = 3\n[loss]\nmesh_3d = -2.0"), "mesh_3d"),
+    ] {
+        let path = write_configs(dir.path(), &|s| s.replacen(edit.0, edit.1, 1));
+        let e = TrainConfig::read(&path).unwrap_err().to_string();
+        assert!(e.contains(key) && e.contains("train.toml"), "{key}: {e}");
+    }
+    // A run directory that holds files is not overwritten.
+    let (cfg, model) = TrainConfig::read(&write_configs(dir.path(), &|s| s)).unwrap();
+    let e = RunDir::create(dir.path(), &cfg, &model, dataset())
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("not empty"), "{e}");
+}
+
+#[test]
+fn inference_outputs_load_back_and_reproject_into_the_overlays() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = model_config();
+    let d = Device::flex();
+    let body = mvmp_smplx::standin_model(0);
+    let pred = Predictor::new(mvmp_train::seeded_init(&cfg, &d, 2), cfg.clone(), body, &d);
+    let ds =
+        FrameDataset::open(dataset(), Split::Test, ViewChoice::Fixed(vec![0, 1, 2]), 64).unwrap();
+    let batch = FrameBatcher::default().batch(vec![ds.load(0).unwrap()], &d);
+    let people = pred
+        .predict(batch.images.clone(), &batch.cameras, &batch.letterboxes)
+        .remove(0);
+    assert_eq!(people.len(), 3, "threshold -inf keeps the top-K roots");
+    let frame = &ds.frames()[0];
+    let rig = &ds.layout().scenes[frame.scene].rig;
+    let ann = mvmp_data::Annotation::read(&frame.dir.join("annotation.json"), rig.len()).unwrap();
+    let images: Vec<image::RgbImage> = ann
+        .images
+        .iter()
+        .map(|f| image::open(frame.dir.join(f)).unwrap().to_rgb8())
+        .collect();
+    let out = dir.path().join("frame");
+    write_frame(
+        &out,
+        &people,
+        pred.layer.faces(),
+        &rig.cameras,
+        Some(&images),
+        &cfg.grid,
+    )
+    .unwrap();
+
+    // people.npz: the standard smplx keys, and posing them again gives the same meshes.
+    let mut npz = npyz::npz::NpzArchive::open(out.join("people.npz")).unwrap();
+    for (key, width) in [
+        ("global_orient", 3),
+        ("body_pose", 63),
+        ("jaw_pose", 3),
+        ("leye_pose", 3),
+        ("reye_pose", 3),
+        ("left_hand_pose", 45),
+        ("right_hand_pose", 45),
+        ("betas", 10),
+        ("expression", 10),
+        ("transl", 3),
+        ("pelvis", 3),
+    ] {
+        let a = npz
+            .by_name(key)
+            .unwrap()
+            .unwrap_or_else(|| panic!("key {key}"));
+        assert_eq!(a.shape(), &[3, width], "{key}");
+    }
+    let stored = read_people_npz(&out.join("people.npz")).unwrap();
+    let posed = pose_params(
+        &pred.layer,
+        &stored
+            .iter()
+            .map(|p| (p.params.clone(), p.score))
+            .collect::<Vec<_>>(),
+    );
+    for (p, q) in people.iter().zip(&posed) {
+        let v = q.vertices.as_ref().unwrap();
+        let max = p
+            .vertices
+            .iter()
+            .zip(v)
+            .map(|(a, b)| {
+                (0..3)
+                    .map(|k| (a[k] as f64 - b[k]).abs())
+                    .fold(0.0, f64::max)
+            })
+            .fold(0.0, f64::max);
+        assert!(max < 2e-3, "re-posed stored parameters differ by {max} m");
+    }
+
+    // OBJ and PLY parse; the OBJ vertices are the predicted mesh.
+    for (i, p) in people.iter().enumerate() {
+        let (models, _) = tobj::load_obj(
+            out.join(format!("person_{i:02}.obj")),
+            &tobj::LoadOptions::default(),
+        )
+        .unwrap();
+        let m = &models[0].mesh;
+        assert_eq!(m.positions.len(), p.vertices.len() * 3);
+        assert_eq!(m.indices.len(), pred.layer.faces().len() * 3);
+        assert!(out.join(format!("person_{i:02}.ply")).exists());
+    }
+
+    // Overlays: same size as the inputs; where a mesh vertex projects inside the image, the overlay
+    // differs from the input (a mesh was drawn there).
+    let (mut inside, mut changed) = (0, 0);
+    for (v, cam) in rig.cameras.iter().enumerate() {
+        let ov = image::open(out.join(format!("overlay_{v:02}.png")))
+            .unwrap()
+            .to_rgb8();
+        assert_eq!(ov.dimensions(), (cam.width, cam.height));
+        for p in &people {
+            for x in p.vertices.iter().step_by(7) {
+                let (uv, z) = cam.project(&nalgebra::Vector3::new(
+                    x[0] as f64,
+                    x[1] as f64,
+                    x[2] as f64,
+                ));
+                let (u, w) = (uv.x.round(), uv.y.round());
+                if z > 0.1
+                    && u >= 1.0
+                    && w >= 1.0
+                    && u < cam.width as f64 - 1.0
+                    && w < cam.height as f64 - 1.0
+                {
+                    inside += 1;
+                    let differs = (-1..=1).any(|dy: i64| {
+                        (-1..=1).any(|dx: i64| {
+                            let (a, b) = ((u as i64 + dx) as u32, (w as i64 + dy) as u32);
+                            ov.get_pixel(a, b) != images[v].get_pixel(a, b)
+                        })
+                    });
+                    changed += differs as usize;
+                }
+            }
+        }
+    }
+    assert!(inside > 100, "{inside} projected vertices inside the views");
+    assert!(
+        changed as f64 >= 0.98 * inside as f64,
+        "{changed} of {inside} projected vertices fall on drawn pixels"
+    );
+    let top = image::open(out.join("topdown.png")).unwrap();
+    assert_eq!(top.width(), 640);
+}
