@@ -507,3 +507,181 @@ fn eval_scores_planted_predictions_exactly() {
         &["x.json"],
     );
 }
+
+#[test]
+fn train_eval_infer_end_to_end() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = |name: &str| dir.path().join(name).to_string_lossy().into_owned();
+    std::fs::write(
+        p("s.toml"),
+        "scenes = 3\nframes_per_scene = 1\npeople = [2, 2]\narea = [3.0, 3.0]\nimage_size = [96, 64]\n[cameras]\ncount = 2\nrings = [{ height = 2.5, radius = 5.0 }]\n",
+    )
+    .unwrap();
+    let o = mvmp(&["data", "synth", "--config", &p("s.toml"), "--out", &p("ds")]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    // A small model: 64 px input, a 16 x 16 x 4 grid, every top-K peak kept as a person.
+    let model = std::fs::read_to_string(config("model/tiny.toml"))
+        .unwrap()
+        .replace("image_size = 224", "image_size = 64")
+        .replace("root_threshold = 0.3", "root_threshold = -1e9")
+        .replace("max_people = 10", "max_people = 2")
+        .replace("size = [8.0, 8.0, 2.0]", "size = [4.0, 4.0, 2.0]")
+        .replace("shape = [32, 32, 8]", "shape = [16, 16, 4]")
+        .replace("dim = 128", "dim = 32");
+    std::fs::write(p("model.toml"), model).unwrap();
+    std::fs::write(
+        p("train.toml"),
+        "model = \"model.toml\"\ntrain_views = 2\ntest_views = 2\n[stage1]\nepochs = 1\nlr = 1e-3\n[stage2]\nepochs = 1\nlr = 1e-3\n",
+    )
+    .unwrap();
+    // No dataset: the key is named.
+    expect_error(
+        &["train", "--config", &p("train.toml"), "--out", &p("r0")],
+        &["data", "--data"],
+    );
+    let o = mvmp(&[
+        "train",
+        "--config",
+        &p("train.toml"),
+        "--data",
+        &p("ds"),
+        "--out",
+        &p("run"),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    for f in [
+        "train.toml",
+        "model.toml",
+        "state.json",
+        "metrics.jsonl",
+        "model.bpk",
+    ] {
+        assert!(dir.path().join("run").join(f).exists(), "{f}");
+    }
+    // The same directory again is refused; resuming a finished run does nothing and succeeds.
+    expect_error(
+        &[
+            "train",
+            "--config",
+            &p("train.toml"),
+            "--data",
+            &p("ds"),
+            "--out",
+            &p("run"),
+        ],
+        &["not empty", "--resume"],
+    );
+    let o = mvmp(&["train", "--resume", &p("run")]);
+    assert!(o.status.success(), "{}", stderr(&o));
+
+    let o = mvmp(&[
+        "eval",
+        "--run",
+        &p("run"),
+        "--data",
+        &p("ds"),
+        "--save-predictions",
+        &p("pred"),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let r: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(dir.path().join("run/eval-test.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(r["format"], "mvmp-eval-report");
+    assert_eq!(r["source"]["checkpoint_sha256"].as_str().unwrap().len(), 64);
+    assert_eq!(r["source"]["config_sha256"].as_str().unwrap().len(), 64);
+    for k in [
+        "mpjpe_mm",
+        "pve_mm",
+        "pa_pve_mm",
+        "recall_500",
+        "ap",
+        "protocol",
+        "per_scene",
+    ] {
+        assert!(r.get(k).is_some(), "{k}");
+    }
+    assert_eq!(r["predictions"], 2, "two kept roots in the one test frame");
+    // Scoring the saved predictions gives the same figures under the same protocol.
+    let o = mvmp(&[
+        "eval",
+        "--predictions",
+        &p("pred"),
+        "--data",
+        &p("ds"),
+        "--out",
+        &p("again.json"),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let r2: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(p("again.json")).unwrap()).unwrap();
+    for k in ["mpjpe_mm", "pve_mm", "recall_500"] {
+        let (a, b) = (r[k].as_f64(), r2[k].as_f64());
+        assert!(
+            a.zip(b).is_none_or(|(a, b)| (a - b).abs() < 0.5) && a.is_some() == b.is_some(),
+            "{k}: {a:?} vs {b:?}"
+        );
+    }
+
+    // Infer on a sequence: a scene directory holds one sub-directory per frame.
+    let layout = mvmp_data::DatasetLayout::open(&dir.path().join("ds")).unwrap();
+    let scene = &layout.scenes[0];
+    let rig = scene.dir.join("cameras.json");
+    let o = mvmp(&[
+        "infer",
+        "--run",
+        &p("run"),
+        "--rig",
+        rig.to_str().unwrap(),
+        "--frames",
+        scene.dir.to_str().unwrap(),
+        "--out",
+        &p("seq"),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let f = dir.path().join("seq/frame_000000");
+    for name in [
+        "people.npz",
+        "person_00.obj",
+        "person_01.ply",
+        "overlay_00.png",
+        "overlay_01.png",
+        "topdown.png",
+    ] {
+        assert!(f.join(name).exists(), "{name}");
+    }
+    // Wrong image count and wrong image size are named.
+    let img = scene.dir.join("frame_000000/view_00.png");
+    expect_error(
+        &[
+            "infer",
+            "--run",
+            &p("run"),
+            "--rig",
+            rig.to_str().unwrap(),
+            "--images",
+            img.to_str().unwrap(),
+            "--out",
+            &p("x"),
+        ],
+        &["1 images", "2 cameras"],
+    );
+    let small = dir.path().join("small.png");
+    image::RgbImage::new(10, 10).save(&small).unwrap();
+    expect_error(
+        &[
+            "infer",
+            "--run",
+            &p("run"),
+            "--rig",
+            rig.to_str().unwrap(),
+            "--images",
+            img.to_str().unwrap(),
+            small.to_str().unwrap(),
+            "--out",
+            &p("x"),
+        ],
+        &["small.png", "10x10", "96x64"],
+    );
+}

@@ -450,3 +450,17 @@ fn inference_outputs_load_back_and_reproject_into_the_overlays() {
     let top = image::open(out.join("topdown.png")).unwrap();
     assert_eq!(top.width(), 640);
 }
+
+#[test]
+fn every_shipped_training_config_reads() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/train");
+    let mut n = 0;
+    for e in std::fs::read_dir(&dir).unwrap() {
+        let p = e.unwrap().path();
+        if p.extension().is_some_and(|x| x == "toml") {
+            TrainConfig::read(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+            n += 1;
+        }
+    }
+    assert!(n >= 2, "{n} configs");
+}
