@@ -84,8 +84,10 @@ pub fn stats(dir: &Path, json: bool, sheet: Option<&Path>) -> Result<()> {
 }
 
 pub fn check(format: &str, dir: &Path) -> Result<()> {
-    if format != "mvmp" {
-        anyhow::bail!("--format {format:?}: this build checks the mvmp layout (--format mvmp)");
+    match format {
+        "mvmp" => {}
+        "panoptic" => return check_panoptic(dir),
+        other => anyhow::bail!("--format {other:?}: expected mvmp or panoptic"),
     }
     let r = mvmp_data::check::check_dataset(dir);
     println!(
@@ -97,6 +99,27 @@ pub fn check(format: &str, dir: &Path) -> Result<()> {
         r.people,
         r.images
     );
+    if r.problems.is_empty() {
+        println!("no problems found");
+        return Ok(());
+    }
+    for p in &r.problems {
+        println!("{}: {}", p.path.display(), p.what);
+    }
+    anyhow::bail!("{} problem(s) found in {}", r.problems.len(), dir.display())
+}
+
+fn check_panoptic(dir: &Path) -> Result<()> {
+    let cams = mvmp_data::panoptic::VOXELPOSE_CAMERAS;
+    let r = mvmp_data::panoptic::check_tree(dir, &cams);
+    println!(
+        "checked {} as CMU Panoptic (cameras {}):",
+        dir.display(),
+        cams.join(", ")
+    );
+    for (name, c, f, p) in &r.sequences {
+        println!("  {name}: {c} cameras, {f} frames, {p} people with an annotated root");
+    }
     if r.problems.is_empty() {
         println!("no problems found");
         return Ok(());

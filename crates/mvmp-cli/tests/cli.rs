@@ -685,3 +685,16 @@ fn train_eval_infer_end_to_end() {
         &["small.png", "10x10", "96x64"],
     );
 }
+
+#[test]
+fn data_check_panoptic_reports_an_empty_tree() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path().to_str().unwrap();
+    let o = mvmp(&["data", "check", "--format", "panoptic", d]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stdout).contains("no Panoptic sequence"));
+    expect_error(
+        &["data", "check", "--format", "coco", d],
+        &["coco", "mvmp or panoptic"],
+    );
+}

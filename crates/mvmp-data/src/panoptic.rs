@@ -142,3 +142,227 @@ pub fn read_bodies(path: &Path) -> Result<Vec<PanopticBody>, DataError> {
         })
         .collect()
 }
+
+/// A joint counts as annotated when its confidence exceeds this (VoxelPose's rule).
+pub const VALID_CONFIDENCE: f64 = 0.1;
+/// The root joint of joints19 (BodyCenter, mid-hip).
+pub const ROOT_JOINT: usize = 2;
+/// The joints kept for evaluation (the first 15 of joints19, as VoxelPose).
+pub const EVAL_JOINTS: usize = 15;
+
+impl PanopticBody {
+    /// Whether joint `i` is annotated (confidence above [`VALID_CONFIDENCE`]).
+    pub fn valid(&self, i: usize) -> bool {
+        self.confidence
+            .get(i)
+            .is_some_and(|&c| c > VALID_CONFIDENCE)
+    }
+}
+
+/// A named split: sequences and the frame stride (every `stride`-th pose file of a sequence).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct PanopticSplit {
+    pub name: &'static str,
+    pub sequences: &'static [&'static str],
+    pub stride: usize,
+}
+
+/// VoxelPose's training sequences, every 3rd frame.
+pub const VOXELPOSE_TRAIN: PanopticSplit = PanopticSplit {
+    name: "voxelpose-train",
+    sequences: &[
+        "160422_ultimatum1",
+        "160224_haggling1",
+        "160226_haggling1",
+        "161202_haggling1",
+        "160906_ian1",
+        "160906_ian2",
+        "160906_ian3",
+        "160906_band1",
+        "160906_band2",
+        "160906_band3",
+    ],
+    stride: 3,
+};
+
+/// VoxelPose's validation (test) sequences, every 12th frame.
+pub const VOXELPOSE_VALIDATION: PanopticSplit = PanopticSplit {
+    name: "voxelpose-val",
+    sequences: &[
+        "160906_pizza1",
+        "160422_haggling1",
+        "160906_ian5",
+        "160906_band4",
+    ],
+    stride: 12,
+};
+
+/// A split by name: `voxelpose-train` or `voxelpose-val`.
+pub fn split_by_name(name: &str) -> Option<PanopticSplit> {
+    [VOXELPOSE_TRAIN, VOXELPOSE_VALIDATION]
+        .into_iter()
+        .find(|s| s.name == name)
+}
+
+/// One frame of a sequence: its pose file and one image per selected camera.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PanopticFrame {
+    /// The 8-digit HD frame index as in the file names.
+    pub index: String,
+    pub bodies: std::path::PathBuf,
+    pub images: Vec<std::path::PathBuf>,
+}
+
+/// A Panoptic sequence read in place.
+#[derive(Debug, Clone)]
+pub struct PanopticSequence {
+    pub name: String,
+    pub dir: std::path::PathBuf,
+    /// The selected cameras in mvmp's world, in the order asked for.
+    pub rig: Rig,
+    pub frames: Vec<PanopticFrame>,
+}
+
+impl PanopticSequence {
+    /// Open `dir` (named `<seq>`, holding `calibration_<seq>.json`, `hdPose3d_stage1_coco19/` and `hdImgs/`)
+    /// with the named HD cameras, keeping every `stride`-th pose file in frame order (VoxelPose's walk).
+    /// Images are not opened; their paths follow `hdImgs/00_NN/00_NN_<frame>.jpg`.
+    pub fn open(dir: &Path, cameras: &[&str], stride: usize) -> Result<Self, DataError> {
+        let name = dir
+            .file_name()
+            .and_then(|n| n.to_str())
+            .ok_or_else(|| DataError::file(dir, "not a sequence directory"))?
+            .to_string();
+        let calib = dir.join(format!("calibration_{name}.json"));
+        if !calib.exists() {
+            return Err(DataError::file(
+                &calib,
+                "missing: a Panoptic sequence holds calibration_<sequence>.json",
+            ));
+        }
+        let rig = read_calibration(&calib, cameras)?;
+        let poses = dir.join("hdPose3d_stage1_coco19");
+        let mut files: Vec<(String, std::path::PathBuf)> = std::fs::read_dir(&poses)
+            .map_err(|e| DataError::io(&poses, e))?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter_map(|p| {
+                let f = p.file_name()?.to_str()?;
+                let idx = f.strip_prefix("body3DScene_")?.strip_suffix(".json")?;
+                Some((idx.to_string(), p.clone()))
+            })
+            .collect();
+        files.sort();
+        let stride = stride.max(1);
+        let frames = files
+            .into_iter()
+            .enumerate()
+            .filter(|(i, _)| i % stride == 0)
+            .map(|(_, (index, bodies))| PanopticFrame {
+                images: cameras
+                    .iter()
+                    .map(|c| dir.join("hdImgs").join(c).join(format!("{c}_{index}.jpg")))
+                    .collect(),
+                index,
+                bodies,
+            })
+            .collect();
+        Ok(PanopticSequence {
+            name,
+            dir: dir.into(),
+            rig,
+            frames,
+        })
+    }
+
+    /// The people of a frame whose root joint is annotated (VoxelPose drops the others).
+    pub fn people(&self, frame: &PanopticFrame) -> Result<Vec<PanopticBody>, DataError> {
+        Ok(read_bodies(&frame.bodies)?
+            .into_iter()
+            .filter(|b| b.valid(ROOT_JOINT))
+            .collect())
+    }
+}
+
+/// What `data check --format panoptic` found.
+#[derive(Debug, Clone, Default)]
+pub struct PanopticReport {
+    /// (sequence, cameras, frames, people over the frames)
+    pub sequences: Vec<(String, usize, usize, usize)>,
+    pub problems: Vec<crate::check::Problem>,
+}
+
+/// Validate a Panoptic tree: `root` is one sequence directory or a directory of them. Every pose file is
+/// parsed and every image of the selected cameras must exist; each problem names its file.
+pub fn check_tree(root: &Path, cameras: &[&str]) -> PanopticReport {
+    let mut report = PanopticReport::default();
+    let is_seq = |d: &Path| {
+        d.file_name()
+            .and_then(|n| n.to_str())
+            .is_some_and(|n| d.join(format!("calibration_{n}.json")).exists())
+    };
+    let mut dirs: Vec<std::path::PathBuf> = if is_seq(root) {
+        vec![root.into()]
+    } else {
+        match std::fs::read_dir(root) {
+            Ok(rd) => rd
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|p| p.is_dir() && is_seq(p))
+                .collect(),
+            Err(e) => {
+                report.problems.push(crate::check::Problem {
+                    path: root.into(),
+                    what: e.to_string(),
+                });
+                return report;
+            }
+        }
+    };
+    dirs.sort();
+    if dirs.is_empty() {
+        report.problems.push(crate::check::Problem {
+            path: root.into(),
+            what: "no Panoptic sequence here (a directory <seq> holding calibration_<seq>.json)"
+                .into(),
+        });
+    }
+    for d in dirs {
+        let seq = match PanopticSequence::open(&d, cameras, 1) {
+            Ok(s) => s,
+            Err(e) => {
+                report.problems.push(crate::check::Problem {
+                    path: d.clone(),
+                    what: e.to_string(),
+                });
+                continue;
+            }
+        };
+        let mut people = 0;
+        for f in &seq.frames {
+            match seq.people(f) {
+                Ok(p) => people += p.len(),
+                Err(e) => report.problems.push(crate::check::Problem {
+                    path: f.bodies.clone(),
+                    what: e.to_string(),
+                }),
+            }
+            for img in &f.images {
+                if !img.exists() {
+                    report.problems.push(crate::check::Problem {
+                        path: img.clone(),
+                        what: "missing image".into(),
+                    });
+                }
+            }
+        }
+        if seq.frames.is_empty() {
+            report.problems.push(crate::check::Problem {
+                path: d.join("hdPose3d_stage1_coco19"),
+                what: "no body3DScene_<frame>.json files".into(),
+            });
+        }
+        report
+            .sequences
+            .push((seq.name.clone(), seq.rig.len(), seq.frames.len(), people));
+    }
+    report
+}

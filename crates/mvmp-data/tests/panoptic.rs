@@ -119,3 +119,146 @@ fn body_files_convert_units_and_axes_and_reject_truncated_joints() {
     std::fs::write(&p, "{\"version\": 0.7}").unwrap();
     assert!(read_bodies(&p).unwrap_err().to_string().contains("bodies"));
 }
+
+/// A calibration in Panoptic's layout with the five VoxelPose HD cameras plus one more (cm, y down).
+fn fixture_calibration() -> Value {
+    let cams: Vec<Value> = ["00_03", "00_06", "00_12", "00_13", "00_23", "00_30"]
+        .iter()
+        .enumerate()
+        .map(|(i, name)| {
+            let a = i as f64;
+            // A rotation about Panoptic's vertical (y) axis, looking at the origin from 400 cm.
+            let (c, s) = (a.cos(), a.sin());
+            serde_json::json!({
+                "name": name, "type": "hd", "resolution": [1920, 1080], "panel": 0, "node": i,
+                "K": [[1400.0, 0.0, 960.0], [0.0, 1400.0, 540.0], [0.0, 0.0, 1.0]],
+                "distCoef": [-0.2, 0.1, 0.001, -0.001, 0.0],
+                "R": [[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]],
+                "t": [[0.0], [0.0], [400.0]],
+            })
+        })
+        .collect();
+    serde_json::json!({"calibDataSource": "fixture", "cameras": cams})
+}
+
+/// `n` people standing at x = 50 k cm; person 0 of frame 2 has an unannotated root.
+fn fixture_bodies(frame: usize, n: usize) -> Value {
+    let bodies: Vec<Value> = (0..n)
+        .map(|k| {
+            let mut j = Vec::new();
+            for i in 0..19 {
+                let conf = if frame == 2 && k == 0 && i == 2 {
+                    0.05
+                } else {
+                    0.9
+                };
+                j.extend([50.0 * k as f64, -100.0 - i as f64, 10.0, conf]);
+            }
+            serde_json::json!({"id": k, "joints19": j})
+        })
+        .collect();
+    serde_json::json!({"version": 0.7, "univTime": 0.0, "fpsType": "hd_29_97", "bodies": bodies})
+}
+
+fn fixture_sequence(root: &Path, name: &str, frames: usize, images: bool) -> PathBuf {
+    let d = root.join(name);
+    std::fs::create_dir_all(d.join("hdPose3d_stage1_coco19")).unwrap();
+    std::fs::write(
+        d.join(format!("calibration_{name}.json")),
+        fixture_calibration().to_string(),
+    )
+    .unwrap();
+    for f in 0..frames {
+        let idx = format!("{:08}", 100 + f);
+        std::fs::write(
+            d.join(format!("hdPose3d_stage1_coco19/body3DScene_{idx}.json")),
+            fixture_bodies(f, 3).to_string(),
+        )
+        .unwrap();
+        if images {
+            for c in VOXELPOSE_CAMERAS {
+                let dir = d.join("hdImgs").join(c);
+                std::fs::create_dir_all(&dir).unwrap();
+                std::fs::write(dir.join(format!("{c}_{idx}.jpg")), b"jpeg").unwrap();
+            }
+        }
+    }
+    d
+}
+
+#[test]
+fn a_fixture_sequence_walks_with_strides_and_validity() {
+    use mvmp_data::panoptic::{
+        PanopticSequence, ROOT_JOINT, VOXELPOSE_TRAIN, VOXELPOSE_VALIDATION, check_tree,
+        split_by_name,
+    };
+    let root = tempfile::tempdir().unwrap();
+    let seq_dir = fixture_sequence(root.path(), "160422_ultimatum1", 7, true);
+    let seq = PanopticSequence::open(&seq_dir, &VOXELPOSE_CAMERAS, 3).unwrap();
+    assert_eq!(seq.name, "160422_ultimatum1");
+    assert_eq!(seq.rig.len(), 5);
+    // Every 3rd of the 7 pose files, in frame order: 0, 3, 6.
+    let idx: Vec<&str> = seq.frames.iter().map(|f| f.index.as_str()).collect();
+    assert_eq!(idx, ["00000100", "00000103", "00000106"]);
+    assert_eq!(
+        seq.frames[1].images[2],
+        seq_dir.join("hdImgs/00_12/00_12_00000103.jpg")
+    );
+    // Units and axes: (x, y, z) cm with y down -> (x, z, -y) / 100 m with z up.
+    let all = PanopticSequence::open(&seq_dir, &VOXELPOSE_CAMERAS, 1).unwrap();
+    let people = all.people(&all.frames[0]).unwrap();
+    assert_eq!(people.len(), 3);
+    let p = people[1].joints[ROOT_JOINT];
+    assert!(
+        (p[0] - 0.5).abs() < 1e-12 && (p[1] - 0.1).abs() < 1e-12 && (p[2] - 1.02).abs() < 1e-12,
+        "{p:?}"
+    );
+    // Frame 2 has a person without an annotated root: dropped.
+    assert_eq!(all.people(&all.frames[2]).unwrap().len(), 2);
+    // Splits.
+    assert_eq!(split_by_name("voxelpose-train"), Some(VOXELPOSE_TRAIN));
+    assert_eq!(VOXELPOSE_VALIDATION.stride, 12);
+    assert!(VOXELPOSE_TRAIN.sequences.contains(&"160422_ultimatum1"));
+    assert!(split_by_name("panoptic-all").is_none());
+
+    // The check finds the sequence and its counts, then names each broken file.
+    let r = check_tree(root.path(), &VOXELPOSE_CAMERAS);
+    assert_eq!(
+        r.sequences,
+        vec![("160422_ultimatum1".to_string(), 5, 7, 20)]
+    );
+    assert!(r.problems.is_empty(), "{:?}", r.problems);
+    let missing = seq_dir.join("hdImgs/00_23/00_23_00000104.jpg");
+    std::fs::remove_file(&missing).unwrap();
+    let truncated = seq_dir.join("hdPose3d_stage1_coco19/body3DScene_00000105.json");
+    let mut b = fixture_bodies(5, 1);
+    b["bodies"][0]["joints19"]
+        .as_array_mut()
+        .unwrap()
+        .truncate(70);
+    std::fs::write(&truncated, b.to_string()).unwrap();
+    let r = check_tree(root.path(), &VOXELPOSE_CAMERAS);
+    assert_eq!(r.problems.len(), 2, "{:?}", r.problems);
+    assert!(
+        r.problems
+            .iter()
+            .any(|p| p.path == missing && p.what.contains("missing"))
+    );
+    assert!(
+        r.problems
+            .iter()
+            .any(|p| p.path == truncated && p.what.contains("76"))
+    );
+    // A camera the calibration lacks is named.
+    let e = PanopticSequence::open(&seq_dir, &["00_03", "00_31"], 1)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("00_31") && e.contains("calibration_160422_ultimatum1.json"),
+        "{e}"
+    );
+    // No sequence at all.
+    let empty = tempfile::tempdir().unwrap();
+    let r = check_tree(empty.path(), &VOXELPOSE_CAMERAS);
+    assert!(r.problems[0].what.contains("no Panoptic sequence"));
+}
