@@ -78,6 +78,9 @@ enum Command {
         /// Body model for --predictions (`standin:SEED` or an SMPLX npz; default: the dataset's).
         #[arg(long)]
         body_model: Option<String>,
+        /// Joints MPJPE is taken on: smplx127, panoptic15 or h36m17 (mapped from SMPL-X joints).
+        #[arg(long, default_value = "smplx127")]
+        joints: String,
     },
     /// Recover every person's SMPL-X mesh from calibrated views of a frame (or a sequence of frames).
     Infer {
@@ -324,7 +327,11 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             out,
             save_predictions,
             body_model,
+            joints,
         } => {
+            let joints = mvmp_eval::joint_sets::JointSet::by_name(&joints).ok_or_else(|| {
+                anyhow::anyhow!("--joints {joints:?}: expected smplx127, panoptic15 or h36m17")
+            })?;
             let source = match (&run, &predictions, baseline.as_deref()) {
                 (Some(r), None, None) => run::Source::Run(r),
                 (None, Some(p), None) => run::Source::Predictions(p),
@@ -348,6 +355,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 out: out.as_deref(),
                 save_predictions: save_predictions.as_deref(),
                 body_model: body_model.as_deref(),
+                joints,
             };
             let (m, _) = run::eval(&args, &device, false)?;
             print!("{}", run::table(&[(format!("{split} split"), m.clone())]));

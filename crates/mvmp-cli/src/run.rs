@@ -7,6 +7,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
 use mvmp_data::loader::{Split, letterbox_into};
+use mvmp_eval::joint_sets::JointSet;
 use mvmp_eval::{AP_THRESHOLDS, Evaluator, Metrics};
 use mvmp_geom::io::write_atomic;
 use mvmp_geom::{Camera, Letterbox, Rig};
@@ -38,11 +39,35 @@ fn bar(n: usize, what: &str) -> ProgressBar {
 }
 
 /// The evaluation protocol, as stated in every report.
-pub fn protocol(gate: f64) -> serde_json::Value {
+pub fn protocol(gate: f64, joints: JointSet) -> serde_json::Value {
+    let joints_text = match joints {
+        JointSet::Smplx127 => {
+            "smplx127: the 127 SMPL-X joints (55 LBS joints, 21 vertex joints, 51 face landmarks)"
+                .to_string()
+        }
+        JointSet::Panoptic15 => format!(
+            "panoptic15: CMU Panoptic joints19[0..15], each taken from the SMPL-X joint at the same place ({})",
+            mvmp_eval::joint_sets::PANOPTIC15
+                .iter()
+                .map(|(a, b)| format!("{a}={b}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        ),
+        JointSet::H36m17 => format!(
+            "h36m17: Human3.6M's 17 joints, each taken from the SMPL-X joint at the same place ({})",
+            mvmp_eval::joint_sets::H36M17
+                .iter()
+                .map(|(a, b)| format!("{a}={b}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        ),
+    };
     json!({
-        "matching": "Hungarian assignment of predictions to ground truth on pelvis distance",
+        "matching": "Hungarian assignment of predictions to ground truth on root (pelvis) distance",
         "gate_m": gate,
-        "joints": "SMPL-X, 127 (55 LBS joints, 21 vertex joints, 51 face landmarks)",
+        "joints": joints_text,
+        "joint_set": joints.name(),
+        "root_joint": joints.root(),
         "mpjpe": "mean joint L2 on matched pairs, world frame, mm, no alignment",
         "pve": "mean vertex L2 on matched pairs, world frame, mm, no alignment",
         "pa_pve": "mean vertex L2 after a similarity Procrustes alignment (scale, rotation, translation) per person, mm",
@@ -69,6 +94,7 @@ pub struct EvalArgs<'a> {
     pub out: Option<&'a Path>,
     pub save_predictions: Option<&'a Path>,
     pub body_model: Option<&'a str>,
+    pub joints: JointSet,
 }
 
 fn fmt(x: Option<f64>) -> String {
@@ -116,6 +142,7 @@ pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, s
                 views,
                 max_frames: args.frames,
                 gate: args.gate,
+                joints: args.joints,
             };
             let mut pb: Option<ProgressBar> = None;
             let faces = pred.layer.faces().to_vec();
@@ -157,6 +184,7 @@ pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, s
                 views,
                 max_frames: args.frames,
                 gate: args.gate,
+                joints: args.joints,
             };
             // Images are not needed here: a small input size keeps loading cheap.
             let ev = evaluate_frames(args.data, &opts, 28, device, |_, _, batch| {
@@ -183,6 +211,7 @@ pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, s
                 views: 1,
                 max_frames: args.frames,
                 gate: args.gate,
+                joints: args.joints,
             };
             let ev = evaluate_frames(args.data, &opts, 28, device, |_, _, batch| {
                 let [_, p, _] = batch.pelvis.dims();
@@ -213,7 +242,7 @@ pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, s
         "data": std::path::absolute(args.data).unwrap_or(args.data.into()).display().to_string(),
         "split": split_name,
         "views": views,
-        "protocol": protocol(args.gate),
+        "protocol": protocol(args.gate, args.joints),
         "mpjpe_mm": overall.mpjpe_mm,
         "pve_mm": overall.pve_mm,
         "pa_pve_mm": overall.pa_pve_mm,
@@ -441,6 +470,7 @@ pub fn demo(out: &Path, device: &Device) -> Result<()> {
         views: train_cfg.test_views,
         max_frames: 0,
         gate: mvmp_eval::DEFAULT_GATE,
+        joints: JointSet::Smplx127,
     };
     let m_untrained = mvmp_train::evaluate(&untrained, &data, &opts, |_, _, _| Ok(()))?.overall();
     drop(untrained);
@@ -454,6 +484,7 @@ pub fn demo(out: &Path, device: &Device) -> Result<()> {
         out: Some(&out.join("eval-mean-pose.json")),
         save_predictions: None,
         body_model: None,
+        joints: JointSet::Smplx127,
     };
     let (m_mean, _) = eval(&base, device, true)?;
 
@@ -488,6 +519,7 @@ pub fn demo(out: &Path, device: &Device) -> Result<()> {
         out: Some(&eval_path),
         save_predictions: Some(&out.join("predictions")),
         body_model: None,
+        joints: JointSet::Smplx127,
     };
     let (m_trained, _) = eval(&args, device, false)?;
 

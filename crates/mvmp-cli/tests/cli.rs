@@ -448,6 +448,44 @@ fn eval_scores_planted_predictions_exactly() {
     assert!(r["pa_pve_mm"].as_f64().unwrap() < 0.05, "{r}");
     assert_eq!(r["ap"]["25"].as_f64().unwrap(), 0.0);
     assert_eq!(r["ap"]["75"].as_f64().unwrap(), 1.0);
+    // The same on Human3.6M's 17 joints mapped from SMPL-X: a uniform shift stays 50 mm.
+    let o = mvmp(&[
+        "eval",
+        "--predictions",
+        moved.to_str().unwrap(),
+        "--data",
+        data.to_str().unwrap(),
+        "--split",
+        "all",
+        "--joints",
+        "h36m17",
+        "--out",
+        dir.path().join("r2.json").to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let r: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join("r2.json")).unwrap())
+            .unwrap();
+    assert!((r["mpjpe_mm"].as_f64().unwrap() - 50.0).abs() < 0.05, "{r}");
+    assert_eq!(r["protocol"]["joint_set"], "h36m17");
+    assert!(
+        r["protocol"]["joints"]
+            .as_str()
+            .unwrap()
+            .contains("r_hip=right_hip")
+    );
+    expect_error(
+        &[
+            "eval",
+            "--predictions",
+            moved.to_str().unwrap(),
+            "--data",
+            data.to_str().unwrap(),
+            "--joints",
+            "coco17",
+        ],
+        &["coco17", "h36m17"],
+    );
     // A frame without predictions is named.
     std::fs::remove_file(moved.join("scene_000/frame_000001/people.npz")).unwrap();
     expect_error(

@@ -7,6 +7,8 @@
 //! (VoxelPose's protocol: predictions by descending score, each to its nearest-by-MPJPE ground truth, a true
 //! positive when below the threshold and that person is not yet claimed; interpolated precision) and the
 //! recall at 500 mm (distinct people reached within 500 mm).
+pub mod joint_sets;
+
 use std::collections::BTreeMap;
 
 use nalgebra::Vector3;
@@ -104,6 +106,8 @@ struct Acc {
 #[derive(Debug, Default, Clone)]
 pub struct Evaluator {
     pub gate: f64,
+    /// Index of the root joint (matched on) within the joint set.
+    pub root: usize,
     overall: Acc,
     scenes: BTreeMap<String, Acc>,
     next_gt: usize,
@@ -121,8 +125,8 @@ impl Evaluator {
     pub fn add_frame(&mut self, scene: &str, pred: &[PersonPose], gt: &[PersonPose]) {
         let base = self.next_gt;
         self.next_gt += gt.len();
-        let pp: Vec<[f64; 3]> = pred.iter().map(|p| p.joints[0]).collect();
-        let gp: Vec<[f64; 3]> = gt.iter().map(|p| p.joints[0]).collect();
+        let pp: Vec<[f64; 3]> = pred.iter().map(|p| p.joints[self.root]).collect();
+        let gp: Vec<[f64; 3]> = gt.iter().map(|p| p.joints[self.root]).collect();
         let pairs = match_people(&pp, &gp, self.gate);
         let mut frame = Acc {
             gt: gt.len(),

@@ -263,6 +263,8 @@ pub struct EvalOptions {
     /// Frames to score (the first N of the split; 0 = all).
     pub max_frames: usize,
     pub gate: f64,
+    /// The joints MPJPE is taken on (SMPL-X's 127, or a dataset's set through the documented mapping).
+    pub joints: mvmp_eval::joint_sets::JointSet,
 }
 
 /// One scored frame's predictions.
@@ -293,10 +295,19 @@ pub fn evaluate_frames(
         m => m.min(ds.frames().len()),
     };
     let mut ev = Evaluator::new(opts.gate);
+    ev.root = opts.joints.root();
+    let pick = |mut p: PersonPose| {
+        p.joints = opts.joints.select(&p.joints);
+        p
+    };
     for i in 0..n {
         let batch = batcher.batch(vec![ds.load(i)?], device);
-        let poses = predict(i, n, &batch)?;
-        let gt = ground_truth(&batch).remove(0);
+        let poses: Vec<PersonPose> = predict(i, n, &batch)?.into_iter().map(pick).collect();
+        let gt: Vec<PersonPose> = ground_truth(&batch)
+            .remove(0)
+            .into_iter()
+            .map(pick)
+            .collect();
         ev.add_frame(&batch.names[0].0, &poses, &gt);
     }
     Ok(ev)

@@ -419,6 +419,7 @@ fn validate(
         views: cfg.test_views,
         max_frames: cfg.val_frames,
         gate: cfg.match_gate,
+        joints: mvmp_eval::joint_sets::JointSet::Smplx127,
     };
     let metrics = if stage == 1 {
         root_metrics(&pred, data, &opts)?
