@@ -2,6 +2,7 @@
 //! dataset statistics and validation, and loading for training.
 pub mod check;
 pub mod error;
+pub mod h36m;
 pub mod layout;
 pub mod loader;
 pub mod panoptic;
