@@ -81,6 +81,10 @@ enum Command {
         /// Joints MPJPE is taken on: smplx127, panoptic15 or h36m17 (mapped from SMPL-X joints).
         #[arg(long, default_value = "smplx127")]
         joints: String,
+        /// Dataset layout: mvmp, or panoptic (CMU Panoptic read in place; --split test = voxelpose-val,
+        /// train = voxelpose-train, or comma-separated sequence names).
+        #[arg(long, default_value = "mvmp")]
+        format: String,
     },
     /// Recover every person's SMPL-X mesh from calibrated views of a frame (or a sequence of frames).
     Infer {
@@ -328,6 +332,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             save_predictions,
             body_model,
             joints,
+            format,
         } => {
             let joints = mvmp_eval::joint_sets::JointSet::by_name(&joints).ok_or_else(|| {
                 anyhow::anyhow!("--joints {joints:?}: expected smplx127, panoptic15 or h36m17")
@@ -343,7 +348,11 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                     "pass one of --run RUN_DIR, --predictions DIR, --baseline mean-pose"
                 ),
             };
-            let split_v = run::parse_split(&split)?;
+            let split_v = if format == "panoptic" {
+                mvmp_data::loader::Split::Test
+            } else {
+                run::parse_split(&split)?
+            };
             let out = out.or_else(|| run.as_ref().map(|r| r.join(format!("eval-{split}.json"))));
             let args = run::EvalArgs {
                 source,
@@ -356,6 +365,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 save_predictions: save_predictions.as_deref(),
                 body_model: body_model.as_deref(),
                 joints,
+                format: &format,
+                split_name: &split,
             };
             let (m, _) = run::eval(&args, &device, false)?;
             print!("{}", run::table(&[(format!("{split} split"), m.clone())]));

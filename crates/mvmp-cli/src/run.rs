@@ -95,6 +95,10 @@ pub struct EvalArgs<'a> {
     pub save_predictions: Option<&'a Path>,
     pub body_model: Option<&'a str>,
     pub joints: JointSet,
+    /// Dataset layout: "mvmp" or "panoptic".
+    pub format: &'a str,
+    /// The split's name as given (Panoptic: a named split or comma-separated sequences).
+    pub split_name: &'a str,
 }
 
 fn fmt(x: Option<f64>) -> String {
@@ -125,6 +129,11 @@ pub fn table(rows: &[(String, Metrics)]) -> String {
 
 /// Run an evaluation; returns the overall figures and the report.
 pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, serde_json::Value)> {
+    match args.format {
+        "mvmp" => {}
+        "panoptic" => return eval_panoptic(args, device, quiet),
+        other => bail!("--format {other:?}: expected mvmp or panoptic"),
+    }
     let split_name = match args.split {
         Split::Train => "train",
         Split::Test => "test",
@@ -485,6 +494,8 @@ pub fn demo(out: &Path, device: &Device) -> Result<()> {
         save_predictions: None,
         body_model: None,
         joints: JointSet::Smplx127,
+        format: "mvmp",
+        split_name: "test",
     };
     let (m_mean, _) = eval(&base, device, true)?;
 
@@ -520,6 +531,8 @@ pub fn demo(out: &Path, device: &Device) -> Result<()> {
         save_predictions: Some(&out.join("predictions")),
         body_model: None,
         joints: JointSet::Smplx127,
+        format: "mvmp",
+        split_name: "test",
     };
     let (m_trained, _) = eval(&args, device, false)?;
 
@@ -575,4 +588,118 @@ pub fn demo(out: &Path, device: &Device) -> Result<()> {
     );
     println!("total time   {:.1} min", t0.elapsed().as_secs_f64() / 60.0);
     Ok(())
+}
+
+/// `mvmp eval --format panoptic`: a run on CMU Panoptic sequences read in place.
+fn eval_panoptic(
+    args: &EvalArgs,
+    device: &Device,
+    quiet: bool,
+) -> Result<(Metrics, serde_json::Value)> {
+    use mvmp_data::panoptic::{VOXELPOSE_TRAIN, VOXELPOSE_VALIDATION, split_by_name};
+    let Source::Run(run_dir) = args.source else {
+        bail!("--format panoptic scores a run (--run RUN_DIR)");
+    };
+    let (sequences, stride, split_label) = match args.split_name {
+        "test" => (
+            VOXELPOSE_VALIDATION.sequences,
+            VOXELPOSE_VALIDATION.stride,
+            VOXELPOSE_VALIDATION.name,
+        ),
+        "train" => (
+            VOXELPOSE_TRAIN.sequences,
+            VOXELPOSE_TRAIN.stride,
+            VOXELPOSE_TRAIN.name,
+        ),
+        name => match split_by_name(name) {
+            Some(sp) => (sp.sequences, sp.stride, sp.name),
+            None => {
+                let list: Vec<String> = name.split(',').map(str::to_string).collect();
+                let (run, _, _) = RunDir::open(run_dir)?;
+                return eval_panoptic_on(args, device, quiet, &run, &list, 1, name);
+            }
+        },
+    };
+    let (run, _, _) = RunDir::open(run_dir)?;
+    let list: Vec<String> = sequences.iter().map(|s| s.to_string()).collect();
+    eval_panoptic_on(args, device, quiet, &run, &list, stride, split_label)
+}
+
+fn eval_panoptic_on(
+    args: &EvalArgs,
+    device: &Device,
+    quiet: bool,
+    run: &RunDir,
+    sequences: &[String],
+    stride: usize,
+    split_label: &str,
+) -> Result<(Metrics, serde_json::Value)> {
+    let cams = mvmp_data::panoptic::VOXELPOSE_CAMERAS;
+    let views = args.views.unwrap_or(cams.len());
+    if views == 0 || views > cams.len() {
+        bail!(
+            "--views {views}: Panoptic evaluation uses 1 to {} of the cameras {cams:?}",
+            cams.len()
+        );
+    }
+    let (pred, weights) = Predictor::from_run(&run.root, device)?;
+    let mut pb: Option<ProgressBar> = None;
+    let ev = mvmp_train::predict::evaluate_panoptic(
+        &pred,
+        args.data,
+        sequences,
+        stride,
+        &cams[..views],
+        args.frames,
+        args.gate,
+        |i, n| {
+            let b = pb.get_or_insert_with(|| {
+                if quiet {
+                    ProgressBar::hidden()
+                } else {
+                    bar(n, "eval")
+                }
+            });
+            b.set_position(i as u64 + 1);
+        },
+    )?;
+    if let Some(b) = pb {
+        b.finish_and_clear();
+    }
+    let overall = ev.overall();
+    let report = json!({
+        "format": "mvmp-eval-report",
+        "version": 1,
+        "source": {
+            "run": run.root.display().to_string(),
+            "checkpoint": weights.display().to_string(),
+            "checkpoint_sha256": file_hash(&weights)?,
+            "config_sha256": run.config_hash()?,
+        },
+        "data": std::path::absolute(args.data).unwrap_or(args.data.into()).display().to_string(),
+        "dataset": "cmu-panoptic",
+        "split": split_label,
+        "sequences": sequences,
+        "stride": stride,
+        "cameras": &cams[..views],
+        "views": views,
+        "ground_truth": "Panoptic joints19, first 15 joints, a joint counts where its confidence > 0.1; bodies without an annotated body centre are dropped; no meshes, so PVE and PA-PVE are not computed",
+        "protocol": protocol(args.gate, JointSet::Panoptic15),
+        "mpjpe_mm": overall.mpjpe_mm,
+        "pve_mm": overall.pve_mm,
+        "pa_pve_mm": overall.pa_pve_mm,
+        "recall_500": overall.recall_500,
+        "ap": overall.ap,
+        "matched": overall.matched,
+        "ground_truth_people": overall.ground_truth,
+        "predictions": overall.predictions,
+        "per_scene": ev.per_scene(),
+    });
+    if let Some(out) = args.out {
+        if let Some(d) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
+        }
+        write_atomic(out, serde_json::to_string_pretty(&report)?.as_bytes())?;
+    }
+    Ok((overall, report))
 }

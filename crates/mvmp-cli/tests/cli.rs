@@ -486,6 +486,18 @@ fn eval_scores_planted_predictions_exactly() {
         ],
         &["coco17", "h36m17"],
     );
+    expect_error(
+        &[
+            "eval",
+            "--predictions",
+            moved.to_str().unwrap(),
+            "--data",
+            data.to_str().unwrap(),
+            "--format",
+            "panoptic",
+        ],
+        &["panoptic", "--run"],
+    );
     // A frame without predictions is named.
     std::fs::remove_file(moved.join("scene_000/frame_000001/people.npz")).unwrap();
     expect_error(

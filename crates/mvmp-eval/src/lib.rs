@@ -29,6 +29,26 @@ pub struct PersonPose {
     pub vertices: Option<Vec<[f64; 3]>>,
     /// Detection score (predictions only).
     pub score: f64,
+    /// Which joints are annotated (ground truth of datasets with per-joint validity); `None` = all.
+    pub valid: Option<Vec<bool>>,
+}
+
+/// Mean joint error (mm) of a prediction against a ground-truth person over its annotated joints.
+pub fn joint_error_mm(pred: &PersonPose, gt: &PersonPose) -> f64 {
+    match &gt.valid {
+        None => mean_error_mm(&pred.joints, &gt.joints),
+        Some(v) => {
+            let (a, b): (Vec<[f64; 3]>, Vec<[f64; 3]>) = pred
+                .joints
+                .iter()
+                .zip(&gt.joints)
+                .zip(v)
+                .filter(|(_, ok)| **ok)
+                .map(|((p, g), _)| (*p, *g))
+                .unzip();
+            mean_error_mm(&a, &b)
+        }
+    }
 }
 
 fn dist(a: [f64; 3], b: [f64; 3]) -> f64 {
@@ -134,9 +154,7 @@ impl Evaluator {
             ..Default::default()
         };
         for &(pi, gi) in &pairs {
-            frame
-                .joint_err
-                .push(mean_error_mm(&pred[pi].joints, &gt[gi].joints));
+            frame.joint_err.push(joint_error_mm(&pred[pi], &gt[gi]));
             if let (Some(pv), Some(gv)) = (&pred[pi].vertices, &gt[gi].vertices) {
                 frame.vert_err.push(mean_error_mm(pv, gv));
                 if let Some(e) = pa_error_mm(pv, gv) {
@@ -150,7 +168,7 @@ impl Evaluator {
             let best = gt
                 .iter()
                 .enumerate()
-                .map(|(gi, g)| (mean_error_mm(&p.joints, &g.joints), gi))
+                .map(|(gi, g)| (joint_error_mm(p, g), gi))
                 .min_by(|a, b| a.0.total_cmp(&b.0));
             if let Some((e, gi)) = best {
                 frame.dets.push((p.score, e, base + gi));

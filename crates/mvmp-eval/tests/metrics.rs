@@ -17,6 +17,7 @@ fn person(offset: [f64; 3], score: f64) -> PersonPose {
         joints: j.clone(),
         vertices: Some(j),
         score,
+        valid: None,
     }
 }
 
@@ -92,4 +93,25 @@ fn evaluator_overall_and_per_scene() {
     let ap25 = all.ap["25"];
     let want = 0.25 * 1.0 + 0.25 * (2.0 / 3.0);
     assert!((ap25 - want).abs() < 1e-12, "{ap25} vs {want}");
+}
+
+#[test]
+fn unannotated_ground_truth_joints_do_not_count() {
+    // Two joints: the first is 30 mm off, the second 1 m off but not annotated in the ground truth.
+    let gt = PersonPose {
+        joints: vec![[0.0; 3], [0.0, 0.0, 1.0]],
+        vertices: None,
+        score: 1.0,
+        valid: Some(vec![true, false]),
+    };
+    let pred = PersonPose {
+        joints: vec![[0.03, 0.0, 0.0], [0.0, 0.0, 2.0]],
+        vertices: None,
+        score: 0.9,
+        valid: None,
+    };
+    assert!((mvmp_eval::joint_error_mm(&pred, &gt) - 30.0).abs() < 1e-9);
+    let mut ev = Evaluator::new(0.5);
+    ev.add_frame("s", &[pred], &[gt]);
+    assert!((ev.overall().mpjpe_mm.unwrap() - 30.0).abs() < 1e-9);
 }

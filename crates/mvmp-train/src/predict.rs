@@ -52,6 +52,7 @@ impl PersonPrediction {
             joints: self.joints.iter().map(|p| p.map(|x| x as f64)).collect(),
             vertices: Some(self.vertices.iter().map(|p| p.map(|x| x as f64)).collect()),
             score: self.score as f64,
+            valid: None,
         }
     }
 }
@@ -247,6 +248,7 @@ pub fn ground_truth(batch: &FrameBatch) -> Vec<Vec<PersonPose>> {
                         joints,
                         vertices,
                         score: 1.0,
+                        valid: None,
                     }
                 })
                 .collect()
@@ -389,6 +391,7 @@ fn to_poses(
                     .collect(),
             ),
             score,
+            valid: None,
         })
         .collect()
 }
@@ -428,4 +431,113 @@ pub fn mean_pose_at(layer: &SmplxLayer, pelvis: &[[f32; 3]]) -> Vec<PersonPose> 
         mvmp_smplx::Translation::Pelvis,
     );
     to_poses(out.joints, out.vertices, std::iter::repeat(1.0))
+}
+
+/// Score a predictor on CMU Panoptic sequences read in place (`root/<sequence>/…`), every `stride`-th
+/// pose file, with the named HD cameras. Ground truth is Panoptic's first 15 joints (annotated where the
+/// confidence exceeds 0.1); predictions are mapped to them from SMPL-X joints
+/// ([`JointSet::Panoptic15`](mvmp_eval::joint_sets::JointSet)), matched on the body centre. Panoptic has
+/// no meshes: PVE and PA-PVE stay empty.
+#[allow(clippy::too_many_arguments)]
+pub fn evaluate_panoptic(
+    pred: &Predictor,
+    root: &Path,
+    sequences: &[String],
+    stride: usize,
+    cameras: &[&str],
+    max_frames: usize,
+    gate: f64,
+    mut each: impl FnMut(usize, usize),
+) -> Result<Evaluator, TrainError> {
+    use mvmp_data::panoptic::{EVAL_JOINTS, PanopticSequence};
+    use mvmp_eval::joint_sets::JointSet;
+    let mut seqs = Vec::new();
+    for name in sequences {
+        let dir = root.join(name);
+        if !dir.is_dir() {
+            return Err(TrainError::file(
+                &dir,
+                format!(
+                    "sequence {name:?} of the split is not under {}",
+                    root.display()
+                ),
+            ));
+        }
+        seqs.push(PanopticSequence::open(&dir, cameras, stride)?);
+    }
+    let mut frames: Vec<(usize, usize)> = seqs
+        .iter()
+        .enumerate()
+        .flat_map(|(si, s)| (0..s.frames.len()).map(move |fi| (si, fi)))
+        .collect();
+    if max_frames > 0 {
+        frames.truncate(max_frames);
+    }
+    let s = pred.cfg.image_size as usize;
+    let mut ev = Evaluator::new(gate);
+    ev.root = JointSet::Panoptic15.root();
+    let n = frames.len();
+    for (i, &(si, fi)) in frames.iter().enumerate() {
+        let seq = &seqs[si];
+        let frame = &seq.frames[fi];
+        let lbs: Vec<Letterbox> = seq
+            .rig
+            .cameras
+            .iter()
+            .map(|c| Letterbox::new(c.width, c.height, pred.cfg.image_size))
+            .collect::<Result<_, _>>()?;
+        let mut data = vec![0f32; cameras.len() * 3 * s * s];
+        for (v, (path, cam)) in frame.images.iter().zip(&seq.rig.cameras).enumerate() {
+            let img = image::open(path)
+                .map_err(|e| TrainError::file(path, format!("unreadable image: {e}")))?
+                .to_rgb8();
+            if img.dimensions() != (cam.width, cam.height) {
+                return Err(TrainError::file(
+                    path,
+                    format!(
+                        "the image is {}x{} but camera {} is {}x{} in the calibration",
+                        img.width(),
+                        img.height(),
+                        cam.name,
+                        cam.width,
+                        cam.height
+                    ),
+                ));
+            }
+            mvmp_data::loader::letterbox_into(
+                &img,
+                &lbs[v],
+                &mut data[v * 3 * s * s..(v + 1) * 3 * s * s],
+            );
+        }
+        let images = Tensor::<5>::from_data(
+            burn::tensor::TensorData::new(data, [1, cameras.len(), 3, s, s]),
+            &pred.device,
+        );
+        let people = pred
+            .predict(images, std::slice::from_ref(&seq.rig.cameras), &[lbs])
+            .remove(0);
+        let poses: Vec<PersonPose> = people
+            .iter()
+            .map(|p| {
+                let mut pose = p.to_pose();
+                pose.joints = JointSet::Panoptic15.select(&pose.joints);
+                pose.vertices = None;
+                pose
+            })
+            .collect();
+        let gt: Vec<PersonPose> = seq
+            .people(frame)?
+            .into_iter()
+            .map(|b| PersonPose {
+                joints: b.joints[..EVAL_JOINTS].to_vec(),
+                vertices: None,
+                score: 1.0,
+                valid: Some((0..EVAL_JOINTS).map(|j| b.valid(j)).collect()),
+            })
+            .collect();
+        ev.add_frame(&seq.name, &poses, &gt);
+        each(i, n);
+    }
+    Ok(ev)
 }

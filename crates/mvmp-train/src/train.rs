@@ -473,6 +473,7 @@ pub fn root_metrics(
                 joints: vec![p.joints[primary]],
                 vertices: None,
                 score: 1.0,
+                valid: None,
             })
             .collect();
         let det: Vec<PersonPose> = roots
@@ -481,6 +482,7 @@ pub fn root_metrics(
                 joints: vec![r.position],
                 vertices: None,
                 score: r.score as f64,
+                valid: None,
             })
             .collect();
         ev.add_frame(&batch.names[0].0, &det, &gt);

@@ -464,3 +464,139 @@ fn every_shipped_training_config_reads() {
     }
     assert!(n >= 2, "{n} configs");
 }
+
+/// A Panoptic sequence in the real layout: five HD cameras at 160 x 120, `frames` pose files with two
+/// people (the second without an annotated body centre in frame 1), a JPEG per camera and frame.
+fn panoptic_fixture(root: &Path, name: &str, frames: usize) {
+    let d = root.join(name);
+    std::fs::create_dir_all(d.join("hdPose3d_stage1_coco19")).unwrap();
+    let cams: Vec<serde_json::Value> = mvmp_data::panoptic::VOXELPOSE_CAMERAS
+        .iter()
+        .enumerate()
+        .map(|(i, n)| {
+            let (c, s) = ((i as f64).cos(), (i as f64).sin());
+            serde_json::json!({
+                "name": n, "type": "hd", "resolution": [160, 120], "panel": 0, "node": i,
+                "K": [[120.0, 0.0, 80.0], [0.0, 120.0, 60.0], [0.0, 0.0, 1.0]],
+                "distCoef": [0.0, 0.0, 0.0, 0.0, 0.0],
+                "R": [[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]],
+                "t": [[0.0], [50.0], [500.0]],
+            })
+        })
+        .collect();
+    std::fs::write(
+        d.join(format!("calibration_{name}.json")),
+        serde_json::json!({"calibDataSource": "fixture", "cameras": cams}).to_string(),
+    )
+    .unwrap();
+    for f in 0..frames {
+        let idx = format!("{f:08}");
+        let bodies: Vec<serde_json::Value> = (0..2)
+            .map(|k| {
+                let mut j = Vec::new();
+                for i in 0..19 {
+                    let conf = if f == 1 && k == 1 && i == 2 { 0.0 } else { 0.8 };
+                    j.extend([60.0 * k as f64, -90.0 - 3.0 * i as f64, 20.0, conf]);
+                }
+                serde_json::json!({"id": k, "joints19": j})
+            })
+            .collect();
+        std::fs::write(
+            d.join(format!("hdPose3d_stage1_coco19/body3DScene_{idx}.json")),
+            serde_json::json!({"version": 0.7, "bodies": bodies}).to_string(),
+        )
+        .unwrap();
+        for c in mvmp_data::panoptic::VOXELPOSE_CAMERAS {
+            let dir = d.join("hdImgs").join(c);
+            std::fs::create_dir_all(&dir).unwrap();
+            image::RgbImage::from_pixel(160, 120, image::Rgb([90, 120, 150]))
+                .save(dir.join(format!("{c}_{idx}.jpg")))
+                .unwrap();
+        }
+    }
+}
+
+#[test]
+fn a_run_scores_on_panoptic_read_in_place() {
+    let root = tempfile::tempdir().unwrap();
+    panoptic_fixture(root.path(), "160906_pizza1", 3);
+    let cfg = model_config();
+    let d = Device::flex();
+    let pred = Predictor::new(
+        mvmp_train::seeded_init(&cfg, &d, 4),
+        cfg.clone(),
+        mvmp_smplx::standin_model(0),
+        &d,
+    );
+    let cams = &mvmp_data::panoptic::VOXELPOSE_CAMERAS[..3];
+    let seqs = vec!["160906_pizza1".to_string()];
+    let mut seen = 0;
+    let ev = mvmp_train::predict::evaluate_panoptic(
+        &pred,
+        root.path(),
+        &seqs,
+        1,
+        cams,
+        0,
+        0.5,
+        |_, n| seen = n,
+    )
+    .unwrap();
+    assert_eq!(seen, 3);
+    let m = ev.overall();
+    // 2 + 1 + 2 people with an annotated body centre; 3 kept roots per frame.
+    assert_eq!(m.ground_truth, 5);
+    assert_eq!(m.predictions, 9);
+    assert!(
+        m.pve_mm.is_none() && m.pa_pve_mm.is_none(),
+        "Panoptic has no meshes"
+    );
+    assert!(ev.per_scene().contains_key("160906_pizza1"));
+    // Stride 2 keeps frames 0 and 2.
+    let ev = mvmp_train::predict::evaluate_panoptic(
+        &pred,
+        root.path(),
+        &seqs,
+        2,
+        cams,
+        0,
+        0.5,
+        |_, _| {},
+    )
+    .unwrap();
+    assert_eq!(ev.overall().ground_truth, 4);
+    // A sequence of the split that is not there, and an image of the wrong size, are named.
+    let e = mvmp_train::predict::evaluate_panoptic(
+        &pred,
+        root.path(),
+        &["160906_band4".to_string()],
+        1,
+        cams,
+        0,
+        0.5,
+        |_, _| {},
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(e.contains("160906_band4"), "{e}");
+    let bad = root
+        .path()
+        .join("160906_pizza1/hdImgs/00_06/00_06_00000001.jpg");
+    image::RgbImage::new(80, 60).save(&bad).unwrap();
+    let e = mvmp_train::predict::evaluate_panoptic(
+        &pred,
+        root.path(),
+        &seqs,
+        1,
+        cams,
+        0,
+        0.5,
+        |_, _| {},
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        e.contains("00_06_00000001.jpg") && e.contains("80x60"),
+        "{e}"
+    );
+}
