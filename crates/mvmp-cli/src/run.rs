@@ -2,15 +2,15 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
-use burn::tensor::{Device, Tensor, TensorData};
+use burn::tensor::Device;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
-use mvmp_data::loader::{Split, letterbox_into};
+use mvmp_data::loader::Split;
 use mvmp_eval::joint_sets::JointSet;
 use mvmp_eval::{AP_THRESHOLDS, Evaluator, Metrics};
 use mvmp_geom::io::write_atomic;
-use mvmp_geom::{Camera, Letterbox, Rig};
+use mvmp_geom::{Camera, Rig};
 use mvmp_smplx::SmplxLayer;
 use mvmp_train::output::{read_people_npz, write_frame};
 use mvmp_train::predict::{evaluate_frames, mean_pose_at, pose_params};
@@ -173,13 +173,7 @@ pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, s
             if let Some(b) = pb {
                 b.finish_and_clear();
             }
-            let source = json!({
-                "run": run.root.display().to_string(),
-                "checkpoint": weights.display().to_string(),
-                "checkpoint_sha256": file_hash(&weights)?,
-                "config_sha256": run.config_hash()?,
-            });
-            (ev, source, views)
+            (ev, run_source(&run, &weights)?, views)
         }
         Source::Predictions(dir) => {
             let body = match args.body_model {
@@ -243,26 +237,56 @@ pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, s
             )
         }
     };
-    let overall = ev.overall();
-    let report = json!({
-        "format": "mvmp-eval-report",
-        "version": 1,
+    let header = json!({
         "source": source,
-        "data": std::path::absolute(args.data).unwrap_or(args.data.into()).display().to_string(),
+        "data": absolute(args.data),
         "split": split_name,
         "views": views,
         "protocol": protocol(args.gate, args.joints),
-        "mpjpe_mm": overall.mpjpe_mm,
-        "pve_mm": overall.pve_mm,
-        "pa_pve_mm": overall.pa_pve_mm,
-        "recall_500": overall.recall_500,
-        "ap": overall.ap,
-        "matched": overall.matched,
-        "ground_truth": overall.ground_truth,
-        "predictions": overall.predictions,
-        "per_scene": ev.per_scene(),
     });
-    if let Some(out) = args.out {
+    finish_report(&ev, header, "ground_truth", args.out)
+}
+
+/// Where a run's figures came from: the run, its weights and the hashes of both.
+fn run_source(run: &RunDir, weights: &Path) -> Result<serde_json::Value> {
+    Ok(json!({
+        "run": run.root.display().to_string(),
+        "checkpoint": weights.display().to_string(),
+        "checkpoint_sha256": file_hash(weights)?,
+        "config_sha256": run.config_hash()?,
+    }))
+}
+
+fn absolute(p: &Path) -> String {
+    std::path::absolute(p)
+        .unwrap_or(p.into())
+        .display()
+        .to_string()
+}
+
+/// The report: `header` (source, data, protocol, ...) plus the overall figures (the ground-truth count
+/// under `gt_key`) and per-scene figures; written atomically to `out` when given.
+fn finish_report(
+    ev: &Evaluator,
+    header: serde_json::Value,
+    gt_key: &str,
+    out: Option<&Path>,
+) -> Result<(Metrics, serde_json::Value)> {
+    let overall = ev.overall();
+    let mut report = json!({"format": "mvmp-eval-report", "version": 1});
+    for (k, v) in header.as_object().expect("a JSON object") {
+        report[k] = v.clone();
+    }
+    report["mpjpe_mm"] = json!(overall.mpjpe_mm);
+    report["pve_mm"] = json!(overall.pve_mm);
+    report["pa_pve_mm"] = json!(overall.pa_pve_mm);
+    report["recall_500"] = json!(overall.recall_500);
+    report["ap"] = json!(overall.ap);
+    report["matched"] = json!(overall.matched);
+    report[gt_key] = json!(overall.ground_truth);
+    report["predictions"] = json!(overall.predictions);
+    report["per_scene"] = json!(ev.per_scene());
+    if let Some(out) = out {
         if let Some(d) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
             std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
         }
@@ -337,26 +361,9 @@ fn load_images(paths: &[PathBuf], cams: &[Camera]) -> Result<Vec<image::RgbImage
 }
 
 /// Infer one frame; returns the number of people.
-fn infer_frame(
-    pred: &Predictor,
-    rig: &Rig,
-    lbs: &[Letterbox],
-    paths: &[PathBuf],
-    out: &Path,
-) -> Result<usize> {
+fn infer_frame(pred: &Predictor, rig: &Rig, paths: &[PathBuf], out: &Path) -> Result<usize> {
     let imgs = load_images(paths, &rig.cameras)?;
-    let s = pred.cfg.image_size as usize;
-    let mut data = vec![0f32; imgs.len() * 3 * s * s];
-    for (i, (img, lb)) in imgs.iter().zip(lbs).enumerate() {
-        letterbox_into(img, lb, &mut data[i * 3 * s * s..(i + 1) * 3 * s * s]);
-    }
-    let images = Tensor::<5>::from_data(
-        TensorData::new(data, [1, imgs.len(), 3, s, s]),
-        &pred.device,
-    );
-    let people = pred
-        .predict(images, std::slice::from_ref(&rig.cameras), &[lbs.to_vec()])
-        .remove(0);
+    let people = pred.predict_images(&imgs, &rig.cameras)?;
     write_frame(
         out,
         &people,
@@ -379,11 +386,6 @@ pub struct InferArgs<'a> {
 pub fn infer(args: &InferArgs, device: &Device, quiet: bool) -> Result<()> {
     let rig = Rig::read(args.rig)?;
     let (pred, weights) = Predictor::from_run(args.run, device)?;
-    let lbs: Vec<Letterbox> = rig
-        .cameras
-        .iter()
-        .map(|c| Letterbox::new(c.width, c.height, pred.cfg.image_size))
-        .collect::<Result<_, _>>()?;
     match (args.frames, args.images.is_empty()) {
         (Some(dir), true) => {
             let mut frames: Vec<PathBuf> = std::fs::read_dir(dir)
@@ -407,7 +409,7 @@ pub fn infer(args: &InferArgs, device: &Device, quiet: bool) -> Result<()> {
             for f in &frames {
                 let paths = frame_images(f, rig.len())?;
                 let name = f.file_name().expect("a directory name");
-                total += infer_frame(&pred, &rig, &lbs, &paths, &args.out.join(name))?;
+                total += infer_frame(&pred, &rig, &paths, &args.out.join(name))?;
                 b.inc(1);
             }
             b.finish_and_clear();
@@ -419,7 +421,7 @@ pub fn infer(args: &InferArgs, device: &Device, quiet: bool) -> Result<()> {
             );
         }
         (None, false) => {
-            let n = infer_frame(&pred, &rig, &lbs, args.images, args.out)?;
+            let n = infer_frame(&pred, &rig, args.images, args.out)?;
             eprintln!(
                 "{n} people (weights {}); outputs in {}",
                 weights.display(),
@@ -590,51 +592,37 @@ pub fn demo(out: &Path, device: &Device) -> Result<()> {
     Ok(())
 }
 
-/// `mvmp eval --format panoptic`: a run on CMU Panoptic sequences read in place.
+/// `mvmp eval --format panoptic`: a run on CMU Panoptic sequences read in place. `--split` is `test`
+/// (VoxelPose's validation split), `train`, a split's name, or comma-separated sequences (every frame).
 fn eval_panoptic(
     args: &EvalArgs,
     device: &Device,
     quiet: bool,
 ) -> Result<(Metrics, serde_json::Value)> {
-    use mvmp_data::panoptic::{VOXELPOSE_TRAIN, VOXELPOSE_VALIDATION, split_by_name};
+    use mvmp_data::panoptic::{
+        VOXELPOSE_CAMERAS, VOXELPOSE_TRAIN, VOXELPOSE_VALIDATION, split_by_name,
+    };
     let Source::Run(run_dir) = args.source else {
         bail!("--format panoptic scores a run (--run RUN_DIR)");
     };
-    let (sequences, stride, split_label) = match args.split_name {
-        "test" => (
-            VOXELPOSE_VALIDATION.sequences,
-            VOXELPOSE_VALIDATION.stride,
-            VOXELPOSE_VALIDATION.name,
-        ),
-        "train" => (
-            VOXELPOSE_TRAIN.sequences,
-            VOXELPOSE_TRAIN.stride,
-            VOXELPOSE_TRAIN.name,
-        ),
-        name => match split_by_name(name) {
-            Some(sp) => (sp.sequences, sp.stride, sp.name),
-            None => {
-                let list: Vec<String> = name.split(',').map(str::to_string).collect();
-                let (run, _, _) = RunDir::open(run_dir)?;
-                return eval_panoptic_on(args, device, quiet, &run, &list, 1, name);
-            }
-        },
+    let split = match args.split_name {
+        "test" => Some(VOXELPOSE_VALIDATION),
+        "train" => Some(VOXELPOSE_TRAIN),
+        name => split_by_name(name),
     };
-    let (run, _, _) = RunDir::open(run_dir)?;
-    let list: Vec<String> = sequences.iter().map(|s| s.to_string()).collect();
-    eval_panoptic_on(args, device, quiet, &run, &list, stride, split_label)
-}
-
-fn eval_panoptic_on(
-    args: &EvalArgs,
-    device: &Device,
-    quiet: bool,
-    run: &RunDir,
-    sequences: &[String],
-    stride: usize,
-    split_label: &str,
-) -> Result<(Metrics, serde_json::Value)> {
-    let cams = mvmp_data::panoptic::VOXELPOSE_CAMERAS;
+    let (sequences, stride, split_label): (Vec<String>, usize, &str) = match &split {
+        Some(sp) => (
+            sp.sequences.iter().map(|s| s.to_string()).collect(),
+            sp.stride,
+            sp.name,
+        ),
+        None => (
+            args.split_name.split(',').map(str::to_string).collect(),
+            1,
+            args.split_name,
+        ),
+    };
+    let cams = VOXELPOSE_CAMERAS;
     let views = args.views.unwrap_or(cams.len());
     if views == 0 || views > cams.len() {
         bail!(
@@ -642,12 +630,13 @@ fn eval_panoptic_on(
             cams.len()
         );
     }
+    let (run, _, _) = RunDir::open(run_dir)?;
     let (pred, weights) = Predictor::from_run(&run.root, device)?;
     let mut pb: Option<ProgressBar> = None;
     let ev = mvmp_train::predict::evaluate_panoptic(
         &pred,
         args.data,
-        sequences,
+        &sequences,
         stride,
         &cams[..views],
         args.frames,
@@ -666,17 +655,9 @@ fn eval_panoptic_on(
     if let Some(b) = pb {
         b.finish_and_clear();
     }
-    let overall = ev.overall();
-    let report = json!({
-        "format": "mvmp-eval-report",
-        "version": 1,
-        "source": {
-            "run": run.root.display().to_string(),
-            "checkpoint": weights.display().to_string(),
-            "checkpoint_sha256": file_hash(&weights)?,
-            "config_sha256": run.config_hash()?,
-        },
-        "data": std::path::absolute(args.data).unwrap_or(args.data.into()).display().to_string(),
+    let header = json!({
+        "source": run_source(&run, &weights)?,
+        "data": absolute(args.data),
         "dataset": "cmu-panoptic",
         "split": split_label,
         "sequences": sequences,
@@ -685,21 +666,6 @@ fn eval_panoptic_on(
         "views": views,
         "ground_truth": "Panoptic joints19, first 15 joints, a joint counts where its confidence > 0.1; bodies without an annotated body centre are dropped; no meshes, so PVE and PA-PVE are not computed",
         "protocol": protocol(args.gate, JointSet::Panoptic15),
-        "mpjpe_mm": overall.mpjpe_mm,
-        "pve_mm": overall.pve_mm,
-        "pa_pve_mm": overall.pa_pve_mm,
-        "recall_500": overall.recall_500,
-        "ap": overall.ap,
-        "matched": overall.matched,
-        "ground_truth_people": overall.ground_truth,
-        "predictions": overall.predictions,
-        "per_scene": ev.per_scene(),
     });
-    if let Some(out) = args.out {
-        if let Some(d) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
-        }
-        write_atomic(out, serde_json::to_string_pretty(&report)?.as_bytes())?;
-    }
-    Ok((overall, report))
+    finish_report(&ev, header, "ground_truth_people", args.out)
 }

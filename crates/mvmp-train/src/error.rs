@@ -36,6 +36,9 @@ pub enum TrainError {
     Smplx(#[from] mvmp_smplx::SmplxError),
     #[error(transparent)]
     Geom(#[from] mvmp_geom::GeomError),
+    /// Reading or writing weights (burnpack).
+    #[error(transparent)]
+    Weights(#[from] mvmp_backbone::import::ImportError),
 }
 
 impl TrainError {

@@ -124,6 +124,33 @@ impl Predictor {
         )
     }
 
+    /// People in one frame: one original image per camera (sizes as the cameras say), letterboxed to the
+    /// model's input size and normalised here.
+    pub fn predict_images(
+        &self,
+        images: &[image::RgbImage],
+        cameras: &[Camera],
+    ) -> Result<Vec<PersonPrediction>, TrainError> {
+        let s = self.cfg.image_size as usize;
+        let lbs: Vec<Letterbox> = cameras
+            .iter()
+            .map(|c| Letterbox::new(c.width, c.height, self.cfg.image_size))
+            .collect::<Result<_, _>>()?;
+        let mut data = vec![0f32; images.len() * 3 * s * s];
+        for (v, (img, lb)) in images.iter().zip(&lbs).enumerate() {
+            mvmp_data::loader::letterbox_into(
+                img,
+                lb,
+                &mut data[v * 3 * s * s..(v + 1) * 3 * s * s],
+            );
+        }
+        let t = Tensor::<5>::from_data(
+            burn::tensor::TensorData::new(data, [1, images.len(), 3, s, s]),
+            &self.device,
+        );
+        Ok(self.predict(t, &[cameras.to_vec()], &[lbs]).remove(0))
+    }
+
     /// People in each batch item of `images` `[B, V, 3, S, S]` seen by these cameras.
     pub fn predict(
         &self,
@@ -192,8 +219,7 @@ impl Predictor {
 
 /// Load burnpack weights into a model, with an error naming the file.
 pub fn load_weights(model: &mut MvmpHmr, path: &Path) -> Result<(), TrainError> {
-    let r = mvmp_backbone::import::load_native(model, path)
-        .map_err(|e| TrainError::file(path, e.to_string()))?;
+    let r = mvmp_backbone::import::load_native(model, path)?;
     if let Some(e) = r.errors.first() {
         return Err(TrainError::file(
             path,
@@ -473,21 +499,14 @@ pub fn evaluate_panoptic(
     if max_frames > 0 {
         frames.truncate(max_frames);
     }
-    let s = pred.cfg.image_size as usize;
     let mut ev = Evaluator::new(gate);
     ev.root = JointSet::Panoptic15.root();
     let n = frames.len();
     for (i, &(si, fi)) in frames.iter().enumerate() {
         let seq = &seqs[si];
         let frame = &seq.frames[fi];
-        let lbs: Vec<Letterbox> = seq
-            .rig
-            .cameras
-            .iter()
-            .map(|c| Letterbox::new(c.width, c.height, pred.cfg.image_size))
-            .collect::<Result<_, _>>()?;
-        let mut data = vec![0f32; cameras.len() * 3 * s * s];
-        for (v, (path, cam)) in frame.images.iter().zip(&seq.rig.cameras).enumerate() {
+        let mut images = Vec::with_capacity(cameras.len());
+        for (path, cam) in frame.images.iter().zip(&seq.rig.cameras) {
             let img = image::open(path)
                 .map_err(|e| TrainError::file(path, format!("unreadable image: {e}")))?
                 .to_rgb8();
@@ -504,19 +523,9 @@ pub fn evaluate_panoptic(
                     ),
                 ));
             }
-            mvmp_data::loader::letterbox_into(
-                &img,
-                &lbs[v],
-                &mut data[v * 3 * s * s..(v + 1) * 3 * s * s],
-            );
+            images.push(img);
         }
-        let images = Tensor::<5>::from_data(
-            burn::tensor::TensorData::new(data, [1, cameras.len(), 3, s, s]),
-            &pred.device,
-        );
-        let people = pred
-            .predict(images, std::slice::from_ref(&seq.rig.cameras), &[lbs])
-            .remove(0);
+        let people = pred.predict_images(&images, &seq.rig.cameras)?;
         let poses: Vec<PersonPose> = people
             .iter()
             .map(|p| {

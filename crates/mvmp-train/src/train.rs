@@ -322,8 +322,7 @@ pub fn train(
         }
     }
     let fin = run.root.join("model.bpk");
-    mvmp_backbone::import::save_native(&model, &fin)
-        .map_err(|e| TrainError::file(&fin, e.to_string()))?;
+    mvmp_backbone::import::save_native(&model, &fin)?;
     let mut s = run
         .state()?
         .ok_or_else(|| TrainError::file(run.state_path(), "missing"))?;
@@ -351,8 +350,7 @@ fn save(
     // `valid()`/`train()` call folds them in; saving sees only the folded value. Fold them now so the
     // checkpoint holds the statistics the next step would read (resuming is then exact).
     let _ = model.valid();
-    mvmp_backbone::import::save_native(model, &weights)
-        .map_err(|e| TrainError::file(&weights, e.to_string()))?;
+    mvmp_backbone::import::save_native(model, &weights)?;
     let opt = dir.join(format!("optim-{name}.bpk"));
     let tmp = dir.join(format!(".optim-{name}.tmp"));
     optim
