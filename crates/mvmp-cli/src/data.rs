@@ -87,7 +87,8 @@ pub fn check(format: &str, dir: &Path) -> Result<()> {
     match format {
         "mvmp" => {}
         "panoptic" => return check_panoptic(dir),
-        other => anyhow::bail!("--format {other:?}: expected mvmp or panoptic"),
+        "h36m" => return check_h36m(dir),
+        other => anyhow::bail!("--format {other:?}: expected mvmp, panoptic or h36m"),
     }
     let r = mvmp_data::check::check_dataset(dir);
     println!(
@@ -119,6 +120,34 @@ fn check_panoptic(dir: &Path) -> Result<()> {
     );
     for (name, c, f, p) in &r.sequences {
         println!("  {name}: {c} cameras, {f} frames, {p} people with an annotated root");
+    }
+    if r.problems.is_empty() {
+        println!("no problems found");
+        return Ok(());
+    }
+    for p in &r.problems {
+        println!("{}: {}", p.path.display(), p.what);
+    }
+    anyhow::bail!("{} problem(s) found in {}", r.problems.len(), dir.display())
+}
+
+fn check_h36m(dir: &Path) -> Result<()> {
+    let cams = mvmp_data::h36m::CAMERAS;
+    let r = mvmp_data::h36m::check_tree(dir, &cams);
+    println!(
+        "checked {} as Human3.6M (cameras {}):",
+        dir.display(),
+        cams.join(", ")
+    );
+    let mut subject = "";
+    for (s, action, c, f, complete) in &r.sequences {
+        if s != subject {
+            let n = r.sequences.iter().filter(|q| &q.0 == s).count();
+            let frames: usize = r.sequences.iter().filter(|q| &q.0 == s).map(|q| q.3).sum();
+            println!("  {s}: {n} actions, {frames} frames with poses (one person each)");
+            subject = s;
+        }
+        println!("    {action}: {c} cameras, {f} frames, {complete} with every camera's image");
     }
     if r.problems.is_empty() {
         println!("no problems found");

@@ -81,10 +81,14 @@ enum Command {
         /// Joints MPJPE is taken on: smplx127, panoptic15 or h36m17 (mapped from SMPL-X joints).
         #[arg(long, default_value = "smplx127")]
         joints: String,
-        /// Dataset layout: mvmp, or panoptic (CMU Panoptic read in place; --split test = voxelpose-val,
-        /// train = voxelpose-train, or comma-separated sequence names).
+        /// Dataset layout: mvmp; panoptic (CMU Panoptic read in place; --split test = voxelpose-val,
+        /// train = voxelpose-train, or comma-separated sequence names); h36m (Human3.6M read in place;
+        /// --split test = S9,S11, train = S1,S5,S6,S7,S8, or comma-separated subjects).
         #[arg(long, default_value = "mvmp")]
         format: String,
+        /// Keep every N-th frame (panoptic: default the split's stride; h36m: default 5, i.e. 10 Hz).
+        #[arg(long)]
+        stride: Option<usize>,
     },
     /// Recover every person's SMPL-X mesh from calibrated views of a frame (or a sequence of frames).
     Infer {
@@ -333,6 +337,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             body_model,
             joints,
             format,
+            stride,
         } => {
             let joints = mvmp_eval::joint_sets::JointSet::by_name(&joints).ok_or_else(|| {
                 anyhow::anyhow!("--joints {joints:?}: expected smplx127, panoptic15 or h36m17")
@@ -348,7 +353,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                     "pass one of --run RUN_DIR, --predictions DIR, --baseline mean-pose"
                 ),
             };
-            let split_v = if format == "panoptic" {
+            let split_v = if format == "panoptic" || format == "h36m" {
                 mvmp_data::loader::Split::Test
             } else {
                 run::parse_split(&split)?
@@ -367,6 +372,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 joints,
                 format: &format,
                 split_name: &split,
+                stride,
             };
             let (m, _) = run::eval(&args, &device, false)?;
             print!("{}", run::table(&[(format!("{split} split"), m.clone())]));

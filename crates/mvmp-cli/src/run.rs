@@ -95,10 +95,13 @@ pub struct EvalArgs<'a> {
     pub save_predictions: Option<&'a Path>,
     pub body_model: Option<&'a str>,
     pub joints: JointSet,
-    /// Dataset layout: "mvmp" or "panoptic".
+    /// Dataset layout: "mvmp", "panoptic" or "h36m".
     pub format: &'a str,
-    /// The split's name as given (Panoptic: a named split or comma-separated sequences).
+    /// The split's name as given (Panoptic: a named split or comma-separated sequences; Human3.6M: a named
+    /// split or comma-separated subjects).
     pub split_name: &'a str,
+    /// Every N-th frame (Panoptic and Human3.6M).
+    pub stride: Option<usize>,
 }
 
 fn fmt(x: Option<f64>) -> String {
@@ -130,9 +133,16 @@ pub fn table(rows: &[(String, Metrics)]) -> String {
 /// Run an evaluation; returns the overall figures and the report.
 pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, serde_json::Value)> {
     match args.format {
-        "mvmp" => {}
+        "mvmp" => {
+            if args.stride.is_some() {
+                bail!(
+                    "--stride applies to --format panoptic and h36m; an mvmp split scores every frame"
+                );
+            }
+        }
         "panoptic" => return eval_panoptic(args, device, quiet),
-        other => bail!("--format {other:?}: expected mvmp or panoptic"),
+        "h36m" => return eval_h36m(args, device, quiet),
+        other => bail!("--format {other:?}: expected mvmp, panoptic or h36m"),
     }
     let split_name = match args.split {
         Split::Train => "train",
@@ -498,6 +508,7 @@ pub fn demo(out: &Path, device: &Device) -> Result<()> {
         joints: JointSet::Smplx127,
         format: "mvmp",
         split_name: "test",
+        stride: None,
     };
     let (m_mean, _) = eval(&base, device, true)?;
 
@@ -535,6 +546,7 @@ pub fn demo(out: &Path, device: &Device) -> Result<()> {
         joints: JointSet::Smplx127,
         format: "mvmp",
         split_name: "test",
+        stride: None,
     };
     let (m_trained, _) = eval(&args, device, false)?;
 
@@ -594,6 +606,64 @@ pub fn demo(out: &Path, device: &Device) -> Result<()> {
 
 /// `mvmp eval --format panoptic`: a run on CMU Panoptic sequences read in place. `--split` is `test`
 /// (VoxelPose's validation split), `train`, a split's name, or comma-separated sequences (every frame).
+fn eval_h36m(
+    args: &EvalArgs,
+    device: &Device,
+    quiet: bool,
+) -> Result<(Metrics, serde_json::Value)> {
+    use mvmp_data::h36m::{CAMERAS, split_subjects};
+    let Source::Run(run_dir) = args.source else {
+        bail!("--format h36m scores a run (--run RUN_DIR)");
+    };
+    let subjects = split_subjects(args.split_name);
+    let stride = args.stride.unwrap_or(5);
+    if stride == 0 {
+        bail!("--stride 0: keep every N-th frame with N >= 1");
+    }
+    let views = args.views.unwrap_or(CAMERAS.len());
+    if views == 0 || views > CAMERAS.len() {
+        bail!("--views {views}: Human3.6M evaluation uses 1 to 4 of the cameras {CAMERAS:?}");
+    }
+    let (run, _, _) = RunDir::open(run_dir)?;
+    let (pred, weights) = Predictor::from_run(&run.root, device)?;
+    let mut pb: Option<ProgressBar> = None;
+    let ev = mvmp_train::predict::evaluate_h36m(
+        &pred,
+        args.data,
+        &subjects,
+        stride,
+        &CAMERAS[..views],
+        args.frames,
+        args.gate,
+        |i, n| {
+            let b = pb.get_or_insert_with(|| {
+                if quiet {
+                    ProgressBar::hidden()
+                } else {
+                    bar(n, "eval")
+                }
+            });
+            b.set_position(i as u64 + 1);
+        },
+    )?;
+    if let Some(b) = pb {
+        b.finish_and_clear();
+    }
+    let header = json!({
+        "source": run_source(&run, &weights)?,
+        "data": absolute(args.data),
+        "dataset": "human3.6m",
+        "split": args.split_name,
+        "subjects": subjects,
+        "stride": stride,
+        "cameras": &CAMERAS[..views],
+        "views": views,
+        "ground_truth": "Human3.6M D3_Positions, 17 of the 32 joints (0,1,2,3,6,7,8,12,13,14,15,17,18,19,25,26,27), world, one person per frame, S11 Directions left out; no meshes, so PVE and PA-PVE are not computed",
+        "protocol": protocol(args.gate, JointSet::H36m17),
+    });
+    finish_report(&ev, header, "ground_truth_people", args.out)
+}
+
 fn eval_panoptic(
     args: &EvalArgs,
     device: &Device,
@@ -610,7 +680,7 @@ fn eval_panoptic(
         "train" => Some(VOXELPOSE_TRAIN),
         name => split_by_name(name),
     };
-    let (sequences, stride, split_label): (Vec<String>, usize, &str) = match &split {
+    let (sequences, split_stride, split_label): (Vec<String>, usize, &str) = match &split {
         Some(sp) => (
             sp.sequences.iter().map(|s| s.to_string()).collect(),
             sp.stride,
@@ -622,6 +692,7 @@ fn eval_panoptic(
             args.split_name,
         ),
     };
+    let stride = args.stride.unwrap_or(split_stride);
     let cams = VOXELPOSE_CAMERAS;
     let views = args.views.unwrap_or(cams.len());
     if views == 0 || views > cams.len() {

@@ -745,6 +745,44 @@ fn data_check_panoptic_reports_an_empty_tree() {
     assert!(String::from_utf8_lossy(&o.stdout).contains("no Panoptic sequence"));
     expect_error(
         &["data", "check", "--format", "coco", d],
-        &["coco", "mvmp or panoptic"],
+        &["coco", "mvmp, panoptic or h36m"],
+    );
+}
+
+#[test]
+fn data_check_h36m_lists_subjects_and_names_missing_images() {
+    use mvmp_data::h36m::{camera_file, pose_file};
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let fixtures = Path::new(env!("CARGO_MANIFEST_DIR")).join("../mvmp-data/tests/fixtures/h36m");
+    std::fs::copy(fixtures.join("camera-parameters.json"), camera_file(root)).unwrap();
+    let p = pose_file(root, "S9", "Sitting 1");
+    std::fs::create_dir_all(p.parent().unwrap()).unwrap();
+    std::fs::copy(fixtures.join("pose_double_gzip.cdf"), p).unwrap();
+    let o = mvmp(&["data", "check", "--format", "h36m", root.to_str().unwrap()]);
+    assert!(!o.status.success());
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(out.contains("S9: 1 actions, 5 frames"), "{out}");
+    assert!(
+        out.contains("Sitting 1: 4 cameras, 5 frames, 0 with every camera's image"),
+        "{out}"
+    );
+    assert!(
+        out.contains("Sitting 1.54138969/000001.jpg: missing image"),
+        "{out}"
+    );
+    assert!(stderr(&o).contains("4 problem(s)"), "{}", stderr(&o));
+    // Human3.6M scores a run; the layout's files are named when absent.
+    expect_error(
+        &[
+            "eval",
+            "--baseline",
+            "mean-pose",
+            "--data",
+            root.to_str().unwrap(),
+            "--format",
+            "h36m",
+        ],
+        &["h36m", "--run"],
     );
 }

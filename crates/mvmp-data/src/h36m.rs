@@ -1,4 +1,19 @@
-//! Human3.6M cameras as published (REFERENCE.md 1.4): the `camera-parameters.json` layout generated from the
+//! Human3.6M read in place.
+//!
+//! The tree mvmp reads (README, "Human3.6M"): the dataset's own pose files and camera parameters, and
+//! the frames of its videos extracted to JPEG:
+//!
+//! ```text
+//! ROOT/camera-parameters.json                          the published camera parameters (below)
+//! ROOT/S9/MyPoseFeatures/D3_Positions/<action>.cdf     32 joints per frame, world millimetres
+//! ROOT/S9/Images/<action>.<camera>/000001.jpg          video frame 1 of S9/Videos/<action>.<camera>.mp4
+//! ```
+//!
+//! Frame `n` (from 1, as `ffmpeg -i <video> %06d.jpg` numbers them) of a video is pose row `n - 1`: the
+//! poses are sampled at the videos' 50 Hz. S11's "Directions" is left out, as the usual tool-chains do
+//! (its video is damaged).
+//!
+//! Cameras as published (REFERENCE.md 1.4): the `camera-parameters.json` layout generated from the
 //! official `metadata.xml` (intrinsics per camera id: `calibration_matrix`, `distortion` =
 //! `[k1, k2, p1, p2, k3]`; extrinsics per subject and camera: `R`, `t` with `x_cam = R X + t`, millimetres).
 //! The world is z up in millimetres; it is read into metres.
@@ -9,7 +24,7 @@
 //! in the capture volume the two forms differ by less than half a pixel (0.49 px at most, measured on all
 //! four cameras of the seven protocol subjects by this crate's tests) on 1000-pixel images, far below the
 //! 4-pixel heatmap stride; an exact tool-chain mode is not worth a second distortion model.
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use nalgebra::{Matrix3, Vector3};
 use serde::Deserialize;
@@ -104,4 +119,258 @@ pub fn read_cameras(path: &Path, subject: &str) -> Result<Rig, DataError> {
         cams.push(cam);
     }
     Ok(Rig::new(cams))
+}
+
+/// Sequences the protocol leaves out: (subject, action).
+pub const EXCLUDED: [(&str, &str); 1] = [("S11", "Directions")];
+
+/// The 17 evaluation joints taken from the 32 of the pose files (VideoPose3D's list; joint 13, the
+/// thorax, where some tool-chains take 16, nearly the same point), in the order of
+/// `mvmp_eval::joint_sets::H36M17`: pelvis, right hip, knee, ankle, left hip, knee, ankle, spine, thorax,
+/// neck/nose, head, left shoulder, elbow, wrist, right shoulder, elbow, wrist.
+pub const JOINTS_17_OF_32: [usize; 17] =
+    [0, 1, 2, 3, 6, 7, 8, 12, 13, 14, 15, 17, 18, 19, 25, 26, 27];
+/// The pelvis among the 17.
+pub const ROOT_JOINT: usize = 0;
+
+/// Every frame of a D3_Positions file as 32 joints in metres (the dataset's world is z up already).
+pub fn read_poses(path: &Path) -> Result<Vec<[[f64; 3]; 32]>, DataError> {
+    let (values, dims) = crate::cdf_pose::read_variable(path, "Pose")?;
+    if values.len() % 96 != 0 || dims.last().is_some_and(|&d| 96 % d != 0 && d % 96 != 0) {
+        return Err(DataError::file(
+            path,
+            format!(
+                "variable `Pose` holds {} values in records of {dims:?}; expected 96 per frame (32 joints x 3)",
+                values.len()
+            ),
+        ));
+    }
+    Ok(values
+        .chunks_exact(96)
+        .map(|f| std::array::from_fn(|j| std::array::from_fn(|a| f[j * 3 + a] / 1000.0)))
+        .collect())
+}
+
+/// The camera-parameters file of a tree.
+pub fn camera_file(root: &Path) -> PathBuf {
+    root.join("camera-parameters.json")
+}
+
+/// The pose file of a sequence.
+pub fn pose_file(root: &Path, subject: &str, action: &str) -> PathBuf {
+    root.join(subject)
+        .join("MyPoseFeatures/D3_Positions")
+        .join(format!("{action}.cdf"))
+}
+
+/// The image of pose row `row` seen by `camera`.
+pub fn image_file(root: &Path, subject: &str, action: &str, camera: &str, row: usize) -> PathBuf {
+    root.join(subject)
+        .join("Images")
+        .join(format!("{action}.{camera}"))
+        .join(format!("{:06}.jpg", row + 1))
+}
+
+/// The actions of a subject: the pose files present, sorted, without [`EXCLUDED`] ones.
+pub fn actions(root: &Path, subject: &str) -> Result<Vec<String>, DataError> {
+    let dir = root.join(subject).join("MyPoseFeatures/D3_Positions");
+    let mut names: Vec<String> = std::fs::read_dir(&dir)
+        .map_err(|e| DataError::io(&dir, e))?
+        .filter_map(|e| e.ok())
+        .filter_map(|e| {
+            let name = e.file_name().to_str()?.strip_suffix(".cdf")?.to_string();
+            Some(name)
+        })
+        .filter(|a| !EXCLUDED.contains(&(subject, a.as_str())))
+        .collect();
+    names.sort();
+    Ok(names)
+}
+
+/// Subjects of a named split: `train` (S1, S5, S6, S7, S8), `test` (S9, S11), or a comma-separated list.
+pub fn split_subjects(name: &str) -> Vec<String> {
+    match name {
+        "train" => TRAIN_SUBJECTS.iter().map(|s| s.to_string()).collect(),
+        "test" => TEST_SUBJECTS.iter().map(|s| s.to_string()).collect(),
+        list => list.split(',').map(|s| s.trim().to_string()).collect(),
+    }
+}
+
+/// One kept frame: its pose row and one image per selected camera.
+#[derive(Debug, Clone, PartialEq)]
+pub struct H36mFrame {
+    pub row: usize,
+    pub images: Vec<PathBuf>,
+}
+
+/// One subject's action read in place.
+#[derive(Debug, Clone)]
+pub struct H36mSequence {
+    pub subject: String,
+    pub action: String,
+    /// The selected cameras of the subject in metres, in the order asked for.
+    pub rig: Rig,
+    pub frames: Vec<H36mFrame>,
+    /// The 17 joints of each kept frame, metres.
+    pub joints: Vec<[[f64; 3]; 17]>,
+}
+
+impl H36mSequence {
+    /// Open `subject`/`action` of the tree at `root` with the named cameras (of [`CAMERAS`]), keeping every
+    /// `stride`-th pose row from the first. Images are not opened.
+    pub fn open(
+        root: &Path,
+        subject: &str,
+        action: &str,
+        cameras: &[&str],
+        stride: usize,
+    ) -> Result<Self, DataError> {
+        let calib = camera_file(root);
+        if !calib.exists() {
+            return Err(DataError::file(
+                &calib,
+                "missing: put the published Human3.6M camera-parameters.json at the root of the tree",
+            ));
+        }
+        let full = read_cameras(&calib, subject)?;
+        let mut cams = Vec::with_capacity(cameras.len());
+        for c in cameras {
+            let cam = full.cameras.iter().find(|k| k.name == *c).ok_or_else(|| {
+                DataError::file(
+                    &calib,
+                    format!("camera {c:?} is not a Human3.6M camera (they are {CAMERAS:?})"),
+                )
+            })?;
+            cams.push(cam.clone());
+        }
+        let poses = read_poses(&pose_file(root, subject, action))?;
+        let stride = stride.max(1);
+        let rows: Vec<usize> = (0..poses.len()).step_by(stride).collect();
+        Ok(H36mSequence {
+            subject: subject.into(),
+            action: action.into(),
+            rig: Rig::new(cams),
+            frames: rows
+                .iter()
+                .map(|&row| H36mFrame {
+                    row,
+                    images: cameras
+                        .iter()
+                        .map(|c| image_file(root, subject, action, c, row))
+                        .collect(),
+                })
+                .collect(),
+            joints: rows
+                .iter()
+                .map(|&r| std::array::from_fn(|k| poses[r][JOINTS_17_OF_32[k]]))
+                .collect(),
+        })
+    }
+
+    /// `S9/Directions 1`.
+    pub fn name(&self) -> String {
+        format!("{}/{}", self.subject, self.action)
+    }
+}
+
+/// What `data check --format h36m` found.
+#[derive(Debug, Clone, Default)]
+pub struct H36mReport {
+    /// (subject, action, cameras, frames with poses, frames with every camera's image)
+    pub sequences: Vec<(String, String, usize, usize, usize)>,
+    pub problems: Vec<crate::check::Problem>,
+}
+
+/// Validate a Human3.6M tree: the camera file, every subject directory (`S<n>`) present, every pose file,
+/// and for every pose row an image per camera; each problem names its file. Missing images are
+/// summarised per video directory (the first missing frame and the count), not listed one by one.
+pub fn check_tree(root: &Path, cameras: &[&str]) -> H36mReport {
+    let mut report = H36mReport::default();
+    let problem = |r: &mut H36mReport, path: &Path, what: String| {
+        r.problems.push(crate::check::Problem {
+            path: path.into(),
+            what,
+        })
+    };
+    let mut subjects: Vec<String> = match std::fs::read_dir(root) {
+        Ok(rd) => rd
+            .filter_map(|e| e.ok())
+            .filter(|e| e.path().is_dir())
+            .filter_map(|e| e.file_name().to_str().map(str::to_string))
+            .filter(|n| {
+                n.strip_prefix('S')
+                    .is_some_and(|d| d.parse::<u32>().is_ok())
+            })
+            .collect(),
+        Err(e) => {
+            problem(&mut report, root, e.to_string());
+            return report;
+        }
+    };
+    subjects.sort_by_key(|s| s[1..].parse::<u32>().unwrap_or(0));
+    if subjects.is_empty() {
+        problem(
+            &mut report,
+            root,
+            "no subject directory here (S1, S5, ..., each holding MyPoseFeatures/D3_Positions)"
+                .into(),
+        );
+    }
+    for subject in subjects {
+        let acts = match actions(root, &subject) {
+            Ok(a) => a,
+            Err(e) => {
+                problem(&mut report, &root.join(&subject), e.to_string());
+                continue;
+            }
+        };
+        for action in acts {
+            let seq = match H36mSequence::open(root, &subject, &action, cameras, 1) {
+                Ok(s) => s,
+                Err(e) => {
+                    let path = match &e {
+                        DataError::File { path, .. } | DataError::Io { path, .. } => path.clone(),
+                        _ => pose_file(root, &subject, &action),
+                    };
+                    problem(&mut report, &path, e.to_string());
+                    continue;
+                }
+            };
+            let mut complete = 0;
+            let mut missing: Vec<(usize, usize)> = vec![(usize::MAX, 0); cameras.len()];
+            for f in &seq.frames {
+                let mut all = true;
+                for (c, img) in f.images.iter().enumerate() {
+                    if !img.exists() {
+                        all = false;
+                        missing[c].0 = missing[c].0.min(f.row);
+                        missing[c].1 += 1;
+                    }
+                }
+                complete += all as usize;
+            }
+            for (c, (first, count)) in missing.into_iter().enumerate() {
+                if count > 0 {
+                    let dir = image_file(root, &subject, &action, cameras[c], first);
+                    problem(
+                        &mut report,
+                        &dir,
+                        format!(
+                            "missing image ({count} of the {} frames of camera {} are missing; this is the first)",
+                            seq.frames.len(),
+                            cameras[c]
+                        ),
+                    );
+                }
+            }
+            report.sequences.push((
+                subject.clone(),
+                action,
+                seq.rig.len(),
+                seq.frames.len(),
+                complete,
+            ));
+        }
+    }
+    report
 }

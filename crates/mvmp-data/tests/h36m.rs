@@ -83,3 +83,195 @@ fn bad_camera_files_are_named() {
     let e = read_cameras(&p, "S1").unwrap_err().to_string();
     assert!(e.contains("not a Human3.6M"), "{e}");
 }
+
+fn fixture(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/fixtures/h36m")
+        .join(name)
+}
+
+/// Joint `j` of frame `f` in the fixtures (scripts/h36m_cdf_fixtures.py), millimetres.
+fn fixture_joint(f: usize, j: usize) -> [f64; 3] {
+    let (f, j) = (f as f64, j as f64);
+    [
+        1000.0 + 10.0 * j + 5.0 * f,
+        -400.0 + 20.0 * (j % 3.0),
+        900.0 - 25.0 * j + f,
+    ]
+}
+
+#[test]
+fn pose_files_written_by_cdflib_read_in_every_layout() {
+    // One record of [frames, 96] as float and as GZIP-compressed double, column-major, one record per
+    // frame as an rVariable: all the same 5 frames, in metres.
+    for name in [
+        "pose_float_one_record.cdf",
+        "pose_double_gzip.cdf",
+        "pose_double_column_major.cdf",
+        "pose_double_rvariable.cdf",
+    ] {
+        let poses = mvmp_data::h36m::read_poses(&fixture(name)).unwrap();
+        assert_eq!(poses.len(), 5, "{name}");
+        for (f, pose) in poses.iter().enumerate() {
+            for (j, p) in pose.iter().enumerate() {
+                let want = fixture_joint(f, j);
+                for a in 0..3 {
+                    assert!(
+                        (p[a] - want[a] / 1000.0).abs() < 1e-9,
+                        "{name}: frame {f} joint {j}: {p:?} vs {want:?} mm"
+                    );
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn damaged_pose_files_are_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let bytes = std::fs::read(fixture("pose_float_one_record.cdf")).unwrap();
+    let cut = dir.path().join("Walking.cdf");
+    std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
+    let e = mvmp_data::h36m::read_poses(&cut).unwrap_err().to_string();
+    assert!(e.contains("Walking.cdf"), "{e}");
+    let junk = dir.path().join("Eating.cdf");
+    std::fs::write(&junk, b"not a cdf file at all").unwrap();
+    let e = mvmp_data::h36m::read_poses(&junk).unwrap_err().to_string();
+    assert!(e.contains("Eating.cdf") && e.contains("CDF"), "{e}");
+    let e = mvmp_data::h36m::read_poses(&dir.path().join("Posing.cdf"))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("Posing.cdf"), "{e}");
+}
+
+/// A camera-parameters.json in the published layout with made-up cameras (scripts/h36m_cdf_fixtures.py):
+/// four cameras on a 4 m circle looking at the centre of the room from 1.5 m, for subjects S9 and S11.
+fn camera_parameters() -> Value {
+    serde_json::from_str(&std::fs::read_to_string(fixture("camera-parameters.json")).unwrap())
+        .unwrap()
+}
+
+/// A tree: S9 with "Directions 1" (float file) and "Walking" (compressed double), S11 with the excluded
+/// "Directions" and "Sitting 1"; images of every frame for cameras 54138969 and 55011271 of
+/// "Directions 1", and none elsewhere.
+fn tree(root: &Path) {
+    std::fs::write(
+        mvmp_data::h36m::camera_file(root),
+        camera_parameters().to_string(),
+    )
+    .unwrap();
+    for (s, a, f) in [
+        ("S9", "Directions 1", "pose_float_one_record.cdf"),
+        ("S9", "Walking", "pose_double_gzip.cdf"),
+        ("S11", "Directions", "pose_double_rvariable.cdf"),
+        ("S11", "Sitting 1", "pose_double_column_major.cdf"),
+    ] {
+        let p = mvmp_data::h36m::pose_file(root, s, a);
+        std::fs::create_dir_all(p.parent().unwrap()).unwrap();
+        std::fs::copy(fixture(f), p).unwrap();
+    }
+    for cam in &CAMERAS[..2] {
+        for row in 0..5 {
+            let p = mvmp_data::h36m::image_file(root, "S9", "Directions 1", cam, row);
+            std::fs::create_dir_all(p.parent().unwrap()).unwrap();
+            std::fs::write(p, b"").unwrap();
+        }
+    }
+}
+
+#[test]
+fn a_tree_reads_in_place_with_units_axes_and_joint_order() {
+    use mvmp_data::h36m::{H36mSequence, actions, check_tree};
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    tree(root);
+    assert_eq!(actions(root, "S9").unwrap(), ["Directions 1", "Walking"]);
+    // S11's damaged "Directions" is left out.
+    assert_eq!(actions(root, "S11").unwrap(), ["Sitting 1"]);
+    let seq = H36mSequence::open(root, "S9", "Directions 1", &CAMERAS[..2], 2).unwrap();
+    assert_eq!(seq.name(), "S9/Directions 1");
+    assert_eq!(seq.rig.len(), 2);
+    assert_eq!(
+        seq.frames.iter().map(|f| f.row).collect::<Vec<_>>(),
+        [0, 2, 4]
+    );
+    assert_eq!(
+        seq.frames[1].images[1],
+        root.join("S9/Images/Directions 1.55011271/000003.jpg")
+    );
+    // Metres, the file's own z-up axes, and the 17 joints in their order: pelvis is joint 0 of the 32,
+    // the right hip 1, the left hip 6, the thorax 13, the head 15, the right wrist 27.
+    let j = &seq.joints[1]; // row 2
+    let close = |p: [f64; 3], q: [f64; 3]| (0..3).all(|a| (p[a] - q[a]).abs() < 1e-9);
+    assert!(close(j[0], [1.01, -0.4, 0.902]), "{:?}", j[0]);
+    assert!(close(j[1], [1.02, -0.38, 0.877]), "{:?}", j[1]);
+    assert!(close(j[4], [1.07, -0.4, 0.752]), "{:?}", j[4]);
+    assert!(close(j[8], [1.14, -0.38, 0.577]), "{:?}", j[8]);
+    assert!(close(j[10], [1.16, -0.4, 0.527]), "{:?}", j[10]);
+    assert!(close(j[16], [1.28, -0.4, 0.227]), "{:?}", j[16]);
+    // The subject's cameras in metres: 4 m from the room's centre, 1.5 m up.
+    let c = seq.rig.cameras[0].centre();
+    assert!((c.z - 1.5).abs() < 1e-9 && (c.x.hypot(c.y) - 4.0).abs() < 1e-9);
+
+    let report = check_tree(root, &CAMERAS[..2]);
+    let seqs: Vec<(String, String, usize, usize, usize)> = report.sequences.clone();
+    assert_eq!(
+        seqs,
+        [
+            ("S9".into(), "Directions 1".into(), 2, 5, 5),
+            ("S9".into(), "Walking".into(), 2, 5, 0),
+            ("S11".into(), "Sitting 1".into(), 2, 5, 0),
+        ]
+    );
+    // One problem per camera directory without images, naming its first frame.
+    assert_eq!(report.problems.len(), 4, "{:?}", report.problems);
+    assert!(report.problems.iter().any(|p| {
+        p.path.ends_with("S11/Images/Sitting 1.55011271/000001.jpg")
+            && p.what.contains("5 of the 5")
+    }));
+}
+
+#[test]
+fn broken_trees_name_the_file_and_the_key() {
+    use mvmp_data::h36m::{H36mSequence, camera_file};
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    tree(root);
+    // A camera that the split names but the rig does not have.
+    let e = H36mSequence::open(root, "S9", "Walking", &["54138969", "12345678"], 1)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("12345678") && e.contains("camera-parameters.json"),
+        "{e}"
+    );
+    // A subject without extrinsics.
+    let e = H36mSequence::open(root, "S5", "Walking", &CAMERAS, 1)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("\"S5\"") && e.contains("extrinsics"), "{e}");
+    // An action without a pose file.
+    let e = H36mSequence::open(root, "S9", "Eating", &CAMERAS, 1)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("D3_Positions/Eating.cdf"), "{e}");
+    // A camera file that lost a key.
+    let mut cams = camera_parameters();
+    cams["intrinsics"]
+        .as_object_mut()
+        .unwrap()
+        .remove("58860488");
+    std::fs::write(camera_file(root), cams.to_string()).unwrap();
+    let e = H36mSequence::open(root, "S9", "Walking", &CAMERAS, 1)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("58860488") && e.contains("intrinsics"), "{e}");
+    std::fs::remove_file(camera_file(root)).unwrap();
+    let e = H36mSequence::open(root, "S9", "Walking", &CAMERAS, 1)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("camera-parameters.json") && e.contains("missing"),
+        "{e}"
+    );
+}

@@ -226,12 +226,13 @@ impl Decoder {
             }
         } else {
             let [px, py, pz] = self.pool_factors(grid);
+            // Batch and channels folded into one axis: burn-ndarray takes at most 6 dimensions.
             let pooled = volume
-                .reshape([b, c, nx / px, px, ny / py, py, nz / pz * pz])
-                .mean_dim(3)
-                .mean_dim(5)
-                .reshape([b, c, nx / px, ny / py, nz / pz, pz])
-                .mean_dim(5);
+                .reshape([b * c, nx / px, px, ny / py, py, nz])
+                .mean_dim(2)
+                .mean_dim(4)
+                .reshape([b * c, nx / px, ny / py, nz / pz, pz])
+                .mean_dim(4);
             let p = (nx / px) * (ny / py) * (nz / pz);
             let tokens = self
                 .token_proj

@@ -459,54 +459,102 @@ pub fn mean_pose_at(layer: &SmplxLayer, pelvis: &[[f32; 3]]) -> Vec<PersonPose> 
     to_poses(out.joints, out.vertices, std::iter::repeat(1.0))
 }
 
-/// Score a predictor on CMU Panoptic sequences read in place (`root/<sequence>/…`), every `stride`-th
-/// pose file, with the named HD cameras. Ground truth is Panoptic's first 15 joints (annotated where the
-/// confidence exceeds 0.1); predictions are mapped to them from SMPL-X joints
-/// ([`JointSet::Panoptic15`](mvmp_eval::joint_sets::JointSet)), matched on the body centre. Panoptic has
-/// no meshes: PVE and PA-PVE stay empty.
-#[allow(clippy::too_many_arguments)]
-pub fn evaluate_panoptic(
+/// A sequence whose ground truth is 3D joints of a dataset's own joint set (CMU Panoptic, Human3.6M).
+pub trait JointSequence {
+    /// The name reports group by (a sequence, or subject/action).
+    fn name(&self) -> String;
+    /// The cameras, in the order of each frame's images.
+    fn cameras(&self) -> &[Camera];
+    fn len(&self) -> usize;
+    fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    /// The image of every camera at frame `i`.
+    fn images(&self, i: usize) -> Vec<std::path::PathBuf>;
+    /// The annotated people at frame `i`, in the dataset's joint set (with per-joint validity).
+    fn people(&self, i: usize) -> Result<Vec<PersonPose>, TrainError>;
+}
+
+impl JointSequence for mvmp_data::panoptic::PanopticSequence {
+    fn name(&self) -> String {
+        self.name.clone()
+    }
+    fn cameras(&self) -> &[Camera] {
+        &self.rig.cameras
+    }
+    fn len(&self) -> usize {
+        self.frames.len()
+    }
+    fn images(&self, i: usize) -> Vec<std::path::PathBuf> {
+        self.frames[i].images.clone()
+    }
+    fn people(&self, i: usize) -> Result<Vec<PersonPose>, TrainError> {
+        use mvmp_data::panoptic::EVAL_JOINTS;
+        Ok(
+            mvmp_data::panoptic::PanopticSequence::people(self, &self.frames[i])?
+                .into_iter()
+                .map(|b| PersonPose {
+                    joints: b.joints[..EVAL_JOINTS].to_vec(),
+                    vertices: None,
+                    score: 1.0,
+                    valid: Some((0..EVAL_JOINTS).map(|j| b.valid(j)).collect()),
+                })
+                .collect(),
+        )
+    }
+}
+
+impl JointSequence for mvmp_data::h36m::H36mSequence {
+    fn name(&self) -> String {
+        mvmp_data::h36m::H36mSequence::name(self)
+    }
+    fn cameras(&self) -> &[Camera] {
+        &self.rig.cameras
+    }
+    fn len(&self) -> usize {
+        self.frames.len()
+    }
+    fn images(&self, i: usize) -> Vec<std::path::PathBuf> {
+        self.frames[i].images.clone()
+    }
+    /// One subject per frame, every joint annotated.
+    fn people(&self, i: usize) -> Result<Vec<PersonPose>, TrainError> {
+        Ok(vec![PersonPose {
+            joints: self.joints[i].to_vec(),
+            vertices: None,
+            score: 1.0,
+            valid: None,
+        }])
+    }
+}
+
+/// Score `pred` on sequences read in place whose ground truth is joints of `set` (the predicted SMPL-X
+/// joints are mapped to it), matched on the set's root joint. No meshes: PVE and PA-PVE stay empty.
+/// At most `max_frames` frames (0: all), in sequence order; `each(i, n)` after every frame.
+pub fn evaluate_joint_sequences<S: JointSequence>(
     pred: &Predictor,
-    root: &Path,
-    sequences: &[String],
-    stride: usize,
-    cameras: &[&str],
+    seqs: &[S],
+    set: mvmp_eval::joint_sets::JointSet,
     max_frames: usize,
     gate: f64,
     mut each: impl FnMut(usize, usize),
 ) -> Result<Evaluator, TrainError> {
-    use mvmp_data::panoptic::{EVAL_JOINTS, PanopticSequence};
-    use mvmp_eval::joint_sets::JointSet;
-    let mut seqs = Vec::new();
-    for name in sequences {
-        let dir = root.join(name);
-        if !dir.is_dir() {
-            return Err(TrainError::file(
-                &dir,
-                format!(
-                    "sequence {name:?} of the split is not under {}",
-                    root.display()
-                ),
-            ));
-        }
-        seqs.push(PanopticSequence::open(&dir, cameras, stride)?);
-    }
     let mut frames: Vec<(usize, usize)> = seqs
         .iter()
         .enumerate()
-        .flat_map(|(si, s)| (0..s.frames.len()).map(move |fi| (si, fi)))
+        .flat_map(|(si, s)| (0..s.len()).map(move |fi| (si, fi)))
         .collect();
     if max_frames > 0 {
         frames.truncate(max_frames);
     }
     let mut ev = Evaluator::new(gate);
-    ev.root = JointSet::Panoptic15.root();
+    ev.root = set.root();
     let n = frames.len();
     for (i, &(si, fi)) in frames.iter().enumerate() {
         let seq = &seqs[si];
-        let frame = &seq.frames[fi];
-        let mut images = Vec::with_capacity(cameras.len());
-        for (path, cam) in frame.images.iter().zip(&seq.rig.cameras) {
+        let cams = seq.cameras();
+        let mut images = Vec::with_capacity(cams.len());
+        for (path, cam) in seq.images(fi).iter().zip(cams) {
             let img = image::open(path)
                 .map_err(|e| TrainError::file(path, format!("unreadable image: {e}")))?
                 .to_rgb8();
@@ -525,28 +573,88 @@ pub fn evaluate_panoptic(
             }
             images.push(img);
         }
-        let people = pred.predict_images(&images, &seq.rig.cameras)?;
+        let people = pred.predict_images(&images, cams)?;
         let poses: Vec<PersonPose> = people
             .iter()
             .map(|p| {
                 let mut pose = p.to_pose();
-                pose.joints = JointSet::Panoptic15.select(&pose.joints);
+                pose.joints = set.select(&pose.joints);
                 pose.vertices = None;
                 pose
             })
             .collect();
-        let gt: Vec<PersonPose> = seq
-            .people(frame)?
-            .into_iter()
-            .map(|b| PersonPose {
-                joints: b.joints[..EVAL_JOINTS].to_vec(),
-                vertices: None,
-                score: 1.0,
-                valid: Some((0..EVAL_JOINTS).map(|j| b.valid(j)).collect()),
-            })
-            .collect();
-        ev.add_frame(&seq.name, &poses, &gt);
+        ev.add_frame(&seq.name(), &poses, &seq.people(fi)?);
         each(i, n);
     }
     Ok(ev)
+}
+
+/// Score `pred` on CMU Panoptic sequences read in place (`root/<sequence>/...`): the VoxelPose protocol on
+/// the 15 evaluation joints ([`JointSet::Panoptic15`](mvmp_eval::joint_sets::JointSet)), matched on the
+/// body centre. Panoptic has no meshes: PVE and PA-PVE stay empty.
+#[allow(clippy::too_many_arguments)]
+pub fn evaluate_panoptic(
+    pred: &Predictor,
+    root: &Path,
+    sequences: &[String],
+    stride: usize,
+    cameras: &[&str],
+    max_frames: usize,
+    gate: f64,
+    each: impl FnMut(usize, usize),
+) -> Result<Evaluator, TrainError> {
+    use mvmp_data::panoptic::PanopticSequence;
+    let mut seqs = Vec::new();
+    for name in sequences {
+        let dir = root.join(name);
+        if !dir.is_dir() {
+            return Err(TrainError::file(
+                &dir,
+                format!(
+                    "sequence {name:?} of the split is not under {}",
+                    root.display()
+                ),
+            ));
+        }
+        seqs.push(PanopticSequence::open(&dir, cameras, stride)?);
+    }
+    evaluate_joint_sequences(
+        pred,
+        &seqs,
+        mvmp_eval::joint_sets::JointSet::Panoptic15,
+        max_frames,
+        gate,
+        each,
+    )
+}
+
+/// Score `pred` on Human3.6M read in place (`mvmp_data::h36m`): every action of `subjects` with the named
+/// cameras, every `stride`-th frame, MPJPE on the 17 joints
+/// ([`JointSet::H36m17`](mvmp_eval::joint_sets::JointSet)) in the world, matched on the pelvis.
+#[allow(clippy::too_many_arguments)]
+pub fn evaluate_h36m(
+    pred: &Predictor,
+    root: &Path,
+    subjects: &[String],
+    stride: usize,
+    cameras: &[&str],
+    max_frames: usize,
+    gate: f64,
+    each: impl FnMut(usize, usize),
+) -> Result<Evaluator, TrainError> {
+    use mvmp_data::h36m::{H36mSequence, actions};
+    let mut seqs = Vec::new();
+    for s in subjects {
+        for a in actions(root, s)? {
+            seqs.push(H36mSequence::open(root, s, &a, cameras, stride)?);
+        }
+    }
+    evaluate_joint_sequences(
+        pred,
+        &seqs,
+        mvmp_eval::joint_sets::JointSet::H36m17,
+        max_frames,
+        gate,
+        each,
+    )
 }

@@ -600,3 +600,84 @@ fn a_run_scores_on_panoptic_read_in_place() {
         "{e}"
     );
 }
+
+/// A Human3.6M tree (mvmp_data::h36m's layout) with the data crate's fixtures: S9 "Walking" (5 frames),
+/// the images of the first two cameras at the dataset's sizes, and S11 "Directions" (left out).
+fn h36m_fixture(root: &Path) {
+    use mvmp_data::h36m::{CAMERAS, RESOLUTIONS, camera_file, image_file, pose_file};
+    let fixtures = Path::new(env!("CARGO_MANIFEST_DIR")).join("../mvmp-data/tests/fixtures/h36m");
+    std::fs::copy(fixtures.join("camera-parameters.json"), camera_file(root)).unwrap();
+    for (s, a) in [("S9", "Walking"), ("S11", "Directions")] {
+        let p = pose_file(root, s, a);
+        std::fs::create_dir_all(p.parent().unwrap()).unwrap();
+        std::fs::copy(fixtures.join("pose_float_one_record.cdf"), p).unwrap();
+    }
+    for (cam, (w, h)) in CAMERAS.iter().zip(RESOLUTIONS).take(2) {
+        for row in 0..5 {
+            let p = image_file(root, "S9", "Walking", cam, row);
+            std::fs::create_dir_all(p.parent().unwrap()).unwrap();
+            image::RgbImage::from_pixel(w, h, image::Rgb([100, 110, 120]))
+                .save(p)
+                .unwrap();
+        }
+    }
+}
+
+#[test]
+fn a_run_scores_on_h36m_read_in_place() {
+    use mvmp_data::h36m::{CAMERAS, image_file};
+    let root = tempfile::tempdir().unwrap();
+    h36m_fixture(root.path());
+    let cfg = model_config();
+    let d = Device::flex();
+    let pred = Predictor::new(
+        mvmp_train::seeded_init(&cfg, &d, 4),
+        cfg.clone(),
+        mvmp_smplx::standin_model(0),
+        &d,
+    );
+    let subjects = ["S9".to_string(), "S11".to_string()];
+    let mut seen = 0;
+    let ev = mvmp_train::predict::evaluate_h36m(
+        &pred,
+        root.path(),
+        &subjects,
+        2,
+        &CAMERAS[..2],
+        0,
+        0.5,
+        |_, n| seen = n,
+    )
+    .unwrap();
+    // Rows 0, 2 and 4 of S9 "Walking"; S11's "Directions" is left out.
+    assert_eq!(seen, 3);
+    let m = ev.overall();
+    assert_eq!(m.ground_truth, 3);
+    assert_eq!(m.predictions, 9);
+    assert!(m.pve_mm.is_none() && m.pa_pve_mm.is_none());
+    assert_eq!(
+        ev.per_scene().keys().cloned().collect::<Vec<_>>(),
+        ["S9/Walking"]
+    );
+    // An image of the wrong size, and a missing one, are named.
+    let bad = image_file(root.path(), "S9", "Walking", CAMERAS[1], 2);
+    image::RgbImage::new(500, 500).save(&bad).unwrap();
+    let run = |cams: &[&str]| {
+        mvmp_train::predict::evaluate_h36m(
+            &pred,
+            root.path(),
+            &subjects,
+            2,
+            cams,
+            0,
+            0.5,
+            |_, _| {},
+        )
+        .unwrap_err()
+        .to_string()
+    };
+    let e = run(&CAMERAS[..2]);
+    assert!(e.contains("000003.jpg") && e.contains("500x500"), "{e}");
+    let e = run(&CAMERAS[..3]);
+    assert!(e.contains("Walking.58860488/000001.jpg"), "{e}");
+}

@@ -1,0 +1,172 @@
+//! The `Pose` variable of Human3.6M's NASA CDF pose files (`D3_Positions/<action>.cdf`): 32 joints x
+//! (x, y, z) per frame. The files are parsed by the `cdf` crate; this module finds the variable (a
+//! zVariable or an rVariable), gathers its records from the index tree (plain or GZIP-compressed blocks),
+//! puts column-major arrays into row-major order and returns one row of values per frame.
+use std::io::Read;
+use std::path::Path;
+
+use cdf::record::vxr::{VariableIndexRecord, VariableIndexRecordChild};
+use cdf::repr::Endian;
+use cdf::types::CdfType;
+
+use crate::DataError;
+
+/// CDF data types that hold IEEE floats (CDF_REAL4, CDF_REAL8, CDF_FLOAT, CDF_DOUBLE).
+fn float_width(data_type: i32) -> Option<usize> {
+    match data_type {
+        21 | 44 => Some(4),
+        22 | 45 => Some(8),
+        _ => None,
+    }
+}
+
+/// The values of variable `name` as f64, every record in order, each record's array in row-major order;
+/// with the per-record dimensions.
+pub fn read_variable(path: &Path, name: &str) -> Result<(Vec<f64>, Vec<usize>), DataError> {
+    if !path.is_file() {
+        return Err(DataError::io(
+            path,
+            std::io::Error::new(std::io::ErrorKind::NotFound, "no such file"),
+        ));
+    }
+    let bad = |what: String| DataError::file(path, what);
+    // The decoder indexes into buffers it reads; a damaged file must not take the process down.
+    let decoded = std::panic::catch_unwind(|| cdf::cdf::Cdf::read_cdf_file(path))
+        .map_err(|_| bad("not a readable CDF file (the decoder failed on its structure)".into()))?
+        .map_err(|e| bad(format!("not a readable CDF file: {e}")))?;
+    if decoded.is_compressed {
+        return Err(bad(
+            "the whole file is compressed; decompress it first (CDF tools: `cdfconvert -compression cdf:none`)"
+                .into(),
+        ));
+    }
+    let cdr = &decoded.cdr;
+    let gdr = &cdr.gdr;
+    let little = match cdr.encoding.get_endian() {
+        Ok(Endian::Little) => true,
+        Ok(Endian::Big) => false,
+        Err(e) => return Err(bad(format!("unsupported encoding: {e}"))),
+    };
+    let (data_type, dims, vxrs) = if let Some(z) = gdr.zvdr_vec.iter().find(|v| *v.name == name) {
+        let dims: Vec<usize> = z.size_z_dims.iter().map(|d| **d as usize).collect();
+        (*z.data_type, dims, &z.vxr_vec)
+    } else if let Some(r) = gdr.rvdr_vec.iter().find(|v| *v.name == name) {
+        let dims: Vec<usize> = gdr.size_r_dims.iter().map(|d| **d as usize).collect();
+        (*r.data_type, dims, &r.vxr_vec)
+    } else {
+        let names: Vec<String> = gdr
+            .zvdr_vec
+            .iter()
+            .map(|v| v.name.to_string())
+            .chain(gdr.rvdr_vec.iter().map(|v| v.name.to_string()))
+            .collect();
+        return Err(bad(format!(
+            "no variable `{name}` (the file has {names:?})"
+        )));
+    };
+    let width = float_width(data_type).ok_or_else(|| {
+        bad(format!(
+            "variable `{name}` has CDF data type {data_type}, expected a float type (21, 22, 44 or 45)"
+        ))
+    })?;
+    let mut values = Vec::new();
+    for vxr in vxrs {
+        collect(vxr, width, little, &mut values)
+            .map_err(|w| bad(format!("variable `{name}`: {w}")))?;
+    }
+    let per_record: usize = dims.iter().product::<usize>().max(1);
+    if values.len() % per_record != 0 {
+        return Err(bad(format!(
+            "variable `{name}` holds {} values, not whole records of {dims:?}",
+            values.len()
+        )));
+    }
+    if !cdr.flags.row_major && dims.len() > 1 {
+        for rec in values.chunks_mut(per_record) {
+            let col = rec.to_vec();
+            for (i, v) in rec.iter_mut().enumerate() {
+                *v = col[column_major_offset(i, &dims)];
+            }
+        }
+    }
+    Ok((values, dims))
+}
+
+/// Where the element at row-major position `i` of an array of `dims` sits in column-major order.
+fn column_major_offset(mut i: usize, dims: &[usize]) -> usize {
+    let mut index = vec![0; dims.len()];
+    for (k, &d) in dims.iter().enumerate().rev() {
+        index[k] = i % d;
+        i /= d;
+    }
+    let (mut off, mut stride) = (0, 1);
+    for (k, &d) in dims.iter().enumerate() {
+        off += index[k] * stride;
+        stride *= d;
+    }
+    off
+}
+
+fn collect(
+    vxr: &VariableIndexRecord,
+    width: usize,
+    little: bool,
+    out: &mut Vec<f64>,
+) -> Result<(), String> {
+    for child in vxr.children.iter().flatten() {
+        match child {
+            VariableIndexRecordChild::VXR(inner) => collect(inner, width, little, out)?,
+            VariableIndexRecordChild::VVR(vvr) => {
+                for rec in &vvr.records {
+                    for v in &rec.data {
+                        out.push(match v {
+                            CdfType::Real4(x) => **x as f64,
+                            CdfType::Real8(x) => **x,
+                            other => return Err(format!("a non-float value {other:?}")),
+                        });
+                    }
+                }
+            }
+            VariableIndexRecordChild::CVVR(c) => {
+                if c.data.get(..2) != Some(&[0x1f, 0x8b]) {
+                    return Err(
+                        "a compressed block that is not GZIP (only GZIP is supported)".into(),
+                    );
+                }
+                let mut raw = Vec::new();
+                flate2::read::GzDecoder::new(&c.data[..])
+                    .read_to_end(&mut raw)
+                    .map_err(|e| format!("a damaged GZIP block: {e}"))?;
+                if raw.len() % width != 0 {
+                    return Err(format!(
+                        "a decompressed block of {} bytes, not whole {width}-byte values",
+                        raw.len()
+                    ));
+                }
+                for b in raw.chunks_exact(width) {
+                    out.push(match (width, little) {
+                        (4, true) => f32::from_le_bytes(b.try_into().unwrap()) as f64,
+                        (4, false) => f32::from_be_bytes(b.try_into().unwrap()) as f64,
+                        (_, true) => f64::from_le_bytes(b.try_into().unwrap()),
+                        (_, false) => f64::from_be_bytes(b.try_into().unwrap()),
+                    });
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::column_major_offset;
+
+    #[test]
+    fn column_major_offsets_by_hand() {
+        // A 2 x 3 array: row-major (r, c) -> column-major r + 2 c.
+        let got: Vec<usize> = (0..6).map(|i| column_major_offset(i, &[2, 3])).collect();
+        assert_eq!(got, [0, 2, 4, 1, 3, 5]);
+        // 1-D arrays are the same in both orders.
+        assert_eq!(column_major_offset(4, &[7]), 4);
+    }
+}
