@@ -75,7 +75,8 @@ enum Command {
         /// Also write each frame's predictions (infer's layout) under this directory.
         #[arg(long)]
         save_predictions: Option<PathBuf>,
-        /// Body model for --predictions (`standin:SEED` or an SMPLX npz; default: the dataset's).
+        /// Body model for --predictions (`standin:SEED` or an SMPLX npz; default: the dataset's) and for
+        /// --pseudo-gt (default: the run's).
         #[arg(long)]
         body_model: Option<String>,
         /// Joints MPJPE is taken on: smplx127, panoptic15 or h36m17 (mapped from SMPL-X joints).
@@ -89,6 +90,12 @@ enum Command {
         /// Keep every N-th frame (panoptic: default the split's stride; h36m: default 5, i.e. 10 Hz).
         #[arg(long)]
         stride: Option<usize>,
+        /// Panoptic and h36m: SMPL-X pseudo-ground-truth fits, DIR/<sequence>/<frame>/people.npz (infer's
+        /// layout; <sequence> is S9/<action> for h36m, <frame> the 8-digit Panoptic index or the 6-digit
+        /// image number); PVE and PA-PVE are computed against them, posed with --body-model (default:
+        /// the run's).
+        #[arg(long)]
+        pseudo_gt: Option<PathBuf>,
     },
     /// Recover every person's SMPL-X mesh from calibrated views of a frame (or a sequence of frames).
     Infer {
@@ -338,6 +345,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             joints,
             format,
             stride,
+            pseudo_gt,
         } => {
             let joints = mvmp_eval::joint_sets::JointSet::by_name(&joints).ok_or_else(|| {
                 anyhow::anyhow!("--joints {joints:?}: expected smplx127, panoptic15 or h36m17")
@@ -373,6 +381,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 format: &format,
                 split_name: &split,
                 stride,
+                pseudo_gt: pseudo_gt.as_deref(),
             };
             let (m, _) = run::eval(&args, &device, false)?;
             print!("{}", run::table(&[(format!("{split} split"), m.clone())]));

@@ -102,6 +102,8 @@ pub struct EvalArgs<'a> {
     pub split_name: &'a str,
     /// Every N-th frame (Panoptic and Human3.6M).
     pub stride: Option<usize>,
+    /// SMPL-X pseudo-ground-truth meshes for Panoptic and Human3.6M (`DIR/<sequence>/<frame>/people.npz`).
+    pub pseudo_gt: Option<&'a Path>,
 }
 
 fn fmt(x: Option<f64>) -> String {
@@ -509,6 +511,7 @@ pub fn demo(out: &Path, device: &Device) -> Result<()> {
         format: "mvmp",
         split_name: "test",
         stride: None,
+        pseudo_gt: None,
     };
     let (m_mean, _) = eval(&base, device, true)?;
 
@@ -547,6 +550,7 @@ pub fn demo(out: &Path, device: &Device) -> Result<()> {
         format: "mvmp",
         split_name: "test",
         stride: None,
+        pseudo_gt: None,
     };
     let (m_trained, _) = eval(&args, device, false)?;
 
@@ -606,6 +610,39 @@ pub fn demo(out: &Path, device: &Device) -> Result<()> {
 
 /// `mvmp eval --format panoptic`: a run on CMU Panoptic sequences read in place. `--split` is `test`
 /// (VoxelPose's validation split), `train`, a split's name, or comma-separated sequences (every frame).
+/// The pseudo-ground-truth meshes of a joint-annotated evaluation, posed with `--body-model` (default: the
+/// run's body model), and the report's line on what PVE used.
+fn pseudo_layer(args: &EvalArgs, pred: &Predictor, device: &Device) -> Result<Option<SmplxLayer>> {
+    let Some(dir) = args.pseudo_gt else {
+        return Ok(None);
+    };
+    if !dir.is_dir() {
+        bail!("--pseudo-gt {}: not a directory", dir.display());
+    }
+    Ok(Some(match args.body_model {
+        Some(r) => SmplxLayer::new(
+            &mvmp_data::layout::load_body_model(r, Path::new("."))?,
+            device,
+        ),
+        None => pred.layer.clone(),
+    }))
+}
+
+fn meshes_note(args: &EvalArgs, count: mvmp_train::predict::PseudoGtCount) -> serde_json::Value {
+    match args.pseudo_gt {
+        None => {
+            json!("none: PVE and PA-PVE are not computed (pass --pseudo-gt DIR with SMPL-X fits)")
+        }
+        Some(d) => json!(format!(
+            "SMPL-X pseudo-ground-truth from {} (body model {}): PVE and PA-PVE over the {} of {} annotated people that have a fit",
+            absolute(d),
+            args.body_model.unwrap_or("of the run"),
+            count.with_mesh,
+            count.people
+        )),
+    }
+}
+
 fn eval_h36m(
     args: &EvalArgs,
     device: &Device,
@@ -626,8 +663,13 @@ fn eval_h36m(
     }
     let (run, _, _) = RunDir::open(run_dir)?;
     let (pred, weights) = Predictor::from_run(&run.root, device)?;
+    let layer = pseudo_layer(args, &pred, device)?;
+    let pseudo = layer.as_ref().map(|layer| mvmp_train::predict::PseudoGt {
+        dir: args.pseudo_gt.expect("set with the layer"),
+        layer,
+    });
     let mut pb: Option<ProgressBar> = None;
-    let ev = mvmp_train::predict::evaluate_h36m(
+    let (ev, count) = mvmp_train::predict::evaluate_h36m(
         &pred,
         args.data,
         &subjects,
@@ -635,6 +677,7 @@ fn eval_h36m(
         &CAMERAS[..views],
         args.frames,
         args.gate,
+        pseudo.as_ref(),
         |i, n| {
             let b = pb.get_or_insert_with(|| {
                 if quiet {
@@ -658,7 +701,8 @@ fn eval_h36m(
         "stride": stride,
         "cameras": &CAMERAS[..views],
         "views": views,
-        "ground_truth": "Human3.6M D3_Positions, 17 of the 32 joints (0,1,2,3,6,7,8,12,13,14,15,17,18,19,25,26,27), world, one person per frame, S11 Directions left out; no meshes, so PVE and PA-PVE are not computed",
+        "ground_truth": "Human3.6M D3_Positions, 17 of the 32 joints (0,1,2,3,6,7,8,12,13,14,15,17,18,19,25,26,27), world, one person per frame, S11 Directions left out",
+        "meshes": meshes_note(args, count),
         "protocol": protocol(args.gate, JointSet::H36m17),
     });
     finish_report(&ev, header, "ground_truth_people", args.out)
@@ -703,8 +747,13 @@ fn eval_panoptic(
     }
     let (run, _, _) = RunDir::open(run_dir)?;
     let (pred, weights) = Predictor::from_run(&run.root, device)?;
+    let layer = pseudo_layer(args, &pred, device)?;
+    let pseudo = layer.as_ref().map(|layer| mvmp_train::predict::PseudoGt {
+        dir: args.pseudo_gt.expect("set with the layer"),
+        layer,
+    });
     let mut pb: Option<ProgressBar> = None;
-    let ev = mvmp_train::predict::evaluate_panoptic(
+    let (ev, count) = mvmp_train::predict::evaluate_panoptic(
         &pred,
         args.data,
         &sequences,
@@ -712,6 +761,7 @@ fn eval_panoptic(
         &cams[..views],
         args.frames,
         args.gate,
+        pseudo.as_ref(),
         |i, n| {
             let b = pb.get_or_insert_with(|| {
                 if quiet {
@@ -735,7 +785,8 @@ fn eval_panoptic(
         "stride": stride,
         "cameras": &cams[..views],
         "views": views,
-        "ground_truth": "Panoptic joints19, first 15 joints, a joint counts where its confidence > 0.1; bodies without an annotated body centre are dropped; no meshes, so PVE and PA-PVE are not computed",
+        "ground_truth": "Panoptic joints19, first 15 joints, a joint counts where its confidence > 0.1; bodies without an annotated body centre are dropped",
+        "meshes": meshes_note(args, count),
         "protocol": protocol(args.gate, JointSet::Panoptic15),
     });
     finish_report(&ev, header, "ground_truth_people", args.out)

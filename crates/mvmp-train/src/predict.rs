@@ -471,6 +471,8 @@ pub trait JointSequence {
     }
     /// The image of every camera at frame `i`.
     fn images(&self, i: usize) -> Vec<std::path::PathBuf>;
+    /// Frame `i`'s name in file layouts (predictions, pseudo-ground-truth): `<name>/<frame key>/`.
+    fn frame_key(&self, i: usize) -> String;
     /// The annotated people at frame `i`, in the dataset's joint set (with per-joint validity).
     fn people(&self, i: usize) -> Result<Vec<PersonPose>, TrainError>;
 }
@@ -487,6 +489,10 @@ impl JointSequence for mvmp_data::panoptic::PanopticSequence {
     }
     fn images(&self, i: usize) -> Vec<std::path::PathBuf> {
         self.frames[i].images.clone()
+    }
+    /// The 8-digit HD frame index of the file names.
+    fn frame_key(&self, i: usize) -> String {
+        self.frames[i].index.clone()
     }
     fn people(&self, i: usize) -> Result<Vec<PersonPose>, TrainError> {
         use mvmp_data::panoptic::EVAL_JOINTS;
@@ -517,6 +523,10 @@ impl JointSequence for mvmp_data::h36m::H36mSequence {
     fn images(&self, i: usize) -> Vec<std::path::PathBuf> {
         self.frames[i].images.clone()
     }
+    /// The image number (6 digits, from 1) of the extracted video frames.
+    fn frame_key(&self, i: usize) -> String {
+        format!("{:06}", self.frames[i].row + 1)
+    }
     /// One subject per frame, every joint annotated.
     fn people(&self, i: usize) -> Result<Vec<PersonPose>, TrainError> {
         Ok(vec![PersonPose {
@@ -528,17 +538,36 @@ impl JointSequence for mvmp_data::h36m::H36mSequence {
     }
 }
 
+/// SMPL-X pseudo-ground-truth meshes for a joint-annotated dataset: `dir/<sequence>/<frame key>/people.npz`
+/// (infer's `people.npz` layout: the standard smplx keys), posed with `layer` (the body model the fits
+/// use). Each annotated person takes the mesh whose pelvis is nearest its root joint, within the gate.
+pub struct PseudoGt<'a> {
+    pub dir: &'a Path,
+    pub layer: &'a SmplxLayer,
+}
+
+/// What the pseudo-ground-truth covered.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct PseudoGtCount {
+    /// Annotated people given a pseudo-ground-truth mesh, and all annotated people.
+    pub with_mesh: usize,
+    pub people: usize,
+}
+
 /// Score `pred` on sequences read in place whose ground truth is joints of `set` (the predicted SMPL-X
-/// joints are mapped to it), matched on the set's root joint. No meshes: PVE and PA-PVE stay empty.
-/// At most `max_frames` frames (0: all), in sequence order; `each(i, n)` after every frame.
+/// joints are mapped to it), matched on the set's root joint. PVE and PA-PVE are computed only with
+/// pseudo-ground-truth meshes (`pseudo`), for the people that have one. At most `max_frames` frames (0:
+/// all), in sequence order; `each(i, n)` after every frame.
+#[allow(clippy::too_many_arguments)]
 pub fn evaluate_joint_sequences<S: JointSequence>(
     pred: &Predictor,
     seqs: &[S],
     set: mvmp_eval::joint_sets::JointSet,
     max_frames: usize,
     gate: f64,
+    pseudo: Option<&PseudoGt>,
     mut each: impl FnMut(usize, usize),
-) -> Result<Evaluator, TrainError> {
+) -> Result<(Evaluator, PseudoGtCount), TrainError> {
     let mut frames: Vec<(usize, usize)> = seqs
         .iter()
         .enumerate()
@@ -547,8 +576,22 @@ pub fn evaluate_joint_sequences<S: JointSequence>(
     if max_frames > 0 {
         frames.truncate(max_frames);
     }
+    if let Some(p) = pseudo
+        && p.layer.num_vertices() != pred.layer.num_vertices()
+    {
+        return Err(TrainError::file(
+            p.dir,
+            format!(
+                "the pseudo-ground-truth body model has {} vertices but the model predicts meshes of {}; \
+                 PVE needs one topology (pass the body model the run uses)",
+                p.layer.num_vertices(),
+                pred.layer.num_vertices()
+            ),
+        ));
+    }
     let mut ev = Evaluator::new(gate);
     ev.root = set.root();
+    let mut count = PseudoGtCount::default();
     let n = frames.len();
     for (i, &(si, fi)) in frames.iter().enumerate() {
         let seq = &seqs[si];
@@ -579,19 +622,50 @@ pub fn evaluate_joint_sequences<S: JointSequence>(
             .map(|p| {
                 let mut pose = p.to_pose();
                 pose.joints = set.select(&pose.joints);
-                pose.vertices = None;
+                if pseudo.is_none() {
+                    pose.vertices = None;
+                }
                 pose
             })
             .collect();
-        ev.add_frame(&seq.name(), &poses, &seq.people(fi)?);
+        let mut gt = seq.people(fi)?;
+        if let Some(p) = pseudo {
+            let path = p
+                .dir
+                .join(seq.name())
+                .join(seq.frame_key(fi))
+                .join("people.npz");
+            if !path.exists() {
+                return Err(TrainError::file(
+                    &path,
+                    "no pseudo-ground-truth for this frame (every scored frame needs one)",
+                ));
+            }
+            let stored = crate::output::read_people_npz(&path)?;
+            let fits = pose_params(
+                p.layer,
+                &stored
+                    .into_iter()
+                    .map(|s| (s.params, s.score))
+                    .collect::<Vec<_>>(),
+            );
+            let fit_roots: Vec<[f64; 3]> = fits.iter().map(|f| f.joints[0]).collect();
+            let gt_roots: Vec<[f64; 3]> = gt.iter().map(|g| g.joints[set.root()]).collect();
+            for (fi_, gi) in mvmp_eval::match_people(&fit_roots, &gt_roots, gate) {
+                gt[gi].vertices = fits[fi_].vertices.clone();
+            }
+            count.people += gt.len();
+            count.with_mesh += gt.iter().filter(|g| g.vertices.is_some()).count();
+        }
+        ev.add_frame(&seq.name(), &poses, &gt);
         each(i, n);
     }
-    Ok(ev)
+    Ok((ev, count))
 }
 
 /// Score `pred` on CMU Panoptic sequences read in place (`root/<sequence>/...`): the VoxelPose protocol on
 /// the 15 evaluation joints ([`JointSet::Panoptic15`](mvmp_eval::joint_sets::JointSet)), matched on the
-/// body centre. Panoptic has no meshes: PVE and PA-PVE stay empty.
+/// body centre. Panoptic has no meshes: PVE and PA-PVE need SMPL-X pseudo-ground-truth (`pseudo`).
 #[allow(clippy::too_many_arguments)]
 pub fn evaluate_panoptic(
     pred: &Predictor,
@@ -601,8 +675,9 @@ pub fn evaluate_panoptic(
     cameras: &[&str],
     max_frames: usize,
     gate: f64,
+    pseudo: Option<&PseudoGt>,
     each: impl FnMut(usize, usize),
-) -> Result<Evaluator, TrainError> {
+) -> Result<(Evaluator, PseudoGtCount), TrainError> {
     use mvmp_data::panoptic::PanopticSequence;
     let mut seqs = Vec::new();
     for name in sequences {
@@ -624,6 +699,7 @@ pub fn evaluate_panoptic(
         mvmp_eval::joint_sets::JointSet::Panoptic15,
         max_frames,
         gate,
+        pseudo,
         each,
     )
 }
@@ -640,8 +716,9 @@ pub fn evaluate_h36m(
     cameras: &[&str],
     max_frames: usize,
     gate: f64,
+    pseudo: Option<&PseudoGt>,
     each: impl FnMut(usize, usize),
-) -> Result<Evaluator, TrainError> {
+) -> Result<(Evaluator, PseudoGtCount), TrainError> {
     use mvmp_data::h36m::{H36mSequence, actions};
     let mut seqs = Vec::new();
     for s in subjects {
@@ -655,6 +732,7 @@ pub fn evaluate_h36m(
         mvmp_eval::joint_sets::JointSet::H36m17,
         max_frames,
         gate,
+        pseudo,
         each,
     )
 }

@@ -539,9 +539,11 @@ fn a_run_scores_on_panoptic_read_in_place() {
         cams,
         0,
         0.5,
+        None,
         |_, n| seen = n,
     )
-    .unwrap();
+    .unwrap()
+    .0;
     assert_eq!(seen, 3);
     let m = ev.overall();
     // 2 + 1 + 2 people with an annotated body centre; 3 kept roots per frame.
@@ -561,9 +563,11 @@ fn a_run_scores_on_panoptic_read_in_place() {
         cams,
         0,
         0.5,
+        None,
         |_, _| {},
     )
-    .unwrap();
+    .unwrap()
+    .0;
     assert_eq!(ev.overall().ground_truth, 4);
     // A sequence of the split that is not there, and an image of the wrong size, are named.
     let e = mvmp_train::predict::evaluate_panoptic(
@@ -574,6 +578,7 @@ fn a_run_scores_on_panoptic_read_in_place() {
         cams,
         0,
         0.5,
+        None,
         |_, _| {},
     )
     .unwrap_err()
@@ -591,6 +596,7 @@ fn a_run_scores_on_panoptic_read_in_place() {
         cams,
         0,
         0.5,
+        None,
         |_, _| {},
     )
     .unwrap_err()
@@ -646,9 +652,11 @@ fn a_run_scores_on_h36m_read_in_place() {
         &CAMERAS[..2],
         0,
         0.5,
+        None,
         |_, n| seen = n,
     )
-    .unwrap();
+    .unwrap()
+    .0;
     // Rows 0, 2 and 4 of S9 "Walking"; S11's "Directions" is left out.
     assert_eq!(seen, 3);
     let m = ev.overall();
@@ -671,6 +679,7 @@ fn a_run_scores_on_h36m_read_in_place() {
             cams,
             0,
             0.5,
+            None,
             |_, _| {},
         )
         .unwrap_err()
@@ -680,4 +689,94 @@ fn a_run_scores_on_h36m_read_in_place() {
     assert!(e.contains("000003.jpg") && e.contains("500x500"), "{e}");
     let e = run(&CAMERAS[..3]);
     assert!(e.contains("Walking.58860488/000001.jpg"), "{e}");
+}
+
+/// A fit in `people.npz`: the rest pose of the stand-in body with its pelvis at `at`.
+fn fit_at(layer: &SmplxLayer, at: [f64; 3]) -> mvmp_train::PersonPrediction {
+    let rest = pose_params(layer, &[(mvmp_smplx::SmplxParams::default(), 1.0)]);
+    let p0 = rest[0].joints[0];
+    mvmp_train::PersonPrediction {
+        score: 1.0,
+        pose: vec![0.0; 165],
+        betas: [0.0; 10],
+        expression: [0.0; 10],
+        pelvis: at.map(|x| x as f32),
+        transl: [0, 1, 2].map(|a| (at[a] - p0[a]) as f32),
+        joints: Vec::new(),
+        vertices: Vec::new(),
+    }
+}
+
+#[test]
+fn pseudo_ground_truth_meshes_give_pve_on_joint_datasets() {
+    use mvmp_data::h36m::CAMERAS;
+    use mvmp_train::output::write_people_npz;
+    use mvmp_train::predict::{PseudoGt, evaluate_h36m};
+    let root = tempfile::tempdir().unwrap();
+    h36m_fixture(root.path());
+    let cfg = model_config();
+    let d = Device::flex();
+    let body = mvmp_smplx::standin_model(0);
+    let layer = SmplxLayer::new(&body, &d);
+    let pred = Predictor::new(mvmp_train::seeded_init(&cfg, &d, 4), cfg.clone(), body, &d);
+    let subjects = ["S9".to_string()];
+    // Fits at the annotated pelvis of rows 0, 2, 4 (fixture joint 0: x = 1000 + 5 f, y = -400,
+    // z = 900 + f mm), and a second, far one that must not be taken.
+    let fits = root.path().join("fits");
+    for row in [0usize, 2, 4] {
+        let f = row as f64;
+        let dir = fits.join(format!("S9/Walking/{:06}", row + 1));
+        std::fs::create_dir_all(&dir).unwrap();
+        write_people_npz(
+            &dir.join("people.npz"),
+            &[
+                fit_at(&layer, [3.0, 3.0, 0.9]),
+                fit_at(
+                    &layer,
+                    [(1000.0 + 5.0 * f) / 1000.0, -0.4, (900.0 + f) / 1000.0],
+                ),
+            ],
+        )
+        .unwrap();
+    }
+    let pseudo = PseudoGt {
+        dir: &fits,
+        layer: &layer,
+    };
+    let score = |p: Option<&PseudoGt>, gate: f64| {
+        evaluate_h36m(
+            &pred,
+            root.path(),
+            &subjects,
+            2,
+            &CAMERAS[..2],
+            0,
+            gate,
+            p,
+            |_, _| {},
+        )
+    };
+    let (_, count) = score(Some(&pseudo), 0.5).unwrap();
+    assert_eq!((count.with_mesh, count.people), (3, 3));
+    // A wide gate matches every person to a prediction, so every person's mesh is compared.
+    let (ev, _) = score(Some(&pseudo), 100.0).unwrap();
+    let m = ev.overall();
+    assert_eq!(m.matched, 3);
+    assert!(m.pve_mm.is_some_and(|v| v.is_finite() && v > 0.0) && m.pa_pve_mm.is_some());
+    // Without fits there are no meshes to compare.
+    let (ev, count) = score(None, 100.0).unwrap();
+    assert_eq!(count.people, 0);
+    assert!(ev.overall().pve_mm.is_none());
+    // The near fit is the one taken: with only the far fit left, nobody has a mesh.
+    for row in [0usize, 2, 4] {
+        let p = fits.join(format!("S9/Walking/{:06}/people.npz", row + 1));
+        write_people_npz(&p, &[fit_at(&layer, [3.0, 3.0, 0.9])]).unwrap();
+    }
+    let (ev, count) = score(Some(&pseudo), 0.5).unwrap();
+    assert_eq!((count.with_mesh, count.people), (0, 3));
+    assert!(ev.overall().pve_mm.is_none());
+    // A scored frame without a fit is named.
+    std::fs::remove_file(fits.join("S9/Walking/000003/people.npz")).unwrap();
+    let e = score(Some(&pseudo), 0.5).unwrap_err().to_string();
+    assert!(e.contains("S9/Walking/000003/people.npz"), "{e}");
 }
