@@ -1,13 +1,31 @@
 //! Backend equivalence: the same computations on flex (the reference CPU backend), burn-ndarray and,
 //! with the `wgpu` feature, wgpu (a GPU, or lavapipe's software Vulkan on a machine without one) give the
-//! same numbers within float32 tolerances: the SMPL-X forward, HRNet (conv, batch norm, upsampling),
-//! view projection and fusion (grid sampling), the RootNet (3D convolutions, pooling) and the ViT
-//! (attention, layer norm, GELU).
-use burn::module::Module;
-use burn::tensor::{Device, Tensor, TensorData};
-use mvmp::fusion::{FusionMode, RootNetConfig, SamplingGrid, fuse_views};
+//! same numbers within float32 tolerances: rotation conversions; long reductions; the SMPL-X forward at batch 30 and its
+//! gradient in pose and betas; HRNet (conv, batch norm, upsampling) and the ViT (attention, layer norm,
+//! GELU); view projection and mean/max fusion (grid sampling); the RootNet (3D convolutions, pooling),
+//! 3D NMS and root extraction; one Human Transformer Block; the whole model's forward; one training step
+//! (the stage-2 loss and the gradient norm of every parameter tensor).
+//!
+//! Every difference is the largest absolute difference over the reference's largest magnitude; the
+//! measured values print as a table (`-- --nocapture`).
+use std::path::Path;
+
+use burn::data::dataloader::batcher::Batcher;
+use burn::module::{Module, ModuleVisitor, Param};
+use burn::tensor::{Bool, Device, Gradients, Tensor, TensorData};
+use mvmp::data::loader::{FrameBatcher, FrameDataset, Split, ViewChoice};
+use mvmp::data::synth::{SynthConfig, generate};
+use mvmp::decoder::DecoderConfig;
+use mvmp::fusion::pool::nms3d;
+use mvmp::fusion::{FusionMode, RootNetConfig, SamplingGrid, extract_roots, fuse_views};
+use mvmp::geom::rotation::{
+    axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_rot6d, rot6d_to_matrix,
+};
 use mvmp::geom::{Camera, Letterbox, VoxelGrid};
+use mvmp::model::{ModelConfig, MvmpHmr, RigGrids};
 use mvmp::smplx::{SmplxLayer, Translation, standin_model};
+use mvmp::train::QueryMode;
+use mvmp::train::step::stage2_loss;
 use nalgebra::{Matrix3, Vector3};
 
 /// Deterministic pseudo-random values in [-a, a] (a hash, not a progression).
@@ -67,47 +85,144 @@ fn rig() -> Vec<Camera> {
         .collect()
 }
 
-/// Run every check of the suite with `other` against flex; `tol` is the relative tolerance.
-fn suite(other: &Device, tol: f32) {
-    let flex = Device::flex();
-    // SMPL-X forward: skinning GEMMs, the kinematic chain, pose correctives.
-    let model = standin_model(0);
+/// The measured differences of one backend against flex.
+struct Report {
+    backend: &'static str,
+    tol: f32,
+    rows: Vec<(String, f32)>,
+}
+
+impl Report {
+    fn new(backend: &'static str, tol: f32) -> Self {
+        Report {
+            backend,
+            tol,
+            rows: Vec::new(),
+        }
+    }
+
+    fn check(&mut self, name: &str, reference: &[f32], other: &[f32]) {
+        let d = rel_diff(reference, other);
+        assert!(d.is_finite(), "{}: {name}: not finite", self.backend);
+        // Printed as it comes: on a software GPU the suite takes minutes.
+        println!("{:<8} {name:<44} {d:.2e}", self.backend);
+        self.rows.push((name.to_string(), d));
+    }
+
+    /// Fail on every check over the tolerance at once.
+    fn finish(self) {
+        let bad: Vec<String> = self
+            .rows
+            .iter()
+            .filter(|(_, d)| *d > self.tol)
+            .map(|(n, d)| format!("{n}: {d:.2e}"))
+            .collect();
+        assert!(
+            bad.is_empty(),
+            "{} differs from flex beyond {:e}: {}",
+            self.backend,
+            self.tol,
+            bad.join(", ")
+        );
+    }
+}
+
+fn rotations(other: &Device, r: &mut Report) {
+    // Angles below pi (|r| <= 1.5 sqrt 3 = 2.6), where the matrix-to-axis-angle map is well conditioned.
+    let aa = values(64 * 3, 11, 1.5);
+    let six = values(64 * 6, 12, 1.0);
     let run = |d: &Device| {
-        let layer = SmplxLayer::new(&model, d);
+        let m = axis_angle_to_matrix(t(aa.clone(), [64, 3], d));
+        (
+            host(m.clone()),
+            host(matrix_to_axis_angle(m.clone())),
+            host(matrix_to_rot6d(m)),
+            host(rot6d_to_matrix(t(six.clone(), [64, 6], d))),
+        )
+    };
+    let (a, b) = (run(&Device::flex()), run(other));
+    r.check("rotation: axis-angle to matrix", &a.0, &b.0);
+    r.check("rotation: matrix to axis-angle", &a.1, &b.1);
+    r.check("rotation: matrix to 6D", &a.2, &b.2);
+    r.check("rotation: 6D to matrix", &a.3, &b.3);
+}
+
+fn reductions(other: &Device, r: &mut Report) {
+    // Long reductions, as the losses take them at paper scale (a 300 x 300 x 20 volume, the 2D mesh term
+    // of a crowded batch): mvmp_losses::sum_all / mean_all / max_rows, and a sum along rows. (burn
+    // 0.22.1's own one-kernel reductions over more than 2^18 elements per axis come out wrong on adapters
+    // limited to 65535 workgroups per dispatch axis, lavapipe among them; these helpers split them.)
+    let n = 1 << 22;
+    let v: Vec<f32> = (0..n).map(|i| (i % 7) as f32 - 3.0 + 0.25).collect();
+    let run = |d: &Device| {
+        let x = t(v.clone(), [n], d);
+        let rows = x.clone().reshape([2, n / 2]);
+        (
+            host(mvmp::losses::sum_all(x.clone())),
+            host(mvmp::losses::mean_all(x.clone().reshape([64, n / 64]))),
+            host(mvmp::losses::max_rows(rows.clone())),
+            host(x.reshape([1 << 12, 1 << 10]).sum_dim(1)),
+        )
+    };
+    let (a, b) = (run(&Device::flex()), run(other));
+    // The exact sum: 2^22 / 7 whole cycles of (-2.75 .. 3.25) plus the remainder, all exact in f64.
+    let want: f64 = v.iter().map(|&x| x as f64).sum();
+    assert!(
+        ((a.0[0] as f64) - want).abs() < 1e-3 * want.abs().max(1.0),
+        "flex sum_all {} vs {want}",
+        a.0[0]
+    );
+    r.check("sum_all of 2^22 elements", &a.0, &b.0);
+    r.check("mean_all of 2^22 elements", &a.1, &b.1);
+    r.check("max_rows of 2 x 2^21", &a.2, &b.2);
+    r.check("sum along rows, 4096 x 1024", &a.3, &b.3);
+}
+
+fn smplx(other: &Device, r: &mut Report) {
+    // Batch 30 with its gradient: skinning GEMMs, the kinematic chain, pose correctives, and their backward.
+    let model = standin_model(0);
+    let nv = model.num_vertices();
+    let weights = values(30 * nv * 3, 24, 1.0);
+    let run = |d: &Device| {
+        let ad = d.clone().autodiff();
+        let layer = SmplxLayer::new(&model, &ad);
+        let pose = t(values(30 * 55 * 3, 21, 0.4), [30, 55, 3], &ad).require_grad();
+        let betas = t(values(300, 22, 1.0), [30, 10], &ad).require_grad();
         let out = layer.forward_axis_angle(
-            t(values(2 * 55 * 3, 1, 0.4), [2, 55, 3], d),
-            t(values(20, 2, 1.0), [2, 10], d),
-            t(values(20, 3, 1.0), [2, 10], d),
-            t(values(6, 4, 2.0), [2, 3], d),
+            pose.clone(),
+            betas.clone(),
+            t(values(300, 23, 1.0), [30, 10], &ad),
+            t(values(90, 4, 2.0), [30, 3], &ad),
             Translation::Pelvis,
         );
-        (host(out.vertices), host(out.joints))
+        // A random linear functional of the vertices, so every vertex's gradient path counts.
+        let loss = (out.vertices.clone() * t(weights.clone(), [30, nv, 3], &ad)).sum()
+            + out.joints.clone().sum();
+        let g = loss.backward();
+        (
+            host(out.vertices),
+            host(out.joints),
+            host(pose.grad(&g).expect("pose gradient")),
+            host(betas.grad(&g).expect("betas gradient")),
+        )
     };
-    let (va, ja) = run(&flex);
-    let (vb, jb) = run(other);
-    assert!(
-        rel_diff(&va, &vb) < tol,
-        "SMPL-X vertices: {}",
-        rel_diff(&va, &vb)
-    );
-    assert!(
-        rel_diff(&ja, &jb) < tol,
-        "SMPL-X joints: {}",
-        rel_diff(&ja, &jb)
-    );
+    let (a, b) = (run(&Device::flex()), run(other));
+    r.check("SMPL-X batch 30: vertices", &a.0, &b.0);
+    r.check("SMPL-X batch 30: joints", &a.1, &b.1);
+    r.check("SMPL-X batch 30: d/d pose", &a.2, &b.2);
+    r.check("SMPL-X batch 30: d/d betas", &a.3, &b.3);
+}
 
-    // Modules: made once on flex, copied to the other device, run in inference mode on both.
+fn backbones(other: &Device, r: &mut Report) {
+    let flex = Device::flex();
     let image = values(2 * 3 * 64 * 64, 5, 1.0);
     let hr = mvmp::backbone::HRNetConfig::by_name("tiny", 4)
         .unwrap()
         .init(&flex)
         .valid();
     let a = host(hr.forward(t(image.clone(), [2, 3, 64, 64], &flex)));
-    let b = host(
-        hr.fork(other)
-            .forward(t(image.clone(), [2, 3, 64, 64], other)),
-    );
-    assert!(rel_diff(&a, &b) < tol, "HRNet: {}", rel_diff(&a, &b));
+    let b = host(hr.fork(other).forward(t(image, [2, 3, 64, 64], other)));
+    r.check("HRNet heatmaps", &a, &b);
 
     let vit = mvmp::backbone::ViTConfig::by_name("tiny")
         .unwrap()
@@ -116,9 +231,11 @@ fn suite(other: &Device, tol: f32) {
     let img = values(3 * 56 * 56, 6, 1.0);
     let a = host(vit.forward(t(img.clone(), [1, 3, 56, 56], &flex)));
     let b = host(vit.fork(other).forward(t(img, [1, 3, 56, 56], other)));
-    assert!(rel_diff(&a, &b) < tol, "ViT: {}", rel_diff(&a, &b));
+    r.check("ViT features", &a, &b);
+}
 
-    // Projection and fusion: every voxel centre into every view, bilinear sampling, mean and max.
+fn fusion(other: &Device, r: &mut Report) {
+    // Every voxel centre into every view, bilinear sampling, mean and max over the views.
     let grid = VoxelGrid::new([0.0, 0.0, 1.0], [4.0, 4.0, 2.0], [16, 16, 8]).unwrap();
     let cams = rig();
     let lbs: Vec<Letterbox> = cams
@@ -135,41 +252,249 @@ fn suite(other: &Device, tol: f32) {
                 mode,
             ))
         };
-        let (a, b) = (fused(&flex), fused(other));
-        assert!(
-            rel_diff(&a, &b) < tol,
-            "fusion {mode:?}: {}",
-            rel_diff(&a, &b)
-        );
+        let (a, b) = (fused(&Device::flex()), fused(other));
+        r.check(&format!("projection + {mode:?} fusion"), &a, &b);
     }
+}
 
+fn rootnet(other: &Device, r: &mut Report) {
+    let flex = Device::flex();
     // RootNet: 3D convolutions, batch norm, max pooling, transposed convolutions.
     let rn = RootNetConfig::new(4).with_width(0.25).init(&flex).valid();
     let vol = values(4 * 16 * 16 * 8, 8, 1.0);
     let (la, oa) = rn.forward(t(vol.clone(), [1, 4, 16, 16, 8], &flex));
     let (lb, ob) = rn.fork(other).forward(t(vol, [1, 4, 16, 16, 8], other));
-    let (la, lb) = (host(la), host(lb));
-    assert!(
-        rel_diff(&la, &lb) < tol,
-        "RootNet likelihood: {}",
-        rel_diff(&la, &lb)
-    );
-    let (oa, ob) = (host(oa), host(ob));
-    assert!(
-        rel_diff(&oa, &ob) < tol,
-        "RootNet offsets: {}",
-        rel_diff(&oa, &ob)
-    );
+    r.check("RootNet likelihood", &host(la), &host(lb));
+    r.check("RootNet offsets", &host(oa), &host(ob));
+
+    // NMS and root extraction on a volume with planted, well-separated peaks over a noise floor, so
+    // the kept set does not hinge on float ties.
+    let grid = VoxelGrid::new([0.0, 0.0, 1.0], [4.0, 4.0, 2.0], [16, 16, 8]).unwrap();
+    let mut lik: Vec<f32> = values(2 * 16 * 16 * 8, 9, 0.25)
+        .iter()
+        .map(|v| v + 0.25)
+        .collect();
+    for (k, (bi, flat)) in [(0, 37), (0, 1500), (1, 700), (1, 1901), (1, 90)]
+        .into_iter()
+        .enumerate()
+    {
+        lik[bi * 2048 + flat] = 0.95 - 0.1 * k as f32;
+    }
+    let off = values(2 * 3 * 2048, 10, 0.45);
+    let run = |d: &Device| {
+        let l = t(lik.clone(), [2, 1, 16, 16, 8], d);
+        let kept = host(nms3d(l.clone()));
+        let roots = extract_roots(
+            l,
+            Some(t(off.clone(), [2, 3, 16, 16, 8], d)),
+            &grid,
+            4,
+            0.52,
+        );
+        (kept, roots)
+    };
+    let (a, b) = (run(&flex), run(other));
+    r.check("3D NMS", &a.0, &b.0);
+    let summary = |roots: &Vec<Vec<mvmp::fusion::Root>>| -> (Vec<[usize; 3]>, Vec<f32>) {
+        let all = roots.iter().flatten();
+        (
+            all.clone().map(|x| x.voxel).collect(),
+            all.flat_map(|x| {
+                [x.score]
+                    .into_iter()
+                    .chain(x.position.iter().map(|&p| p as f32))
+            })
+            .collect(),
+        )
+    };
+    let (va, sa) = summary(&a.1);
+    let (vb, sb) = summary(&b.1);
+    assert_eq!(a.1.iter().map(Vec::len).collect::<Vec<_>>(), [2, 3]);
+    assert_eq!(va, vb, "{}: extracted root voxels differ", r.backend);
+    r.check("root extraction: scores and positions", &sa, &sb);
+}
+
+fn transformer_block(other: &Device, r: &mut Report) {
+    let flex = Device::flex();
+    let block = DecoderConfig::new(16)
+        .with_dim(32)
+        .with_heads(4)
+        .init(&flex)
+        .blocks
+        .remove(0);
+    let q = values(2 * 5 * 32, 13, 1.0);
+    let tokens = values(2 * 40 * 32, 14, 1.0);
+    let pad = vec![
+        false, false, false, true, true, false, false, false, false, true,
+    ];
+    let run = |b: &mvmp::decoder::HumanTransformerBlock, d: &Device| {
+        host(b.forward(
+            t(q.clone(), [2, 5, 32], d),
+            Tensor::<2, Bool>::from_data(TensorData::new(pad.clone(), [2, 5]), d),
+            t(tokens.clone(), [2, 40, 32], d),
+        ))
+    };
+    let a = run(&block, &flex);
+    let b = run(&block.fork(other), other);
+    // Padded slots hold whatever attention made of them; only people count.
+    let keep = |v: Vec<f32>| -> Vec<f32> {
+        v.chunks(32)
+            .zip(&pad)
+            .filter(|(_, p)| !**p)
+            .flat_map(|(c, _)| c.to_vec())
+            .collect()
+    };
+    r.check("Human Transformer Block", &keep(a), &keep(b));
+}
+
+/// A small synthetic dataset (3 views, 160 x 120) in a temporary directory.
+fn dataset(dir: &Path) -> std::path::PathBuf {
+    let out = dir.join("ds");
+    let mut c = SynthConfig {
+        name: "backends".into(),
+        seed: 2,
+        scenes: 1,
+        frames_per_scene: 1,
+        people: [2, 3],
+        area: [3.0, 3.0],
+        image_size: [160, 120],
+        ..Default::default()
+    };
+    c.cameras.count = 3;
+    c.cameras.rings[0].radius = 5.0;
+    generate(&c, &out, Path::new("."), &|| {}).unwrap();
+    out
+}
+
+/// The tiny model's architecture at 64 px on a 16 x 16 x 4 grid.
+fn small_model_config() -> ModelConfig {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/model/tiny.toml");
+    let mut c = ModelConfig::read(&path).unwrap();
+    c.image_size = 64;
+    c.grid = VoxelGrid::new([0.0, 0.0, 1.0], [4.0, 4.0, 2.0], [16, 16, 4]).unwrap();
+    c.max_people = 3;
+    c.decoder.dim = 32;
+    c.rootnet_width = 0.25;
+    c
+}
+
+/// Every parameter tensor's gradient norm, in visiting order (0 where a tensor has none).
+fn grad_norms(m: &MvmpHmr, g: &Gradients) -> Vec<f32> {
+    struct Norms<'a>(&'a Gradients, Vec<f32>);
+    impl ModuleVisitor for Norms<'_> {
+        fn visit_float<const D: usize>(&mut self, p: &Param<Tensor<D>>) {
+            let n = p.val().grad(self.0).map_or(0.0, |g| {
+                g.powf_scalar(2.0).sum().sqrt().into_scalar::<f32>()
+            });
+            self.1.push(n);
+        }
+    }
+    let mut v = Norms(g, Vec::new());
+    m.visit(&mut v);
+    v.1
+}
+
+fn model_and_training_step(other: &Device, r: &mut Report) {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dataset(dir.path());
+    let cfg = small_model_config();
+    let ds = FrameDataset::open(&data, Split::Train, ViewChoice::Fixed(vec![0, 1]), 64).unwrap();
+    let body = ds.layout().body_model().unwrap();
+    let sample = ds.load(0).unwrap();
+    let flex = Device::flex();
+    let model = mvmp::train::seeded_init(&cfg, &flex.clone().autodiff(), 4);
+
+    // Inference: decoded at fixed roots, so no thresholded decision sits between the two backends.
+    let infer = |m: &MvmpHmr, d: &Device| {
+        let layer = SmplxLayer::new(&body, d);
+        let batch = FrameBatcher::with_vertices(body.clone()).batch(vec![sample.clone()], d);
+        let grids: Vec<RigGrids> = mvmp::train::step::batch_grids(&cfg, &batch, d);
+        let roots = t(vec![0.3, -0.2, 0.9, -0.8, 0.5, 1.0], [1, 2, 3], d);
+        let present = Tensor::<2, Bool>::from_data(TensorData::new(vec![true, true], [1, 2]), d);
+        let o = m.forward(batch.images, &grids, &cfg, &layer, Some((roots, present)));
+        [
+            host(o.heatmaps),
+            host(o.likelihood),
+            host(o.offset),
+            host(o.rot6d),
+            host(o.betas),
+            host(o.transl),
+            host(o.vertices),
+        ]
+    };
+    let plain = model.valid();
+    let a = infer(&plain, &flex);
+    let b = infer(&plain.fork(other), other);
+    let names = [
+        "model: heatmaps",
+        "model: root likelihood",
+        "model: root offsets",
+        "model: 6D rotations",
+        "model: betas",
+        "model: pelvis",
+        "model: vertices",
+    ];
+    for (n, (x, y)) in names.iter().zip(a.iter().zip(&b)) {
+        r.check(n, x, y);
+    }
+
+    // One training step: batch-norm statistics of the batch, the five losses with ground-truth queries,
+    // the backward through everything.
+    let step = |m: &MvmpHmr, d: &Device| {
+        let layer = SmplxLayer::new(&body, d);
+        let batch = FrameBatcher::with_vertices(body.clone()).batch(vec![sample.clone()], d);
+        let l = stage2_loss(
+            m,
+            &batch,
+            &cfg,
+            &layer,
+            &mvmp::losses::LossWeights::default(),
+            QueryMode::Gt,
+            0.5,
+            d,
+        );
+        let terms: Vec<f32> = l
+            .terms
+            .iter()
+            .map(|(_, v)| v.clone().into_scalar::<f32>())
+            .collect();
+        let g = l.total.backward();
+        (terms, grad_norms(m, &g))
+    };
+    let ad_other = other.clone().autodiff();
+    let (ta, ga) = step(&model, &flex.autodiff());
+    let (tb, gb) = step(&model.fork(&ad_other), &ad_other);
+    r.check("training step: loss terms", &ta, &tb);
+    assert!(ga.iter().filter(|&&n| n > 0.0).count() > 100);
+    r.check("training step: gradient norm per tensor", &ga, &gb);
+}
+
+/// Run every check of the suite with `other` against flex.
+fn suite(other: &Device, backend: &'static str, tol: f32) {
+    let mut r = Report::new(backend, tol);
+    rotations(other, &mut r);
+    reductions(other, &mut r);
+    smplx(other, &mut r);
+    backbones(other, &mut r);
+    fusion(other, &mut r);
+    rootnet(other, &mut r);
+    transformer_block(other, &mut r);
+    model_and_training_step(other, &mut r);
+    r.finish();
 }
 
 #[test]
 #[allow(deprecated)]
 fn ndarray_matches_flex() {
-    suite(&Device::ndarray(), 1e-4);
+    suite(&Device::ndarray(), "ndarray", 1e-4);
 }
 
 #[cfg(feature = "wgpu")]
 #[test]
 fn wgpu_matches_flex() {
-    suite(&Device::wgpu(burn::tensor::DeviceKind::DefaultDevice), 1e-3);
+    suite(
+        &Device::wgpu(burn::tensor::DeviceKind::DefaultDevice),
+        "wgpu",
+        1e-4,
+    );
 }

@@ -38,7 +38,48 @@ fn wgpu(index: Option<&str>, s: &str) -> Result<Device> {
                 .map_err(|_| anyhow::anyhow!("--device {s}: {i:?} is not a GPU index"))?,
         ),
     };
-    Ok(Device::wgpu(kind))
+    let device = Device::wgpu(kind);
+    probe(&device, s)?;
+    Ok(device)
+}
+
+/// wgpu picks its adapter on first use and panics when there is none, and an adapter without the atomics
+/// burn's reductions need (wgpu's OpenGL fallback when no Vulkan driver is installed) fails inside the
+/// first large reduction: run one now, so that either is an error naming the cause instead of a panic in
+/// the middle of a command.
+#[cfg(feature = "wgpu")]
+fn probe(device: &Device, s: &str) -> Result<()> {
+    use burn::tensor::Tensor;
+    // Large enough for the atomic reduction kernels, below the size where burn 0.22's one-pass sum
+    // runs out of workgroups on some adapters (mvmp_losses::sum_all).
+    const N: usize = 1 << 17;
+    let previous = std::panic::take_hook();
+    // Silence the panic messages of wgpu's worker threads while probing; the error below says it all.
+    std::panic::set_hook(Box::new(|_| {}));
+    let d = device.clone();
+    let result = std::panic::catch_unwind(move || {
+        Tensor::<1>::ones([N], &d)
+            .sum()
+            .try_into_scalar::<f32>()
+            .map_err(|e| format!("{e:?}"))
+    });
+    std::panic::set_hook(previous);
+    let cause = match result {
+        Ok(Ok(v)) if v == N as f32 => return Ok(()),
+        Ok(Ok(v)) => format!("a test sum of {N} ones gave {v}"),
+        Ok(Err(e)) => e,
+        Err(e) => e
+            .downcast_ref::<String>()
+            .cloned()
+            .or_else(|| e.downcast_ref::<&str>().map(|m| m.to_string()))
+            .unwrap_or_else(|| "the backend panicked".into()),
+    };
+    bail!(
+        "--device {s}: no usable GPU adapter ({}). Install the GPU's Vulkan driver (Metal on macOS, \
+         DX12 on Windows); on Linux without a GPU, Debian's software Vulkan driver works: \
+         `apt-get install mesa-vulkan-drivers libvulkan1`",
+        cause.lines().map(str::trim).collect::<Vec<_>>().join(" ")
+    )
 }
 
 #[cfg(not(feature = "wgpu"))]

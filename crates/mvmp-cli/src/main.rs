@@ -280,7 +280,11 @@ fn main() -> ExitCode {
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_env("MVMP_LOG")
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
+                // wgpu reports every graphics API it fails to open while it looks for an adapter (GL
+                // under a Vulkan-only driver, for one); a missing adapter is an error of its own.
+                .unwrap_or_else(|_| {
+                    tracing_subscriber::EnvFilter::new("warn,wgpu_hal=off,wgpu_core=off")
+                }),
         )
         .with_writer(std::io::stderr)
         .init();

@@ -10,14 +10,70 @@ use burn::tensor::{Device, Int, Tensor, TensorData};
 
 use mvmp_geom::CameraTensors;
 
+/// Elements per row when [`sum_all`] splits a long reduction.
+const SUM_ROW: usize = 1024;
+
+/// The sum of every element, as `[1]`. A long tensor is summed in two stages (rows of 1024, then the row
+/// sums): burn 0.22's one-pass full reduction on wgpu launches at most 65535 workgroups along one axis of
+/// 4 elements each, so on adapters with that Vulkan minimum limit (lavapipe; measured by
+/// `tests/backends.rs`) a 1-D sum of more than 2^18 elements silently drops the rest (2^22 ones summed
+/// to 262132).
+pub fn sum_all<const D: usize>(x: Tensor<D>) -> Tensor<1> {
+    let n = x.shape().num_elements();
+    if n <= SUM_ROW * 64 {
+        return x.sum();
+    }
+    let rows = n.div_ceil(SUM_ROW);
+    let flat = x.reshape([n]);
+    let flat = if rows * SUM_ROW == n {
+        flat
+    } else {
+        let device = flat.device();
+        Tensor::cat(vec![flat, Tensor::zeros([rows * SUM_ROW - n], &device)], 0)
+    };
+    flat.reshape([rows, SUM_ROW]).sum_dim(1).sum()
+}
+
+/// The maximum of each row of `x` `[B, N]`, as `[B, 1]`; long rows are reduced in two stages for the reason
+/// given at [`sum_all`] (the same limit breaks `max_dim` over more than 2^18 elements).
+pub fn max_rows(x: Tensor<2>) -> Tensor<2> {
+    let [b, n] = x.dims();
+    if n <= SUM_ROW * 64 {
+        return x.max_dim(1);
+    }
+    let rows = n.div_ceil(SUM_ROW);
+    let x = if rows * SUM_ROW == n {
+        x
+    } else {
+        let device = x.device();
+        Tensor::cat(
+            vec![
+                x,
+                Tensor::full([b, rows * SUM_ROW - n], f32::NEG_INFINITY, &device),
+            ],
+            1,
+        )
+    };
+    x.reshape([b, rows, SUM_ROW])
+        .max_dim(2)
+        .reshape([b, rows])
+        .max_dim(1)
+}
+
+/// The mean of every element, as `[1]` (see [`sum_all`]).
+pub fn mean_all<const D: usize>(x: Tensor<D>) -> Tensor<1> {
+    let n = x.shape().num_elements();
+    sum_all(x) / n.max(1) as f32
+}
+
 /// Mean of `err` `[B, K, ...]` over the elements of pairs where `mask` `[B, K]` is 1.
 fn masked_mean<const D: usize>(err: Tensor<D>, mask: Tensor<2>) -> Tensor<1> {
     let dims = err.dims();
     let (b, k) = (dims[0], dims[1]);
     let per: usize = dims[2..].iter().product();
     let e = err.reshape([b, k, per]).sum_dim(2).reshape([b, k]);
-    let n = mask.clone().sum().clamp_min(1.0) * per as f32;
-    (e * mask).sum() / n
+    let n = sum_all(mask.clone()).clamp_min(1.0) * per as f32;
+    sum_all(e * mask) / n
 }
 
 /// Detection loss: MSE between the root likelihood `[B, 1, X, Y, Z]` and its Gaussian target, plus L1 between
@@ -46,7 +102,7 @@ pub fn detection_loss_weighted(
     mask: Tensor<2>,
     offset_weight: f32,
 ) -> Tensor<1> {
-    let mse = (likelihood - target).powi_scalar(2).mean();
+    let mse = mean_all((likelihood - target).powi_scalar(2));
     let [b, _, x, y, z] = offset.dims();
     let flat = offset.reshape([b, 3, x * y * z]);
     let idx = voxels.unsqueeze_dim::<3>(1).repeat_dim(1, 3); // [B, 3, R]
@@ -100,8 +156,8 @@ pub fn mesh_2d_loss(
         .float(); // [B, K, N, 2]
     let inside = ok.clone().narrow(3, 0, 1) * ok.narrow(3, 1, 1); // [B, K, N, 1]
     let w = inside * mask.clone().reshape([b, k, 1, 1]);
-    let err = ((uv - gt_uv).abs() * w.clone()).sum();
-    err / (w.sum() * 2.0).clamp_min(1.0)
+    let err = sum_all((uv - gt_uv).abs() * w.clone());
+    err / (sum_all(w) * 2.0).clamp_min(1.0)
 }
 
 /// The orientation vector `O = (J_lhip - J_rhip) x (J_spine1 - J_pelvis)` of joints `[B, K, J, 3]` in SMPL-X
@@ -188,7 +244,7 @@ pub fn heatmap_loss(pred: Tensor<5>, target: Tensor<5>, weight: Tensor<3>) -> Te
         .reshape([b, v, j, h * w])
         .mean_dim(3)
         .reshape([b, v, j]);
-    (per_joint * weight).mean()
+    mean_all(per_joint * weight)
 }
 
 /// Gaussian heatmap targets `[J, H, W]` (flat) of one view for joints at network pixels `(u, v)`, on maps of

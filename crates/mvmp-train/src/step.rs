@@ -152,9 +152,8 @@ pub fn detection_term(
         .clone()
         .detach()
         .reshape([b, cfg.grid.num_voxels()]);
-    let peak: f32 = lik.clone().max_dim(1).mean().into_scalar();
-    let at: f32 = (lik.gather(1, vox.clone()) * maskt.clone())
-        .sum()
+    let peak: f32 = mvmp_losses::mean_all(mvmp_losses::max_rows(lik.clone())).into_scalar();
+    let at: f32 = mvmp_losses::sum_all(lik.gather(1, vox.clone()) * maskt.clone())
         .into_scalar::<f32>()
         / mask.iter().sum::<f32>().max(1.0);
     let loss = detection_loss_weighted(
