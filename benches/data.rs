@@ -12,6 +12,10 @@ use mvmp::data::synth::{SynthConfig, generate, look_at};
 use nalgebra::Vector3;
 use rand::SeedableRng;
 
+// The allocator of the `mvmp` binary, so that the figures are the binary's.
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 fn bench(c: &mut Criterion) {
     let model = mvmp::smplx::standin_model(0);
     let poser = Poser::new(&model);

@@ -3,7 +3,7 @@
 //! Blocks with 30 queries over that volume. CPU flex backend. Run: `cargo bench --bench fusion`.
 //! Targets (DESIGN.md): sampling + fusion from cached grids <= 140 ms; peak memory of the step <= 1.5x one
 //! fused volume. Peak memory is measured with a counting allocator around one call, outside criterion.
-use std::alloc::{GlobalAlloc, Layout, System};
+use std::alloc::{GlobalAlloc, Layout};
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 use burn::tensor::{Bool, Device, Tensor, TensorData};
@@ -13,13 +13,14 @@ use mvmp::fusion::{FusionMode, SamplingGrid, fuse_views};
 use mvmp::geom::{Camera, Letterbox, VoxelGrid};
 use nalgebra::{Matrix3, Vector3};
 
+/// Counts bytes over mimalloc, the allocator of the `mvmp` binary.
 struct Counting;
 static CURRENT: AtomicUsize = AtomicUsize::new(0);
 static PEAK: AtomicUsize = AtomicUsize::new(0);
 
 unsafe impl GlobalAlloc for Counting {
     unsafe fn alloc(&self, l: Layout) -> *mut u8 {
-        let p = unsafe { System.alloc(l) };
+        let p = unsafe { mimalloc::MiMalloc.alloc(l) };
         if !p.is_null() {
             let now = CURRENT.fetch_add(l.size(), Ordering::Relaxed) + l.size();
             PEAK.fetch_max(now, Ordering::Relaxed);
@@ -27,7 +28,7 @@ unsafe impl GlobalAlloc for Counting {
         p
     }
     unsafe fn dealloc(&self, p: *mut u8, l: Layout) {
-        unsafe { System.dealloc(p, l) };
+        unsafe { mimalloc::MiMalloc.dealloc(p, l) };
         CURRENT.fetch_sub(l.size(), Ordering::Relaxed);
     }
 }

@@ -5,6 +5,10 @@ use criterion::{Criterion, criterion_group, criterion_main};
 use mvmp::geom::{Camera, CameraTensors, Letterbox};
 use nalgebra::{Matrix3, Vector3};
 
+// The allocator of the `mvmp` binary, so that the figures are the binary's.
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 fn rig(n: usize) -> Vec<Camera> {
     (0..n)
         .map(|i| {

@@ -4,6 +4,10 @@ use burn::tensor::{Device, Tensor, TensorData};
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 use mvmp::smplx::{SmplxLayer, Translation, standin_model};
 
+// The allocator of the `mvmp` binary, so that the figures are the binary's.
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 fn bench(c: &mut Criterion) {
     let device = Device::flex();
     let layer = SmplxLayer::new(&standin_model(0), &device);

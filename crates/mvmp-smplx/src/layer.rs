@@ -48,8 +48,9 @@ pub struct SmplxLayer {
     j_template: Tensor<2>,
     /// `[B+E, 55*3]` joint displacement per shape/expression unit.
     j_shapedirs: Tensor<2>,
-    /// `[486, 3*V]`, planar.
-    posedirs: Tensor<2>,
+    /// `[3*V, 486]`, planar rows: the pose-corrective GEMM runs as `[3V, 486] x [486, N]`, which flex's GEMM
+    /// does 1.7x faster than the skinny `[N, 486] x [486, 3V]` (8.0 vs 13.4 ms at N = 30).
+    posedirs_t: Tensor<2>,
     /// `[55, V]` skinning weights, transposed.
     weights_t: Tensor<2>,
     /// Extra joints as weighted sums of 3 vertices each: `[3X]` vertex indices and `[1, X, 3, 1]` weights.
@@ -114,14 +115,14 @@ impl SmplxLayer {
         let j_sd: Vec<f32> = (0..nc)
             .flat_map(|ci| regress(&sd[ci * v * 3..(ci + 1) * v * 3]))
             .collect();
-        // posedirs [V, 3, 486] -> [486, 3*V] planar.
+        // posedirs [V, 3, 486] -> [3*V, 486], rows planar (all x, then y, then z).
         let p = NUM_POSE_JOINTS * 9;
         let mut pd = vec![0f32; p * v * 3];
         for vi in 0..v {
             for a in 0..3 {
-                for q in 0..p {
-                    pd[q * v * 3 + a * v + vi] = model.posedirs[(vi * 3 + a) * p + q];
-                }
+                let row = a * v + vi;
+                pd[row * p..(row + 1) * p]
+                    .copy_from_slice(&model.posedirs[(vi * 3 + a) * p..(vi * 3 + a + 1) * p]);
             }
         }
         // Extra joints as rows over vertices.
@@ -204,7 +205,7 @@ impl SmplxLayer {
             shapedirs: f2(planar(&sd, nc), [nc, v * 3]),
             j_template: f2(j_template, [1, NUM_JOINTS * 3]),
             j_shapedirs: f2(j_sd, [nc, NUM_JOINTS * 3]),
-            posedirs: f2(pd, [p, v * 3]),
+            posedirs_t: f2(pd, [v * 3, p]),
             weights_t: f2(weights_t, [NUM_JOINTS, v]),
             extra_weight: Tensor::from_data(
                 TensorData::new(extra_weight, [1, nx.max(1), 3, 1]),
@@ -281,7 +282,8 @@ impl SmplxLayer {
         let eye = Tensor::<2>::eye(3, &self.device).reshape([1, 1, 3, 3]);
         let feat =
             (rot.clone().narrow(1, 1, NUM_POSE_JOINTS) - eye).reshape([n, NUM_POSE_JOINTS * 9]);
-        let v_posed = (v_shaped + feat.matmul(self.posedirs.clone())).reshape([n, 3, v]); // planar
+        let correctives = self.posedirs_t.clone().matmul(feat.transpose()).transpose(); // [N, 3V]
+        let v_posed = (v_shaped + correctives).reshape([n, 3, v]); // planar
 
         // Kinematic chain, one tree level at a time.
         let parent_rest = joints_rest.clone().select(1, self.parents.clone());
@@ -320,18 +322,12 @@ impl SmplxLayer {
             .reshape([n, NUM_JOINTS, 12])
             .permute([2, 0, 1])
             .reshape([12 * n, NUM_JOINTS]);
-        let t = a.matmul(self.weights_t.clone()).reshape([12, n, v]);
-        let c = |k: usize| t.clone().narrow(0, k, 1).reshape([n, v]);
-        let x = v_posed.clone().narrow(1, 0, 1).reshape([n, v]);
-        let y = v_posed.clone().narrow(1, 1, 1).reshape([n, v]);
-        let z = v_posed.narrow(1, 2, 1).reshape([n, v]);
-        let out = |r: usize| {
-            c(4 * r) * x.clone()
-                + c(4 * r + 1) * y.clone()
-                + c(4 * r + 2) * z.clone()
-                + c(4 * r + 3)
-        };
-        let mut verts = Tensor::stack::<3>(vec![out(0), out(1), out(2)], 2); // [N, V, 3]
+        let t = a.matmul(self.weights_t.clone()).reshape([3, 4, n, v]);
+        // Apply them to the homogeneous posed vertices [4, N, V]: one broadcast product and one sum over
+        // the 4 columns (half the time of 12 plane-by-plane products and adds).
+        let ones = Tensor::<3>::ones([1, n, v], &self.device);
+        let vh = Tensor::cat(vec![v_posed.swap_dims(0, 1), ones], 0).reshape([1, 4, n, v]);
+        let mut verts = (t * vh).sum_dim(1).reshape([3, n, v]).permute([1, 2, 0]); // [N, V, 3]
         let mut joints = posed_joints;
         if self.num_extra > 0 {
             let x = self.num_extra;
