@@ -734,6 +734,103 @@ fn train_eval_infer_end_to_end() {
         ],
         &["small.png", "10x10", "96x64"],
     );
+
+    // The same run on a Human3.6M tree read in place (the data crate's fixtures: S9 "Walking", 5 pose
+    // rows; images of the first two cameras at the dataset's sizes), with pseudo-ground-truth fits taken
+    // from the run's own predictions on those frames.
+    use mvmp_data::h36m::{CAMERAS, RESOLUTIONS, camera_file, image_file, pose_file};
+    let h36m = dir.path().join("h36m");
+    let fixtures = Path::new(env!("CARGO_MANIFEST_DIR")).join("../mvmp-data/tests/fixtures/h36m");
+    std::fs::create_dir_all(&h36m).unwrap();
+    std::fs::copy(fixtures.join("camera-parameters.json"), camera_file(&h36m)).unwrap();
+    let pf = pose_file(&h36m, "S9", "Walking");
+    std::fs::create_dir_all(pf.parent().unwrap()).unwrap();
+    std::fs::copy(fixtures.join("pose_float_one_record.cdf"), pf).unwrap();
+    for (cam, (w, h)) in CAMERAS.iter().zip(RESOLUTIONS).take(2) {
+        for row in 0..5 {
+            let f = image_file(&h36m, "S9", "Walking", cam, row);
+            std::fs::create_dir_all(f.parent().unwrap()).unwrap();
+            image::RgbImage::from_pixel(w, h, image::Rgb([90, 100, 110]))
+                .save(f)
+                .unwrap();
+        }
+    }
+    let report = p("h36m.json");
+    let o = mvmp(&[
+        "eval",
+        "--run",
+        &p("run"),
+        "--format",
+        "h36m",
+        "--data",
+        h36m.to_str().unwrap(),
+        "--split",
+        "S9",
+        "--stride",
+        "2",
+        "--views",
+        "2",
+        "--out",
+        &report,
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let r: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    assert_eq!(r["dataset"], "human3.6m");
+    assert_eq!(r["stride"], 2);
+    assert_eq!(r["ground_truth_people"], 3);
+    assert!(r["meshes"].as_str().unwrap().starts_with("none"));
+    assert_eq!(r["protocol"]["joint_set"], "h36m17");
+    // Fits at every scored frame: a mesh per person, so PVE is reported when people are matched.
+    for row in [0usize, 2, 4] {
+        let d = dir.path().join(format!("fits/S9/Walking/{:06}", row + 1));
+        std::fs::create_dir_all(&d).unwrap();
+        std::fs::copy(f.join("people.npz"), d.join("people.npz")).unwrap();
+    }
+    let o = mvmp(&[
+        "eval",
+        "--run",
+        &p("run"),
+        "--format",
+        "h36m",
+        "--data",
+        h36m.to_str().unwrap(),
+        "--split",
+        "S9",
+        "--stride",
+        "2",
+        "--views",
+        "2",
+        "--gate",
+        "100",
+        "--out",
+        &report,
+        "--pseudo-gt",
+        &p("fits"),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let r: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    assert!(
+        r["meshes"].as_str().unwrap().contains("3 of 3"),
+        "{}",
+        r["meshes"]
+    );
+    assert_eq!(r["matched"], 3);
+    assert!(r["pve_mm"].as_f64().is_some_and(f64::is_finite), "{r}");
+    // --pseudo-gt and --stride belong to the joint datasets.
+    expect_error(
+        &[
+            "eval",
+            "--run",
+            &p("run"),
+            "--data",
+            &p("ds"),
+            "--stride",
+            "2",
+        ],
+        &["--stride", "panoptic and h36m"],
+    );
 }
 
 #[test]
