@@ -100,14 +100,7 @@ pub fn check(format: &str, dir: &Path) -> Result<()> {
         r.people,
         r.images
     );
-    if r.problems.is_empty() {
-        println!("no problems found");
-        return Ok(());
-    }
-    for p in &r.problems {
-        println!("{}: {}", p.path.display(), p.what);
-    }
-    anyhow::bail!("{} problem(s) found in {}", r.problems.len(), dir.display())
+    report_problems(&r.problems, dir)
 }
 
 fn check_panoptic(dir: &Path) -> Result<()> {
@@ -121,14 +114,7 @@ fn check_panoptic(dir: &Path) -> Result<()> {
     for (name, c, f, p) in &r.sequences {
         println!("  {name}: {c} cameras, {f} frames, {p} people with an annotated root");
     }
-    if r.problems.is_empty() {
-        println!("no problems found");
-        return Ok(());
-    }
-    for p in &r.problems {
-        println!("{}: {}", p.path.display(), p.what);
-    }
-    anyhow::bail!("{} problem(s) found in {}", r.problems.len(), dir.display())
+    report_problems(&r.problems, dir)
 }
 
 fn check_h36m(dir: &Path) -> Result<()> {
@@ -149,12 +135,17 @@ fn check_h36m(dir: &Path) -> Result<()> {
         }
         println!("    {action}: {c} cameras, {f} frames, {complete} with every camera's image");
     }
-    if r.problems.is_empty() {
+    report_problems(&r.problems, dir)
+}
+
+/// Print every problem with its file; an error (non-zero exit) when there are any.
+fn report_problems(problems: &[mvmp_data::check::Problem], dir: &Path) -> Result<()> {
+    if problems.is_empty() {
         println!("no problems found");
         return Ok(());
     }
-    for p in &r.problems {
+    for p in problems {
         println!("{}: {}", p.path.display(), p.what);
     }
-    anyhow::bail!("{} problem(s) found in {}", r.problems.len(), dir.display())
+    anyhow::bail!("{} problem(s) found in {}", problems.len(), dir.display())
 }

@@ -628,6 +628,36 @@ fn pseudo_layer(args: &EvalArgs, pred: &Predictor, device: &Device) -> Result<Op
     }))
 }
 
+/// The progress bar of an evaluation, made once the frame count is known.
+struct EvalProgress {
+    quiet: bool,
+    bar: Option<ProgressBar>,
+}
+
+impl EvalProgress {
+    fn new(quiet: bool) -> Self {
+        EvalProgress { quiet, bar: None }
+    }
+
+    fn step(&mut self, i: usize, n: usize) {
+        let quiet = self.quiet;
+        let b = self.bar.get_or_insert_with(|| {
+            if quiet {
+                ProgressBar::hidden()
+            } else {
+                bar(n, "eval")
+            }
+        });
+        b.set_position(i as u64 + 1);
+    }
+
+    fn finish(self) {
+        if let Some(b) = self.bar {
+            b.finish_and_clear();
+        }
+    }
+}
+
 fn meshes_note(args: &EvalArgs, count: mvmp_train::predict::PseudoGtCount) -> serde_json::Value {
     match args.pseudo_gt {
         None => {
@@ -668,7 +698,7 @@ fn eval_h36m(
         dir: args.pseudo_gt.expect("set with the layer"),
         layer,
     });
-    let mut pb: Option<ProgressBar> = None;
+    let mut pb = EvalProgress::new(quiet);
     let (ev, count) = mvmp_train::predict::evaluate_h36m(
         &pred,
         args.data,
@@ -678,20 +708,9 @@ fn eval_h36m(
         args.frames,
         args.gate,
         pseudo.as_ref(),
-        |i, n| {
-            let b = pb.get_or_insert_with(|| {
-                if quiet {
-                    ProgressBar::hidden()
-                } else {
-                    bar(n, "eval")
-                }
-            });
-            b.set_position(i as u64 + 1);
-        },
+        |i, n| pb.step(i, n),
     )?;
-    if let Some(b) = pb {
-        b.finish_and_clear();
-    }
+    pb.finish();
     let header = json!({
         "source": run_source(&run, &weights)?,
         "data": absolute(args.data),
@@ -752,7 +771,7 @@ fn eval_panoptic(
         dir: args.pseudo_gt.expect("set with the layer"),
         layer,
     });
-    let mut pb: Option<ProgressBar> = None;
+    let mut pb = EvalProgress::new(quiet);
     let (ev, count) = mvmp_train::predict::evaluate_panoptic(
         &pred,
         args.data,
@@ -762,20 +781,9 @@ fn eval_panoptic(
         args.frames,
         args.gate,
         pseudo.as_ref(),
-        |i, n| {
-            let b = pb.get_or_insert_with(|| {
-                if quiet {
-                    ProgressBar::hidden()
-                } else {
-                    bar(n, "eval")
-                }
-            });
-            b.set_position(i as u64 + 1);
-        },
+        |i, n| pb.step(i, n),
     )?;
-    if let Some(b) = pb {
-        b.finish_and_clear();
-    }
+    pb.finish();
     let header = json!({
         "source": run_source(&run, &weights)?,
         "data": absolute(args.data),
