@@ -328,11 +328,13 @@ pub fn check_tree(root: &Path, cameras: &[&str]) -> H36mReport {
             let seq = match H36mSequence::open(root, &subject, &action, cameras, 1) {
                 Ok(s) => s,
                 Err(e) => {
-                    let path = match &e {
-                        DataError::File { path, .. } | DataError::Io { path, .. } => path.clone(),
-                        _ => pose_file(root, &subject, &action),
+                    // The problem line names the file once.
+                    let (path, what) = match &e {
+                        DataError::File { path, what } => (path.clone(), what.clone()),
+                        DataError::Io { path, source } => (path.clone(), source.to_string()),
+                        _ => (pose_file(root, &subject, &action), e.to_string()),
                     };
-                    problem(&mut report, &path, e.to_string());
+                    problem(&mut report, &path, what);
                     continue;
                 }
             };
