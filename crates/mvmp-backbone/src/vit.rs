@@ -258,6 +258,13 @@ impl ViT {
 
     /// `[B, 3, H, W]` -> `[B, C, H/14, W/14]`.
     pub fn forward(&self, images: Tensor<4>) -> Tensor<4> {
+        let (x, [h0, w0]) = self.forward_tokens(images);
+        let [b, _, c] = x.dims();
+        x.swap_dims(1, 2).reshape([b, c, h0, w0])
+    }
+
+    /// `[B, 3, H, W]` -> the patch tokens `[B, (H/14) (W/14), C]` (row-major) and the patch grid `[h, w]`.
+    pub fn forward_tokens(&self, images: Tensor<4>) -> (Tensor<3>, [usize; 2]) {
         let x = self.patch_embed.proj.forward(images); // [B, C, h0, w0]
         let [b, c, h0, w0] = x.dims();
         let tokens = x.reshape([b, c, h0 * w0]).swap_dims(1, 2); // [B, N, C]
@@ -267,6 +274,6 @@ impl ViT {
             x = blk.forward(x);
         }
         let x = self.norm.forward(x).narrow(1, 1, h0 * w0); // drop the class token
-        x.swap_dims(1, 2).reshape([b, c, h0, w0])
+        (x, [h0, w0])
     }
 }

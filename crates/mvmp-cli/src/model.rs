@@ -127,7 +127,7 @@ pub fn bench(config: &Path, views: usize, iters: usize, device: &Device) -> Resu
             .map_or(0.0, |r| r.macs)
     };
     let mut rows: Vec<(&str, f64, f64)> = Vec::new();
-    let (feats, t) = time(iters, || net.reduce.forward(net.vit.forward(x.clone())));
+    let (feats, t) = time(iters, || net.view_features(x.clone()));
     rows.push(("vit+reduce", t, macs("vit") + macs("reduce")));
     let (hm, t) = time(iters, || net.hrnet.forward(x.clone()));
     rows.push(("hrnet", t, macs("hrnet")));

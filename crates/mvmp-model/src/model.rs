@@ -135,6 +135,27 @@ pub struct Detection {
 }
 
 impl MvmpHmr {
+    /// Per-view features for the volume: the ViT's patch tokens reduced to `feature_channels` by the 1x1
+    /// `reduce` layer, `[B*V, 3, S, S]` -> `[B*V, Cf, h, w]`.
+    ///
+    /// The 1x1 convolution is computed as the matrix product it is, on the tokens, with the layer's own
+    /// weight and bias (so checkpoints are unchanged). As a convolution its input would be the tokens
+    /// without the class token, a view whose batch stride is `(N + 1) C`; burn-cubecl 0.22.1's
+    /// `conv_im2col_1x1` kernel checks only the spatial strides before folding batch and positions into
+    /// one axis, so when autotune picks it (it did on a fresh kernel cache) every batch item after the
+    /// first reads shifted tokens.
+    pub fn view_features(&self, x: Tensor<4>) -> Tensor<4> {
+        let (tokens, [h, w]) = self.vit.forward_tokens(x);
+        let [n, _, c] = tokens.dims();
+        let cf = self.reduce.weight.dims()[0];
+        let weight = self.reduce.weight.val().reshape([cf, c]).transpose();
+        let mut out = tokens.matmul(weight.unsqueeze::<3>()); // [B*V, h*w, Cf]
+        if let Some(bias) = &self.reduce.bias {
+            out = out + bias.val().reshape([1, 1, cf]);
+        }
+        out.swap_dims(1, 2).reshape([n, cf, h, w])
+    }
+
     /// The detection branch alone: HRNet heatmaps, their mean fusion and the RootNet.
     pub fn detect(&self, images: Tensor<5>, grids: &[RigGrids]) -> Detection {
         let [b, v, _, s, _] = images.dims();
@@ -185,7 +206,7 @@ impl MvmpHmr {
     ) -> MvmpOutput {
         let [b, v, _, s, _] = images.dims();
         let x = images.clone().reshape([b * v, 3, s, s]);
-        let feats = self.reduce.forward(self.vit.forward(x)); // [B*V, Cf, h, w]
+        let feats = self.view_features(x); // [B*V, Cf, h, w]
         let [_, cf, h, w] = feats.dims();
         let feats = feats.reshape([b, v, cf, h, w]);
         let fgrids: Vec<SamplingGrid> = grids.iter().map(|g| g.features.clone()).collect();

@@ -190,3 +190,33 @@ fn every_shipped_config_builds_and_summarises() {
         }
     }
 }
+
+/// The per-view features are the 1x1 `reduce` convolution of the ViT's feature map, computed as a matrix
+/// product on the tokens: both ways agree (float32 summation order only).
+#[test]
+fn view_features_equal_the_reduce_convolution() {
+    let d = Device::default();
+    let net = small_config().init(&d);
+    let x = images(&d).reshape([2, 3, 64, 64]);
+    let conv: Vec<f32> = net
+        .reduce
+        .forward(net.vit.forward(x.clone()))
+        .into_data()
+        .try_to_vec::<f32>()
+        .unwrap();
+    let feats = net.view_features(x);
+    assert_eq!(feats.dims()[0], 2);
+    let mm: Vec<f32> = feats.into_data().try_to_vec::<f32>().unwrap();
+    assert_eq!(conv.len(), mm.len());
+    let scale = conv.iter().fold(0f32, |m, x| m.max(x.abs()));
+    let diff = conv
+        .iter()
+        .zip(&mm)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0f32, f32::max);
+    assert!(scale > 1e-3, "features are not all zero");
+    assert!(
+        diff <= 1e-5 * scale,
+        "largest difference {diff} (scale {scale})"
+    );
+}
