@@ -3,7 +3,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use burn::tensor::Device;
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -142,13 +142,21 @@ pub fn train(args: TrainArgs, device: &Device, monitor: &mut BarMonitor) -> Resu
             if let Some(d) = args.data {
                 cfg.data = Some(d.to_string_lossy().into_owned());
             }
-            let data = cfg.data.clone().with_context(|| {
-                format!(
-                    "training config {}: key `data` is not set; pass --data DIR",
+            if cfg.data.is_none() && cfg.sources.is_empty() {
+                anyhow::bail!(
+                    "training config {}: no training data: set `data` or add [[sources]], or pass --data DIR",
                     config.display()
-                )
-            })?;
-            mvmp_data::DatasetLayout::open(Path::new(&data))?;
+                );
+            }
+            // Open every source now (their files, splits and cameras), before a run directory is made.
+            let set = mvmp_train::open_training_set(&cfg, &model, config)?;
+            let counts: Vec<String> = cfg
+                .training_sources()
+                .iter()
+                .zip(&set.parts)
+                .map(|(s, p)| format!("{} {} ({} frames)", s.format.name(), s.root, p.len()))
+                .collect();
+            eprintln!("training on {}", counts.join(", "));
             let out = match args.out {
                 Some(o) => o.to_path_buf(),
                 None => {
@@ -156,7 +164,7 @@ pub fn train(args: TrainArgs, device: &Device, monitor: &mut BarMonitor) -> Resu
                     PathBuf::from("out/runs").join(stem)
                 }
             };
-            let run = RunDir::create(&out, &cfg, &model, Path::new(&data))?;
+            let run = RunDir::create(&out, &cfg, &model, None)?;
             eprintln!("run directory {}", out.display());
             let (run2, cfg, model) = RunDir::open(&run.root)?;
             (run2, cfg, model)

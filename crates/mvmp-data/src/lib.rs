@@ -7,6 +7,7 @@ pub mod h36m;
 pub mod layout;
 pub mod loader;
 pub mod panoptic;
+pub mod sources;
 pub mod stats;
 pub mod synth;
 

@@ -7,13 +7,11 @@ use burn::data::dataloader::batcher::Batcher;
 use burn::data::dataset::{Dataset, DatasetError};
 use burn::tensor::{Bool, Device, Tensor, TensorData};
 use nalgebra::{Vector2, Vector3};
-use rand::SeedableRng;
-use rand::seq::SliceRandom;
-use rand_chacha::ChaCha8Rng;
 
 use crate::DataError;
 use crate::layout::{Annotation, DatasetLayout, FrameRef};
 use mvmp_geom::{Camera, Letterbox};
+use mvmp_smplx::names::NUM_JOINTS_WITH_LANDMARKS;
 
 /// ImageNet normalisation (RGB).
 pub const IMAGENET_MEAN: [f32; 3] = [0.485, 0.456, 0.406];
@@ -88,6 +86,11 @@ pub struct PersonGt {
     pub joints_3d: Vec<[f32; 3]>,
     /// Per selected view, `[J][3]`: network-pixel u, v and visibility.
     pub joints_2d: Vec<Vec<[f32; 3]>>,
+    /// `[J]`: 1 where the joint is annotated (every joint of an MVMP-HMR person; a joint-annotated dataset
+    /// fills only the slots of its joint set).
+    pub joint_valid: Vec<f32>,
+    /// Whether `pose`, `betas` and `expression` are ground truth (false: joints only, the rest zero).
+    pub smplx: bool,
 }
 
 /// One training sample: a frame seen by the selected views.
@@ -102,6 +105,8 @@ pub struct FrameSample {
     pub cameras: Vec<Camera>,
     pub letterboxes: Vec<Letterbox>,
     pub people: Vec<PersonGt>,
+    /// `[J]`: the joints this sample's dataset annotates (its 2D heatmaps are supervised only for these).
+    pub cover: Vec<bool>,
 }
 
 /// A burn dataset over the frames of some scenes.
@@ -177,20 +182,8 @@ impl FrameDataset {
     }
 
     fn select_views(&self, index: usize, available: usize) -> Vec<usize> {
-        match &self.views {
-            ViewChoice::Fixed(v) => v.clone(),
-            ViewChoice::Random { count, seed } => {
-                let epoch = self.epoch.load(std::sync::atomic::Ordering::Relaxed);
-                let mut rng = ChaCha8Rng::seed_from_u64(
-                    seed ^ epoch.wrapping_mul(0x9E37_79B9_7F4A_7C15)
-                        ^ (index as u64).wrapping_mul(0xD6E8_FEB8_6659_FD93),
-                );
-                let mut all: Vec<usize> = (0..available).collect();
-                all.shuffle(&mut rng);
-                all.truncate(*count);
-                all
-            }
-        }
+        let epoch = self.epoch.load(std::sync::atomic::Ordering::Relaxed);
+        crate::sources::select_views(&self.views, epoch, index, available)
     }
 
     /// Load sample `index`.
@@ -227,7 +220,7 @@ impl FrameDataset {
             cameras.push(cam);
             letterboxes.push(lb);
         }
-        let people = ann
+        let people: Vec<PersonGt> = ann
             .people
             .iter()
             .map(|p| {
@@ -258,7 +251,9 @@ impl FrameDataset {
                     expression: f32s(&p.smplx.expression, 10).try_into().expect("10 values"),
                     pelvis: p.pelvis.map(|x| x as f32),
                     joints_3d: p.joints_3d.iter().map(|j| j.map(|x| x as f32)).collect(),
+                    joint_valid: vec![1.0; p.joints_3d.len()],
                     joints_2d,
+                    smplx: true,
                 }
             })
             .collect();
@@ -269,6 +264,12 @@ impl FrameDataset {
             size: s,
             cameras,
             letterboxes,
+            cover: vec![
+                true;
+                people
+                    .first()
+                    .map_or(NUM_JOINTS_WITH_LANDMARKS, |p| p.joints_3d.len())
+            ],
             people,
         })
     }
@@ -329,6 +330,12 @@ pub struct FrameBatch {
     pub joints_3d: Tensor<4>,
     /// `[B, V, P, J, 3]` network-pixel joints with visibility.
     pub joints_2d: Tensor<5>,
+    /// `[B, P, J]` 1 where a joint is annotated.
+    pub joint_valid: Tensor<3>,
+    /// `[B, P]` 1 where the person has SMPL-X ground truth (pose, betas, expression, vertices).
+    pub smplx: Tensor<2>,
+    /// `[B, J]` 1 for the joints the sample's dataset annotates.
+    pub cover: Tensor<2>,
     /// `[B, P, V, 3]` ground-truth vertices (world metres) when the batcher was asked for them.
     pub vertices: Option<Tensor<4>>,
     /// Number of people per sample.
@@ -391,8 +398,14 @@ impl Batcher<FrameSample, FrameBatch> for FrameBatcher {
         let mut pelvis = vec![0f32; b * p * 3];
         let mut j3 = vec![0f32; b * p * j * 3];
         let mut j2 = vec![0f32; b * v * p * j * 3];
+        let mut valid = vec![0f32; b * p * j];
+        let mut smplx = vec![0f32; b * p];
+        let mut cover = vec![0f32; b * j];
         for (bi, it) in items.iter().enumerate() {
             images.extend_from_slice(&it.images);
+            for (ji, &c) in it.cover.iter().enumerate().take(j) {
+                cover[bi * j + ji] = if c { 1.0 } else { 0.0 };
+            }
             for (pi, q) in it.people.iter().enumerate() {
                 let k = bi * p + pi;
                 mask[k] = true;
@@ -400,6 +413,10 @@ impl Batcher<FrameSample, FrameBatch> for FrameBatcher {
                 betas[k * 10..(k + 1) * 10].copy_from_slice(&q.betas);
                 expr[k * 10..(k + 1) * 10].copy_from_slice(&q.expression);
                 pelvis[k * 3..(k + 1) * 3].copy_from_slice(&q.pelvis);
+                smplx[k] = if q.smplx { 1.0 } else { 0.0 };
+                for (ji, &x) in q.joint_valid.iter().enumerate().take(j) {
+                    valid[k * j + ji] = x;
+                }
                 for (ji, x) in q.joints_3d.iter().enumerate().take(j) {
                     j3[(k * j + ji) * 3..(k * j + ji) * 3 + 3].copy_from_slice(x);
                 }
@@ -412,7 +429,9 @@ impl Batcher<FrameSample, FrameBatch> for FrameBatcher {
             }
         }
         let t = |data: Vec<f32>, shape: Vec<usize>| TensorData::new(data, shape);
-        let vertices = self.body.as_ref().map(|model| {
+        // Only people with SMPL-X ground truth have vertices; a batch of joint-annotated frames needs none.
+        let any_smplx = smplx.iter().any(|&x| x > 0.0);
+        let vertices = self.body.as_ref().filter(|_| any_smplx).map(|model| {
             let layer = self.layer(model, device);
             let n = b * p;
             let out = layer.forward_axis_angle(
@@ -437,6 +456,9 @@ impl Batcher<FrameSample, FrameBatch> for FrameBatcher {
             pelvis: Tensor::from_data(t(pelvis, vec![b, p, 3]), device),
             joints_3d: Tensor::from_data(t(j3, vec![b, p, j, 3]), device),
             joints_2d: Tensor::from_data(t(j2, vec![b, v, p, j, 3]), device),
+            joint_valid: Tensor::from_data(t(valid, vec![b, p, j]), device),
+            smplx: Tensor::from_data(t(smplx, vec![b, p]), device),
+            cover: Tensor::from_data(t(cover, vec![b, j]), device),
             counts: items.iter().map(|i| i.people.len()).collect(),
             names: items
                 .iter()

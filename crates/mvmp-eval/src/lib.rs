@@ -7,7 +7,8 @@
 //! (VoxelPose's protocol: predictions by descending score, each to its nearest-by-MPJPE ground truth, a true
 //! positive when below the threshold and that person is not yet claimed; interpolated precision) and the
 //! recall at 500 mm (distinct people reached within 500 mm).
-pub mod joint_sets;
+/// The joint sets of joint-annotated datasets (defined with the SMPL-X joint names).
+pub use mvmp_smplx::joint_sets;
 
 use std::collections::BTreeMap;
 

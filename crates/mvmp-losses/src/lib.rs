@@ -131,6 +131,15 @@ pub fn mesh_3d_loss(points: Tensor<4>, gt: Tensor<4>, mask: Tensor<2>) -> Tensor
     masked_mean((points - gt).abs(), mask)
 }
 
+/// 3D mesh loss with a weight per point `[B, K, N]` (1 where the ground-truth point is annotated, 0 for
+/// padding and for joints a dataset does not annotate): the L1 mean over the supervised coordinates. With
+/// every point of a valid pair weighted 1 it equals [`mesh_3d_loss`].
+pub fn mesh_3d_loss_weighted(points: Tensor<4>, gt: Tensor<4>, weight: Tensor<3>) -> Tensor<1> {
+    let [b, k, n, _] = points.dims();
+    let w = weight.reshape([b, k, n, 1]);
+    sum_all((points - gt).abs() * w.clone()) / (sum_all(w) * 3.0).clamp_min(1.0)
+}
+
 /// 2D mesh loss of one view: predicted world points `[B, K, N, 3]` projected with each sample's camera
 /// (with its letterbox, into network pixels of an `S x S` input), L1 against ground-truth pixels
 /// `[B, K, N, 2]`, counting only ground-truth points inside the image (`0 <= u, v < S`) of valid pairs.
@@ -140,6 +149,20 @@ pub fn mesh_2d_loss(
     cameras: &[CameraTensors],
     size: f32,
     mask: Tensor<2>,
+) -> Tensor<1> {
+    let [b, k, n, _] = points.dims();
+    let weight = mask.reshape([b, k, 1]).repeat_dim(2, n);
+    mesh_2d_loss_weighted(points, gt_uv, cameras, size, weight)
+}
+
+/// [`mesh_2d_loss`] with a weight per point `[B, K, N]` instead of per pair (0 for points a dataset does
+/// not annotate).
+pub fn mesh_2d_loss_weighted(
+    points: Tensor<4>,
+    gt_uv: Tensor<4>,
+    cameras: &[CameraTensors],
+    size: f32,
+    weight: Tensor<3>,
 ) -> Tensor<1> {
     let [b, k, n, _] = points.dims();
     let uv: Vec<Tensor<3>> = (0..b)
@@ -155,7 +178,7 @@ pub fn mesh_2d_loss(
         .bool_and(gt_uv.clone().lower_elem(size))
         .float(); // [B, K, N, 2]
     let inside = ok.clone().narrow(3, 0, 1) * ok.narrow(3, 1, 1); // [B, K, N, 1]
-    let w = inside * mask.clone().reshape([b, k, 1, 1]);
+    let w = inside * weight.reshape([b, k, n, 1]);
     let err = sum_all((uv - gt_uv).abs() * w.clone());
     err / (sum_all(w) * 2.0).clamp_min(1.0)
 }

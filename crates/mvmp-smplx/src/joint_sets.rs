@@ -78,14 +78,14 @@ impl JointSet {
     pub fn smplx_indices(self) -> Vec<usize> {
         let table: &[(&str, &str)] = match self {
             JointSet::Smplx127 => {
-                return (0..mvmp_smplx::names::NUM_JOINTS_WITH_LANDMARKS).collect();
+                return (0..crate::names::NUM_JOINTS_WITH_LANDMARKS).collect();
             }
             JointSet::Panoptic15 => &PANOPTIC15,
             JointSet::H36m17 => &H36M17,
         };
         table
             .iter()
-            .map(|(_, s)| mvmp_smplx::names::joint_index(s).expect("a SMPL-X joint name"))
+            .map(|(_, s)| crate::names::joint_index(s).expect("a SMPL-X joint name"))
             .collect()
     }
 
@@ -106,7 +106,7 @@ impl JointSet {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use mvmp_smplx::names::joint_name;
+    use crate::names::joint_name;
 
     #[test]
     fn mappings_point_at_the_named_smplx_joints() {

@@ -2,6 +2,7 @@
 //! Unknown keys are rejected; every error names the key and the bad value.
 use std::path::{Path, PathBuf};
 
+use mvmp_data::sources::{SourceFormat, SourceSpec};
 use mvmp_losses::LossWeights;
 use mvmp_model::ModelConfig;
 use serde::{Deserialize, Serialize};
@@ -43,7 +44,8 @@ pub struct StageConfig {
 pub struct TrainConfig {
     /// Model config, relative to this file's directory (or absolute).
     pub model: String,
-    /// Dataset root in the mvmp layout, relative to the working directory; `--data` overrides it.
+    /// Dataset root in the mvmp layout, relative to the working directory; `--data` overrides it. Trains on
+    /// its train split, together with any `[[sources]]`.
     #[serde(default)]
     pub data: Option<String>,
     /// Seed of initialisation, data order and view choice.
@@ -72,6 +74,14 @@ pub struct TrainConfig {
     pub stage2: StageConfig,
     #[serde(default)]
     pub loss: LossWeights,
+    /// More training data: MVMP-HMR trees, CMU Panoptic or Human3.6M read in place (see
+    /// [`SourceSpec`]); their frames are shuffled together with `data`'s.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub sources: Vec<SourceSpec>,
+    /// The dataset validated on after every epoch (its `test` split unless it names one). Default: the
+    /// first MVMP-HMR source, else the first source.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub validation: Option<SourceSpec>,
 }
 
 fn one() -> usize {
@@ -165,11 +175,58 @@ impl TrainConfig {
                 "both 0: nothing to train".into(),
             ));
         }
+        for (i, src) in self.sources.iter().enumerate() {
+            if src.stride == Some(0) {
+                return Err(bad(
+                    &format!("sources[{i}].stride"),
+                    "0: keep every N-th frame with N >= 1".into(),
+                ));
+            }
+            if src.format == SourceFormat::Mvmp && (src.stride.is_some() || src.cameras.is_some()) {
+                return Err(bad(
+                    &format!("sources[{i}]"),
+                    "stride and cameras apply to panoptic and h36m sources; an mvmp source uses every frame".into(),
+                ));
+            }
+        }
         self.loss.validate().map_err(|what| TrainError::Config {
             path: path.into(),
             key: "loss".into(),
             what,
         })
+    }
+
+    /// The training sources: `data` (an MVMP-HMR tree, its train split) first, then `sources`.
+    pub fn training_sources(&self) -> Vec<SourceSpec> {
+        let mut out: Vec<SourceSpec> = self
+            .data
+            .iter()
+            .map(|d| SourceSpec {
+                format: SourceFormat::Mvmp,
+                root: d.clone(),
+                split: None,
+                stride: None,
+                cameras: None,
+            })
+            .collect();
+        out.extend(self.sources.iter().cloned());
+        out
+    }
+
+    /// The validation source: `validation`, else the first MVMP-HMR training source, else the first
+    /// training source (each on its test split unless `validation` names another).
+    pub fn validation_source(&self) -> Option<SourceSpec> {
+        if let Some(v) = &self.validation {
+            return Some(v.clone());
+        }
+        let all = self.training_sources();
+        all.iter()
+            .find(|s| s.format == SourceFormat::Mvmp)
+            .or(all.first())
+            .map(|s| SourceSpec {
+                split: None,
+                ..s.clone()
+            })
     }
 
     pub fn stage(&self, stage: u32) -> &StageConfig {

@@ -11,4 +11,7 @@ pub use config::{QueryMode, StageConfig, TrainConfig};
 pub use error::TrainError;
 pub use predict::{EvalOptions, PersonPrediction, Predictor, evaluate};
 pub use run::{RunDir, RunState};
-pub use train::{Monitor, Outcome, Quiet, StepRecord, TrainOptions, ValRecord, seeded_init, train};
+pub use train::{
+    Monitor, Outcome, Quiet, StepRecord, TrainOptions, ValRecord, open_training_set, seeded_init,
+    train,
+};

@@ -6,6 +6,7 @@ use burn::module::Module;
 use burn::tensor::{Device, Tensor};
 
 use mvmp_data::loader::{FrameBatch, FrameBatcher, FrameDataset, Split, ViewChoice};
+use mvmp_data::sources::JointAnnotated;
 use mvmp_eval::{Evaluator, PersonPose};
 use mvmp_fusion::{Root, extract_roots};
 use mvmp_geom::rotation::matrix_to_axis_angle;
@@ -459,85 +460,6 @@ pub fn mean_pose_at(layer: &SmplxLayer, pelvis: &[[f32; 3]]) -> Vec<PersonPose> 
     to_poses(out.joints, out.vertices, std::iter::repeat(1.0))
 }
 
-/// A sequence whose ground truth is 3D joints of a dataset's own joint set (CMU Panoptic, Human3.6M).
-pub trait JointSequence {
-    /// The name reports group by (a sequence, or subject/action).
-    fn name(&self) -> String;
-    /// The cameras, in the order of each frame's images.
-    fn cameras(&self) -> &[Camera];
-    fn len(&self) -> usize;
-    fn is_empty(&self) -> bool {
-        self.len() == 0
-    }
-    /// The image of every camera at frame `i`.
-    fn images(&self, i: usize) -> Vec<std::path::PathBuf>;
-    /// Frame `i`'s name in file layouts (predictions, pseudo-ground-truth): `<name>/<frame key>/`.
-    fn frame_key(&self, i: usize) -> String;
-    /// The annotated people at frame `i`, in the dataset's joint set (with per-joint validity).
-    fn people(&self, i: usize) -> Result<Vec<PersonPose>, TrainError>;
-}
-
-impl JointSequence for mvmp_data::panoptic::PanopticSequence {
-    fn name(&self) -> String {
-        self.name.clone()
-    }
-    fn cameras(&self) -> &[Camera] {
-        &self.rig.cameras
-    }
-    fn len(&self) -> usize {
-        self.frames.len()
-    }
-    fn images(&self, i: usize) -> Vec<std::path::PathBuf> {
-        self.frames[i].images.clone()
-    }
-    /// The 8-digit HD frame index of the file names.
-    fn frame_key(&self, i: usize) -> String {
-        self.frames[i].index.clone()
-    }
-    fn people(&self, i: usize) -> Result<Vec<PersonPose>, TrainError> {
-        use mvmp_data::panoptic::EVAL_JOINTS;
-        Ok(
-            mvmp_data::panoptic::PanopticSequence::people(self, &self.frames[i])?
-                .into_iter()
-                .map(|b| PersonPose {
-                    joints: b.joints[..EVAL_JOINTS].to_vec(),
-                    vertices: None,
-                    score: 1.0,
-                    valid: Some((0..EVAL_JOINTS).map(|j| b.valid(j)).collect()),
-                })
-                .collect(),
-        )
-    }
-}
-
-impl JointSequence for mvmp_data::h36m::H36mSequence {
-    fn name(&self) -> String {
-        mvmp_data::h36m::H36mSequence::name(self)
-    }
-    fn cameras(&self) -> &[Camera] {
-        &self.rig.cameras
-    }
-    fn len(&self) -> usize {
-        self.frames.len()
-    }
-    fn images(&self, i: usize) -> Vec<std::path::PathBuf> {
-        self.frames[i].images.clone()
-    }
-    /// The image number (6 digits, from 1) of the extracted video frames.
-    fn frame_key(&self, i: usize) -> String {
-        format!("{:06}", self.frames[i].row + 1)
-    }
-    /// One subject per frame, every joint annotated.
-    fn people(&self, i: usize) -> Result<Vec<PersonPose>, TrainError> {
-        Ok(vec![PersonPose {
-            joints: self.joints[i].to_vec(),
-            vertices: None,
-            score: 1.0,
-            valid: None,
-        }])
-    }
-}
-
 /// SMPL-X pseudo-ground-truth meshes for a joint-annotated dataset: `dir/<sequence>/<frame key>/people.npz`
 /// (infer's `people.npz` layout: the standard smplx keys), posed with `layer` (the body model the fits
 /// use). Each annotated person takes the mesh whose pelvis is nearest its root joint, within the gate.
@@ -559,9 +481,9 @@ pub struct PseudoGtCount {
 /// pseudo-ground-truth meshes (`pseudo`), for the people that have one. At most `max_frames` frames (0:
 /// all), in sequence order; `each(i, n)` after every frame.
 #[allow(clippy::too_many_arguments)]
-pub fn evaluate_joint_sequences<S: JointSequence>(
+pub fn evaluate_joint_sequences(
     pred: &Predictor,
-    seqs: &[S],
+    seqs: &[Box<dyn JointAnnotated>],
     set: mvmp_eval::joint_sets::JointSet,
     max_frames: usize,
     gate: f64,
@@ -628,7 +550,16 @@ pub fn evaluate_joint_sequences<S: JointSequence>(
                 pose
             })
             .collect();
-        let mut gt = seq.people(fi)?;
+        let mut gt: Vec<PersonPose> = seq
+            .people(fi)?
+            .into_iter()
+            .map(|p| PersonPose {
+                joints: p.joints,
+                vertices: None,
+                score: 1.0,
+                valid: Some(p.valid),
+            })
+            .collect();
         if let Some(p) = pseudo {
             let path = p
                 .dir
@@ -679,7 +610,7 @@ pub fn evaluate_panoptic(
     each: impl FnMut(usize, usize),
 ) -> Result<(Evaluator, PseudoGtCount), TrainError> {
     use mvmp_data::panoptic::PanopticSequence;
-    let mut seqs = Vec::new();
+    let mut seqs: Vec<Box<dyn JointAnnotated>> = Vec::new();
     for name in sequences {
         let dir = root.join(name);
         if !dir.is_dir() {
@@ -691,7 +622,7 @@ pub fn evaluate_panoptic(
                 ),
             ));
         }
-        seqs.push(PanopticSequence::open(&dir, cameras, stride)?);
+        seqs.push(Box::new(PanopticSequence::open(&dir, cameras, stride)?));
     }
     evaluate_joint_sequences(
         pred,
@@ -720,10 +651,10 @@ pub fn evaluate_h36m(
     each: impl FnMut(usize, usize),
 ) -> Result<(Evaluator, PseudoGtCount), TrainError> {
     use mvmp_data::h36m::{H36mSequence, actions};
-    let mut seqs = Vec::new();
+    let mut seqs: Vec<Box<dyn JointAnnotated>> = Vec::new();
     for s in subjects {
         for a in actions(root, s)? {
-            seqs.push(H36mSequence::open(root, s, &a, cameras, stride)?);
+            seqs.push(Box::new(H36mSequence::open(root, s, &a, cameras, stride)?));
         }
     }
     evaluate_joint_sequences(

@@ -55,7 +55,7 @@ impl RunDir {
         root: &Path,
         cfg: &TrainConfig,
         model: &ModelConfig,
-        data: &Path,
+        data: Option<&Path>,
     ) -> Result<RunDir, TrainError> {
         if root.exists() {
             let empty = std::fs::read_dir(root)
@@ -70,10 +70,24 @@ impl RunDir {
             }
         }
         std::fs::create_dir_all(root.join("checkpoints")).map_err(|e| TrainError::io(root, e))?;
-        let data = std::path::absolute(data).map_err(|e| TrainError::io(data, e))?;
+        // Every dataset path absolute, so that the run resumes from any working directory.
+        let absolute = |p: &str| -> Result<String, TrainError> {
+            let abs = std::path::absolute(p).map_err(|e| TrainError::io(p, e))?;
+            Ok(abs.to_string_lossy().into_owned())
+        };
         let mut resolved = cfg.clone();
         resolved.model = "model.toml".into();
-        resolved.data = Some(data.to_string_lossy().into_owned());
+        if let Some(d) = data {
+            resolved.data = Some(d.to_string_lossy().into_owned());
+        }
+        resolved.data = resolved.data.as_deref().map(absolute).transpose()?;
+        for s in resolved
+            .sources
+            .iter_mut()
+            .chain(resolved.validation.as_mut())
+        {
+            s.root = absolute(&s.root)?;
+        }
         let run = RunDir { root: root.into() };
         let text = toml::to_string(&resolved)
             .map_err(|e| TrainError::file(run.root.join("train.toml"), e.to_string()))?;

@@ -9,7 +9,7 @@ use mvmp_geom::CameraTensors;
 use mvmp_geom::rotation::axis_angle_to_matrix;
 use mvmp_losses::{
     LossWeights, density_grid, density_loss, detection_loss_weighted, heatmap_loss, heatmap_target,
-    mesh_2d_loss, mesh_3d_loss, orientation_loss, parameter_loss,
+    mesh_2d_loss_weighted, mesh_3d_loss_weighted, orientation_loss, parameter_loss,
 };
 use mvmp_model::{Detection, ModelConfig, MvmpHmr, RigGrids};
 use mvmp_smplx::SmplxLayer;
@@ -41,6 +41,8 @@ pub struct HostGt {
     pub joints: Vec<Vec<Vec<[f64; 3]>>>,
     /// `[b][v][p][j]` network-pixel joints with visibility.
     pub joints_2d: Vec<Vec<Vec<Vec<[f32; 3]>>>>,
+    /// `[b][j]`: the joints each item's dataset annotates.
+    pub cover: Vec<Vec<bool>>,
 }
 
 impl HostGt {
@@ -91,7 +93,19 @@ impl HostGt {
                     .collect()
             })
             .collect();
+        let cover: Vec<f32> = batch
+            .cover
+            .to_data()
+            .convert::<f32>()
+            .try_into_vec()
+            .expect("f32 cover");
+        let cover = cover
+            .chunks(j.max(1))
+            .take(b)
+            .map(|c| c.iter().map(|&x| x > 0.5).collect())
+            .collect();
         HostGt {
+            cover,
             counts: batch.counts.clone(),
             padded: p,
             joints,
@@ -199,10 +213,24 @@ pub fn heatmap_term(
         }
     }
     let target = Tensor::from_data(TensorData::new(target, [b, v, j, h, w]), device);
+    // A heatmap is supervised (towards zero where nobody shows the joint) only where the item's dataset
+    // annotates that joint.
+    let mut weight = Vec::with_capacity(b * v * j);
+    for bi in 0..b {
+        for _ in 0..v {
+            weight.extend(cfg.heatmap_joints.iter().map(|&ji| {
+                if gt.cover[bi].get(ji).copied().unwrap_or(false) {
+                    1f32
+                } else {
+                    0.0
+                }
+            }));
+        }
+    }
     heatmap_loss(
         det.heatmaps.clone(),
         target,
-        Tensor::ones([b, v, j], device),
+        Tensor::from_data(TensorData::new(weight, [b, v, j]), device),
     )
 }
 
@@ -343,6 +371,21 @@ pub fn stage2_loss(
             .select(0, idx.clone())
             .reshape([b, k, c])
     };
+    // Supervision masks: SMPL-X terms (parameters, vertices, density) only for people with SMPL-X ground
+    // truth; joint terms per annotated joint; the orientation where its four joints are annotated.
+    let smplx_mask = batch
+        .smplx
+        .clone()
+        .reshape([b * p])
+        .select(0, idx.clone())
+        .reshape([b, k])
+        * mask.clone();
+    let joint_weight = pick3(batch.joint_valid.clone()) * mask.clone().reshape([b, k, 1]);
+    let orient_mask = joint_weight
+        .clone()
+        .narrow(2, 0, 4)
+        .min_dim(2)
+        .reshape([b, k]);
 
     let mut terms = Vec::new();
     let det = Detection {
@@ -374,20 +417,26 @@ pub fn stage2_loss(
                 pick3(batch.betas.clone()),
                 out.expression.clone(),
                 pick3(batch.expression.clone()),
-                mask.clone(),
+                smplx_mask.clone(),
             ) * weights.parameters,
         ));
     }
     if weights.mesh_3d > 0.0 || weights.mesh_2d > 0.0 {
-        let mut points = vec![(out.joints.clone(), gt_joints.clone())];
+        // (predicted, ground truth, weight per point)
+        let mut points = vec![(out.joints.clone(), gt_joints.clone(), joint_weight.clone())];
         if let Some(v) = &batch.vertices {
-            points.push((out.vertices.clone(), pick4(v.clone())));
+            let nv = v.dims()[2];
+            points.push((
+                out.vertices.clone(),
+                pick4(v.clone()),
+                smplx_mask.clone().reshape([b, k, 1]).repeat_dim(2, nv),
+            ));
         }
         let mut mesh: Option<Tensor<1>> = None;
         let mut add = |t: Tensor<1>| mesh = Some(mesh.take().map_or(t.clone(), |m| m + t));
         if weights.mesh_3d > 0.0 {
-            for (pred, g) in &points {
-                add(mesh_3d_loss(pred.clone(), g.clone(), mask.clone()) * weights.mesh_3d);
+            for (pred, g, w) in &points {
+                add(mesh_3d_loss_weighted(pred.clone(), g.clone(), w.clone()) * weights.mesh_3d);
             }
         }
         if weights.mesh_2d > 0.0 {
@@ -404,7 +453,7 @@ pub fn stage2_loss(
                         )
                     })
                     .collect();
-                for (pred, g) in &points {
+                for (pred, g, wt) in &points {
                     let [_, _, n, _] = g.dims();
                     let uv: Vec<Tensor<3>> = (0..b)
                         .map(|bi| {
@@ -413,7 +462,7 @@ pub fn stage2_loss(
                         })
                         .collect();
                     let gt_uv = Tensor::cat(uv, 0).reshape([b, k, n, 2]).detach();
-                    let l = mesh_2d_loss(pred.clone(), gt_uv, &cams, size, mask.clone());
+                    let l = mesh_2d_loss_weighted(pred.clone(), gt_uv, &cams, size, wt.clone());
                     sum = Some(sum.take().map_or(l.clone(), |s| s + l));
                 }
             }
@@ -428,7 +477,7 @@ pub fn stage2_loss(
     if weights.orientation > 0.0 {
         terms.push((
             "orientation",
-            orientation_loss(out.joints.clone(), gt_joints.clone(), mask.clone())
+            orientation_loss(out.joints.clone(), gt_joints.clone(), orient_mask)
                 * weights.orientation,
         ));
     }
@@ -442,7 +491,7 @@ pub fn stage2_loss(
                 pick3(batch.pelvis.clone()),
                 grid,
                 weights.density_sigma,
-                mask,
+                smplx_mask,
             ) * weights.density,
         ));
     }

@@ -16,6 +16,9 @@ use rayon::prelude::*;
 use serde_json::json;
 
 use mvmp_data::loader::{FrameBatcher, FrameDataset, Split, ViewChoice};
+use mvmp_data::sources::{
+    JointFrameDataset, SourceDataset, SourceFormat, SourceSpec, TrainingSet, covered_slots,
+};
 use mvmp_eval::{Evaluator, PersonPose};
 use mvmp_model::{ModelConfig, MvmpHmr};
 use mvmp_smplx::SmplxLayer;
@@ -100,15 +103,54 @@ pub fn epoch_order(seed: u64, stage: u32, epoch: usize, n: usize) -> Vec<usize> 
     order
 }
 
-fn data_root(cfg: &TrainConfig, run: &RunDir) -> Result<PathBuf, TrainError> {
-    cfg.data
-        .as_ref()
-        .map(PathBuf::from)
-        .ok_or_else(|| TrainError::Config {
-            path: run.root.join("train.toml"),
+/// The training samples of every source of `cfg` (`config` names the config in errors). Checks that each
+/// joint-annotated source annotates the model's primary joint (the root the detection branch learns) and
+/// that there is at least one frame.
+pub fn open_training_set(
+    cfg: &TrainConfig,
+    model_cfg: &ModelConfig,
+    config: &Path,
+) -> Result<TrainingSet, TrainError> {
+    let specs = cfg.training_sources();
+    if specs.is_empty() {
+        return Err(TrainError::Config {
+            path: config.into(),
             key: "data".into(),
-            what: "missing: the dataset to train on".into(),
-        })
+            what: "missing: set `data` (an MVMP-HMR dataset) or add [[sources]]".into(),
+        });
+    }
+    let primary = model_cfg.primary_joint.joint();
+    let mut parts = Vec::with_capacity(specs.len());
+    for (i, spec) in specs.iter().enumerate() {
+        let set = spec.format.joint_set();
+        if !covered_slots(set)[primary] {
+            return Err(TrainError::Config {
+                path: config.into(),
+                key: format!("sources[{i}].format"),
+                what: format!(
+                    "{}: its joints ({}) do not include the model's primary joint {:?}",
+                    spec.format.name(),
+                    set.name(),
+                    model_cfg.primary_joint
+                ),
+            });
+        }
+        parts.push(spec.open_training(
+            ViewChoice::Random {
+                count: cfg.train_views,
+                seed: cfg.seed,
+            },
+            model_cfg.image_size,
+        )?);
+    }
+    let set = TrainingSet::new(parts);
+    if set.total() == 0 {
+        return Err(TrainError::file(
+            config,
+            "the training sources have no frames in their train splits",
+        ));
+    }
+    Ok(set)
 }
 
 /// A model initialised from `seed`. Seeding and drawing the initial weights happen under one process-wide
@@ -143,7 +185,8 @@ pub fn train(
 ) -> Result<Outcome, TrainError> {
     let plain = opts.device.clone();
     let ad = plain.clone().autodiff();
-    let data = data_root(cfg, run)?;
+    let config_path = run.root.join("train.toml");
+    let val_source = cfg.validation_source();
     let state = run.state()?;
     if state.as_ref().is_some_and(|s| s.finished) {
         return Ok(Outcome::Finished);
@@ -164,20 +207,18 @@ pub fn train(
     let body = mvmp_data::layout::load_body_model(&model_cfg.body_model, &run.root)?;
     let layer = SmplxLayer::new(&body, &ad);
     let val_layer = SmplxLayer::new(&body, &plain);
-    let ds = FrameDataset::open(
-        &data,
-        Split::Train,
-        ViewChoice::Random {
-            count: cfg.train_views,
-            seed: cfg.seed,
-        },
-        model_cfg.image_size,
-    )?;
-    if ds.frames().is_empty() {
-        return Err(TrainError::file(&data, "the train split has no frames"));
-    }
-    let batcher = FrameBatcher::with_vertices(ds.layout().body_model()?);
-    let n = ds.frames().len();
+    let ds = open_training_set(cfg, model_cfg, &config_path)?;
+    // Ground-truth meshes are posed with the body model of the (first) MVMP-HMR source; joint-annotated
+    // people have none.
+    let gt_body = match ds.parts.iter().find_map(|p| match p {
+        SourceDataset::Mvmp(d) => Some(d),
+        SourceDataset::Joints(_) => None,
+    }) {
+        Some(d) => d.layout().body_model()?,
+        None => body.clone(),
+    };
+    let batcher = FrameBatcher::with_vertices(gt_body);
+    let n = ds.total();
     let steps_per_epoch = n.div_ceil(cfg.batch_size);
 
     while stage <= 2 {
@@ -298,9 +339,16 @@ pub fn train(
             }
             epoch += 1;
             step_in_epoch = 0;
-            let val = validate(
-                &model, model_cfg, cfg, &body, &val_layer, &data, stage, &plain,
-            )?;
+            let val = match &val_source {
+                Some(src) => validate(
+                    &model, model_cfg, cfg, &body, &val_layer, src, stage, &plain,
+                )?,
+                None => ValRecord {
+                    stage,
+                    epoch: 0,
+                    metrics: Vec::new(),
+                },
+            };
             let mut line =
                 json!({"kind": "val", "stage": stage, "epoch": epoch, "global_step": global});
             for (k, v) in &val.metrics {
@@ -401,7 +449,7 @@ fn validate(
     cfg: &TrainConfig,
     body: &mvmp_smplx::BodyModel,
     layer: &SmplxLayer,
-    data: &Path,
+    source: &SourceSpec,
     stage: u32,
     device: &Device,
 ) -> Result<ValRecord, TrainError> {
@@ -412,8 +460,18 @@ fn validate(
         layer.clone(),
         device,
     );
+    if source.format != SourceFormat::Mvmp {
+        return validate_joints(&pred, cfg, source, stage);
+    }
+    let data = Path::new(&source.root);
+    let split: Split = source
+        .split
+        .as_deref()
+        .unwrap_or("test")
+        .parse()
+        .map_err(|e: String| TrainError::file(data, e))?;
     let opts = EvalOptions {
-        split: Split::Test,
+        split,
         views: cfg.test_views,
         max_frames: cfg.val_frames,
         gate: cfg.match_gate,
@@ -440,6 +498,67 @@ fn validate(
     })
 }
 
+/// Validation on a joint-annotated dataset: root metrics in stage 1; MPJPE on the dataset's joint set and
+/// the recall in stage 2 (no meshes).
+fn validate_joints(
+    pred: &Predictor,
+    cfg: &TrainConfig,
+    source: &SourceSpec,
+    stage: u32,
+) -> Result<ValRecord, TrainError> {
+    let cams = source.camera_names();
+    if cfg.test_views > cams.len() {
+        return Err(TrainError::file(
+            &source.root,
+            format!(
+                "test_views = {} but the validation source has {} cameras",
+                cfg.test_views,
+                cams.len()
+            ),
+        ));
+    }
+    let spec = SourceSpec {
+        cameras: Some(cams[..cfg.test_views].to_vec()),
+        ..source.clone()
+    };
+    let seqs = spec.open_sequences("test")?;
+    let metrics = if stage == 1 {
+        let ds = JointFrameDataset::new(
+            &source.root,
+            seqs,
+            ViewChoice::Fixed((0..cfg.test_views).collect()),
+            pred.cfg.image_size,
+        )?;
+        root_metrics_of(
+            pred,
+            ds.len(),
+            |i| ds.load(i),
+            cfg.val_frames,
+            cfg.match_gate,
+        )?
+    } else {
+        let (ev, _) = crate::predict::evaluate_joint_sequences(
+            pred,
+            &seqs,
+            source.format.joint_set(),
+            cfg.val_frames,
+            cfg.match_gate,
+            None,
+            |_, _| {},
+        )?;
+        let m = ev.overall();
+        [("mpjpe_mm", m.mpjpe_mm), ("recall_500", m.recall_500)]
+            .into_iter()
+            .filter_map(|(k, v)| v.map(|v| (k.to_string(), v)))
+            .collect()
+    };
+    Ok(ValRecord {
+        stage,
+        epoch: 0,
+        metrics,
+    })
+}
+
 /// Root localisation on a split: mean error of matched roots (mm) and the fraction of people found.
 pub fn root_metrics(
     pred: &Predictor,
@@ -452,15 +571,32 @@ pub fn root_metrics(
         ViewChoice::Fixed((0..opts.views).collect()),
         pred.cfg.image_size,
     )?;
+    root_metrics_of(
+        pred,
+        ds.frames().len(),
+        |i| ds.load(i),
+        opts.max_frames,
+        opts.gate,
+    )
+}
+
+/// Root metrics over `len` samples given by `load` (at most `max_frames`; 0 = all).
+fn root_metrics_of(
+    pred: &Predictor,
+    len: usize,
+    load: impl Fn(usize) -> Result<mvmp_data::loader::FrameSample, mvmp_data::DataError>,
+    max_frames: usize,
+    gate: f64,
+) -> Result<Vec<(String, f64)>, TrainError> {
     let batcher = FrameBatcher::default();
-    let n = match opts.max_frames {
-        0 => ds.frames().len(),
-        m => m.min(ds.frames().len()),
+    let n = match max_frames {
+        0 => len,
+        m => m.min(len),
     };
     let primary = pred.cfg.primary_joint.joint();
-    let mut ev = Evaluator::new(opts.gate);
+    let mut ev = Evaluator::new(gate);
     for i in 0..n {
-        let batch = batcher.batch(vec![ds.load(i)?], &pred.device);
+        let batch = batcher.batch(vec![load(i)?], &pred.device);
         let roots = pred
             .detect(batch.images.clone(), &batch.cameras, &batch.letterboxes)
             .remove(0);

@@ -100,7 +100,7 @@ fn new_run(
     edit: &dyn Fn(String) -> String,
 ) -> (RunDir, TrainConfig, ModelConfig) {
     let (cfg, model) = TrainConfig::read(&write_configs(dir, edit)).unwrap();
-    let run = RunDir::create(&dir.join(name), &cfg, &model, dataset()).unwrap();
+    let run = RunDir::create(&dir.join(name), &cfg, &model, Some(dataset())).unwrap();
     RunDir::open(&run.root).unwrap()
 }
 
@@ -312,7 +312,7 @@ fn bad_configs_name_the_key() {
     }
     // A run directory that holds files is not overwritten.
     let (cfg, model) = TrainConfig::read(&write_configs(dir.path(), &|s| s)).unwrap();
-    let e = RunDir::create(dir.path(), &cfg, &model, dataset())
+    let e = RunDir::create(dir.path(), &cfg, &model, Some(dataset()))
         .unwrap_err()
         .to_string();
     assert!(e.contains("not empty"), "{e}");

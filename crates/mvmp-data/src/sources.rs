@@ -1,0 +1,605 @@
+//! Training sources: MVMP-HMR (SMPL-X ground truth) and the joint-annotated datasets CMU Panoptic and
+//! Human3.6M (3D joints only), read in place and served as one dataset of [`FrameSample`]s.
+//!
+//! A joint-annotated person becomes a sample person whose 127 joint slots hold the dataset's joints at the
+//! SMPL-X joints they map to ([`JointSet`]), with a validity per slot (0 for every slot the dataset does not
+//! annotate, and for annotated joints below Panoptic's confidence threshold), and no SMPL-X parameters
+//! (`smplx == false`). The losses use this: parameter, vertex, orientation and density terms only for people
+//! with SMPL-X, joint terms on valid slots, heatmaps only for the joints the source covers.
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use burn::data::dataset::{Dataset, DatasetError};
+use nalgebra::{Vector2, Vector3};
+use serde::{Deserialize, Serialize};
+
+use crate::DataError;
+use crate::h36m::H36mSequence;
+use crate::loader::{FrameDataset, FrameSample, PersonGt, Split, ViewChoice, letterbox_into};
+use crate::panoptic::PanopticSequence;
+use mvmp_geom::{Camera, Letterbox};
+use mvmp_smplx::joint_sets::JointSet;
+use mvmp_smplx::names::NUM_JOINTS_WITH_LANDMARKS;
+
+/// One annotated person of a joint-annotated frame, in the dataset's joint set (world metres).
+#[derive(Debug, Clone, PartialEq)]
+pub struct AnnotatedPerson {
+    pub id: i64,
+    pub joints: Vec<[f64; 3]>,
+    /// Whether each joint is annotated.
+    pub valid: Vec<bool>,
+}
+
+/// A sequence of a joint-annotated dataset read in place: its cameras, frames and people.
+pub trait JointAnnotated: Send + Sync {
+    /// The name reports group by (a sequence, or subject/action).
+    fn name(&self) -> String;
+    /// The cameras, in the order of each frame's images.
+    fn cameras(&self) -> &[Camera];
+    fn len(&self) -> usize;
+    fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    /// The image of every camera at frame `i`.
+    fn images(&self, i: usize) -> Vec<PathBuf>;
+    /// Frame `i`'s name in file layouts (predictions, pseudo-ground-truth): `<name>/<frame key>/`.
+    fn frame_key(&self, i: usize) -> String;
+    /// The joint set of [`people`](Self::people).
+    fn joint_set(&self) -> JointSet;
+    /// The annotated people at frame `i`.
+    fn people(&self, i: usize) -> Result<Vec<AnnotatedPerson>, DataError>;
+}
+
+impl JointAnnotated for PanopticSequence {
+    fn name(&self) -> String {
+        self.name.clone()
+    }
+    fn cameras(&self) -> &[Camera] {
+        &self.rig.cameras
+    }
+    fn len(&self) -> usize {
+        self.frames.len()
+    }
+    fn images(&self, i: usize) -> Vec<PathBuf> {
+        self.frames[i].images.clone()
+    }
+    /// The 8-digit HD frame index of the file names.
+    fn frame_key(&self, i: usize) -> String {
+        self.frames[i].index.clone()
+    }
+    fn joint_set(&self) -> JointSet {
+        JointSet::Panoptic15
+    }
+    /// The first 15 joints of people whose body centre is annotated; validity from the confidence.
+    fn people(&self, i: usize) -> Result<Vec<AnnotatedPerson>, DataError> {
+        use crate::panoptic::EVAL_JOINTS;
+        Ok(PanopticSequence::people(self, &self.frames[i])?
+            .into_iter()
+            .map(|b| AnnotatedPerson {
+                id: b.id,
+                joints: b.joints[..EVAL_JOINTS].to_vec(),
+                valid: (0..EVAL_JOINTS).map(|j| b.valid(j)).collect(),
+            })
+            .collect())
+    }
+}
+
+impl JointAnnotated for H36mSequence {
+    fn name(&self) -> String {
+        H36mSequence::name(self)
+    }
+    fn cameras(&self) -> &[Camera] {
+        &self.rig.cameras
+    }
+    fn len(&self) -> usize {
+        self.frames.len()
+    }
+    fn images(&self, i: usize) -> Vec<PathBuf> {
+        self.frames[i].images.clone()
+    }
+    /// The image number (6 digits, from 1) of the extracted video frames.
+    fn frame_key(&self, i: usize) -> String {
+        format!("{:06}", self.frames[i].row + 1)
+    }
+    fn joint_set(&self) -> JointSet {
+        JointSet::H36m17
+    }
+    /// One subject per frame, every joint annotated.
+    fn people(&self, i: usize) -> Result<Vec<AnnotatedPerson>, DataError> {
+        Ok(vec![AnnotatedPerson {
+            id: 0,
+            joints: self.joints[i].to_vec(),
+            valid: vec![true; self.joints[i].len()],
+        }])
+    }
+}
+
+/// Read and check the images of one frame against its cameras.
+pub fn read_frame_images(
+    paths: &[PathBuf],
+    cameras: &[Camera],
+) -> Result<Vec<image::RgbImage>, DataError> {
+    let mut out = Vec::with_capacity(paths.len());
+    for (path, cam) in paths.iter().zip(cameras) {
+        let img = image::open(path)
+            .map_err(|e| DataError::file(path, format!("unreadable image: {e}")))?
+            .to_rgb8();
+        if img.dimensions() != (cam.width, cam.height) {
+            return Err(DataError::file(
+                path,
+                format!(
+                    "the image is {} x {} but camera {} is {} x {} in the calibration",
+                    img.width(),
+                    img.height(),
+                    cam.name,
+                    cam.width,
+                    cam.height
+                ),
+            ));
+        }
+        out.push(img);
+    }
+    Ok(out)
+}
+
+/// The 127 SMPL-X joint slots a joint set fills.
+pub fn covered_slots(set: JointSet) -> Vec<bool> {
+    let mut cover = vec![false; NUM_JOINTS_WITH_LANDMARKS];
+    for i in set.smplx_indices() {
+        cover[i] = true;
+    }
+    cover
+}
+
+/// A joint-annotated person as a sample person: joints in their SMPL-X slots, 2D joints in each selected
+/// view (network pixels; visible where annotated, in front of the camera and inside the image), no SMPL-X.
+pub fn person_from_joints(
+    p: &AnnotatedPerson,
+    set: JointSet,
+    cameras: &[Camera],
+    letterboxes: &[Letterbox],
+) -> PersonGt {
+    let n = NUM_JOINTS_WITH_LANDMARKS;
+    let mut joints_3d = vec![[0f32; 3]; n];
+    let mut valid = vec![0f32; n];
+    for ((&slot, j), &ok) in set.smplx_indices().iter().zip(&p.joints).zip(&p.valid) {
+        if ok {
+            joints_3d[slot] = j.map(|x| x as f32);
+            valid[slot] = 1.0;
+        }
+    }
+    let joints_2d = cameras
+        .iter()
+        .zip(letterboxes)
+        .map(|(cam, lb)| {
+            (0..n)
+                .map(|k| {
+                    if valid[k] == 0.0 {
+                        return [0.0; 3];
+                    }
+                    let x = joints_3d[k];
+                    let (uv, z) = cam.project(&Vector3::new(x[0] as f64, x[1] as f64, x[2] as f64));
+                    let inside = z > 0.0
+                        && uv.x >= 0.0
+                        && uv.y >= 0.0
+                        && uv.x < cam.width as f64
+                        && uv.y < cam.height as f64;
+                    if !inside {
+                        return [0.0; 3];
+                    }
+                    let q = lb.apply(Vector2::new(uv.x, uv.y));
+                    [q.x as f32, q.y as f32, 1.0]
+                })
+                .collect()
+        })
+        .collect();
+    let root = p.joints[set.root()].map(|x| x as f32);
+    PersonGt {
+        id: p.id.max(0) as u32,
+        pose: vec![0.0; 165],
+        betas: [0.0; 10],
+        expression: [0.0; 10],
+        pelvis: root,
+        joints_3d,
+        joints_2d,
+        joint_valid: valid,
+        smplx: false,
+    }
+}
+
+/// The views of sample `index` (shared by every dataset so that draws depend on the seed, epoch and index).
+pub fn select_views(views: &ViewChoice, epoch: u64, index: usize, available: usize) -> Vec<usize> {
+    use rand::SeedableRng;
+    use rand::seq::SliceRandom;
+    match views {
+        ViewChoice::Fixed(v) => v.clone(),
+        ViewChoice::Random { count, seed } => {
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(
+                seed ^ epoch.wrapping_mul(0x9E37_79B9_7F4A_7C15)
+                    ^ (index as u64).wrapping_mul(0xD6E8_FEB8_6659_FD93),
+            );
+            let mut all: Vec<usize> = (0..available).collect();
+            all.shuffle(&mut rng);
+            all.truncate(*count);
+            all
+        }
+    }
+}
+
+/// Training samples from joint-annotated sequences.
+pub struct JointFrameDataset {
+    label: String,
+    seqs: Vec<Box<dyn JointAnnotated>>,
+    frames: Vec<(usize, usize)>,
+    views: ViewChoice,
+    size: u32,
+    epoch: AtomicU64,
+}
+
+impl JointFrameDataset {
+    /// Every frame of `seqs` (each must have the cameras `views` asks for). `label` names the source in
+    /// errors.
+    pub fn new(
+        label: &str,
+        seqs: Vec<Box<dyn JointAnnotated>>,
+        views: ViewChoice,
+        size: u32,
+    ) -> Result<Self, DataError> {
+        for s in &seqs {
+            let n = s.cameras().len();
+            let need = match &views {
+                ViewChoice::Fixed(v) => v.iter().max().map_or(0, |m| m + 1),
+                ViewChoice::Random { count, .. } => *count,
+            };
+            if need == 0 || need > n {
+                return Err(DataError::file(
+                    label,
+                    format!(
+                        "{}: {need} views needed but the sequence has {n} cameras",
+                        s.name()
+                    ),
+                ));
+            }
+        }
+        let frames = seqs
+            .iter()
+            .enumerate()
+            .flat_map(|(si, s)| (0..s.len()).map(move |fi| (si, fi)))
+            .collect();
+        Ok(JointFrameDataset {
+            label: label.into(),
+            seqs,
+            frames,
+            views,
+            size,
+            epoch: AtomicU64::new(0),
+        })
+    }
+
+    pub fn len(&self) -> usize {
+        self.frames.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.frames.is_empty()
+    }
+
+    pub fn sequences(&self) -> &[Box<dyn JointAnnotated>] {
+        &self.seqs
+    }
+
+    pub fn set_epoch(&self, epoch: u64) {
+        self.epoch.store(epoch, Ordering::Relaxed);
+    }
+
+    pub fn load(&self, index: usize) -> Result<FrameSample, DataError> {
+        let (si, fi) = self.frames[index];
+        let seq = &self.seqs[si];
+        let all = seq.cameras();
+        let views = select_views(
+            &self.views,
+            self.epoch.load(Ordering::Relaxed),
+            index,
+            all.len(),
+        );
+        let paths = seq.images(fi);
+        let cameras: Vec<Camera> = views.iter().map(|&v| all[v].clone()).collect();
+        let imgs = read_frame_images(
+            &views.iter().map(|&v| paths[v].clone()).collect::<Vec<_>>(),
+            &cameras,
+        )?;
+        let s = self.size as usize;
+        let mut images = vec![0f32; views.len() * 3 * s * s];
+        let mut letterboxes = Vec::with_capacity(views.len());
+        for (vi, (img, cam)) in imgs.iter().zip(&cameras).enumerate() {
+            let lb = Letterbox::new(cam.width, cam.height, self.size)?;
+            letterbox_into(img, &lb, &mut images[vi * 3 * s * s..(vi + 1) * 3 * s * s]);
+            letterboxes.push(lb);
+        }
+        let set = seq.joint_set();
+        let people = seq
+            .people(fi)?
+            .iter()
+            .map(|p| person_from_joints(p, set, &cameras, &letterboxes))
+            .collect();
+        Ok(FrameSample {
+            scene: seq.name(),
+            frame: seq.frame_key(fi),
+            images,
+            size: s,
+            cameras,
+            letterboxes,
+            people,
+            cover: covered_slots(set),
+        })
+    }
+
+    pub fn label(&self) -> &str {
+        &self.label
+    }
+}
+
+/// The dataset format of a source.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SourceFormat {
+    /// The MVMP-HMR layout (SMPL-X ground truth).
+    Mvmp,
+    /// CMU Panoptic read in place (joints19, first 15 joints).
+    Panoptic,
+    /// Human3.6M read in place (17 joints).
+    H36m,
+}
+
+impl SourceFormat {
+    pub fn name(self) -> &'static str {
+        match self {
+            SourceFormat::Mvmp => "mvmp",
+            SourceFormat::Panoptic => "panoptic",
+            SourceFormat::H36m => "h36m",
+        }
+    }
+
+    /// The joint set of the ground truth.
+    pub fn joint_set(self) -> JointSet {
+        match self {
+            SourceFormat::Mvmp => JointSet::Smplx127,
+            SourceFormat::Panoptic => JointSet::Panoptic15,
+            SourceFormat::H36m => JointSet::H36m17,
+        }
+    }
+}
+
+/// One dataset to train or validate on (a `[[sources]]` or `[validation]` table of a training config).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SourceSpec {
+    pub format: SourceFormat,
+    /// The dataset's root (relative paths: to the working directory).
+    pub root: String,
+    /// `train`, `test`, `all` (mvmp); `train`, `test`, a split name or comma-separated sequences
+    /// (panoptic); `train`, `test` or comma-separated subjects (h36m). Default: `train` for training sources,
+    /// `test` for validation.
+    #[serde(default)]
+    pub split: Option<String>,
+    /// Every N-th frame (default: the Panoptic split's stride, 5 for Human3.6M; mvmp keeps every frame).
+    #[serde(default)]
+    pub stride: Option<usize>,
+    /// Camera names (default: VoxelPose's 5 HD cameras for Panoptic, the 4 cameras for Human3.6M).
+    #[serde(default)]
+    pub cameras: Option<Vec<String>>,
+}
+
+/// Panoptic's split by a name: `train` (VoxelPose's training sequences), `test` (its validation sequences),
+/// a split's name, or comma-separated sequences (every frame). Returns the sequences, the stride and a label.
+pub fn panoptic_split(name: &str) -> (Vec<String>, usize, String) {
+    use crate::panoptic::{VOXELPOSE_TRAIN, VOXELPOSE_VALIDATION, split_by_name};
+    let split = match name {
+        "test" => Some(VOXELPOSE_VALIDATION),
+        "train" => Some(VOXELPOSE_TRAIN),
+        name => split_by_name(name),
+    };
+    match split {
+        Some(sp) => (
+            sp.sequences.iter().map(|s| s.to_string()).collect(),
+            sp.stride,
+            sp.name.to_string(),
+        ),
+        None => (
+            name.split(',').map(|s| s.trim().to_string()).collect(),
+            1,
+            name.to_string(),
+        ),
+    }
+}
+
+/// Human3.6M's default frame stride (50 Hz video; every 5th frame).
+pub const H36M_STRIDE: usize = 5;
+
+impl SourceSpec {
+    fn split_or(&self, default: &str) -> String {
+        self.split.clone().unwrap_or_else(|| default.to_string())
+    }
+
+    /// The cameras used: `cameras`, or the format's default list.
+    pub fn camera_names(&self) -> Vec<String> {
+        match (&self.cameras, self.format) {
+            (Some(c), _) => c.clone(),
+            (None, SourceFormat::Panoptic) => crate::panoptic::VOXELPOSE_CAMERAS
+                .iter()
+                .map(|s| s.to_string())
+                .collect(),
+            (None, _) => crate::h36m::CAMERAS.iter().map(|s| s.to_string()).collect(),
+        }
+    }
+
+    /// The sequences of a joint-annotated source (`default_split` when the spec names none).
+    pub fn open_sequences(
+        &self,
+        default_split: &str,
+    ) -> Result<Vec<Box<dyn JointAnnotated>>, DataError> {
+        let root = Path::new(&self.root);
+        let split = self.split_or(default_split);
+        let names = self.camera_names();
+        let cams: Vec<&str> = names.iter().map(String::as_str).collect();
+        if self.stride == Some(0) {
+            return Err(DataError::file(
+                root,
+                "stride 0: keep every N-th frame, N >= 1",
+            ));
+        }
+        let mut out: Vec<Box<dyn JointAnnotated>> = Vec::new();
+        match self.format {
+            SourceFormat::Mvmp => {
+                return Err(DataError::file(
+                    root,
+                    "an mvmp source has scenes, not joint-annotated sequences",
+                ));
+            }
+            SourceFormat::Panoptic => {
+                let (seqs, stride, _) = panoptic_split(&split);
+                for name in seqs {
+                    let dir = root.join(&name);
+                    if !dir.is_dir() {
+                        return Err(DataError::file(
+                            &dir,
+                            format!("sequence {name:?} of split {split:?} is not in the tree"),
+                        ));
+                    }
+                    out.push(Box::new(PanopticSequence::open(
+                        &dir,
+                        &cams,
+                        self.stride.unwrap_or(stride),
+                    )?));
+                }
+            }
+            SourceFormat::H36m => {
+                for subject in crate::h36m::split_subjects(&split) {
+                    for action in crate::h36m::actions(root, &subject)? {
+                        out.push(Box::new(H36mSequence::open(
+                            root,
+                            &subject,
+                            &action,
+                            &cams,
+                            self.stride.unwrap_or(H36M_STRIDE),
+                        )?));
+                    }
+                }
+            }
+        }
+        Ok(out)
+    }
+
+    /// The training samples of this source's split (default `train`).
+    pub fn open_training(&self, views: ViewChoice, size: u32) -> Result<SourceDataset, DataError> {
+        let label = format!("{} source {}", self.format.name(), self.root);
+        match self.format {
+            SourceFormat::Mvmp => {
+                let split: Split = self
+                    .split_or("train")
+                    .parse()
+                    .map_err(|e: String| DataError::file(&self.root, e))?;
+                if self.stride.is_some() || self.cameras.is_some() {
+                    return Err(DataError::file(
+                        &self.root,
+                        "stride and cameras apply to panoptic and h36m sources; an mvmp source uses every frame and draws its views",
+                    ));
+                }
+                Ok(SourceDataset::Mvmp(FrameDataset::open(
+                    Path::new(&self.root),
+                    split,
+                    views,
+                    size,
+                )?))
+            }
+            _ => Ok(SourceDataset::Joints(JointFrameDataset::new(
+                &label,
+                self.open_sequences("train")?,
+                views,
+                size,
+            )?)),
+        }
+    }
+}
+
+/// One source's samples.
+pub enum SourceDataset {
+    Mvmp(FrameDataset),
+    Joints(JointFrameDataset),
+}
+
+impl SourceDataset {
+    pub fn len(&self) -> usize {
+        match self {
+            SourceDataset::Mvmp(d) => d.frames().len(),
+            SourceDataset::Joints(d) => d.frames.len(),
+        }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    pub fn set_epoch(&self, epoch: u64) {
+        match self {
+            SourceDataset::Mvmp(d) => d.set_epoch(epoch),
+            SourceDataset::Joints(d) => d.set_epoch(epoch),
+        }
+    }
+
+    pub fn load(&self, index: usize) -> Result<FrameSample, DataError> {
+        match self {
+            SourceDataset::Mvmp(d) => d.load(index),
+            SourceDataset::Joints(d) => d.load(index),
+        }
+    }
+}
+
+/// Several sources as one dataset: the samples of each, one after the other.
+pub struct TrainingSet {
+    pub parts: Vec<SourceDataset>,
+    starts: Vec<usize>,
+}
+
+impl TrainingSet {
+    pub fn new(parts: Vec<SourceDataset>) -> Self {
+        let mut starts = Vec::with_capacity(parts.len());
+        let mut n = 0;
+        for p in &parts {
+            starts.push(n);
+            n += p.len();
+        }
+        TrainingSet { parts, starts }
+    }
+
+    pub fn set_epoch(&self, epoch: u64) {
+        for p in &self.parts {
+            p.set_epoch(epoch);
+        }
+    }
+
+    /// The source and local index of sample `index`.
+    fn locate(&self, index: usize) -> (usize, usize) {
+        let part = self.starts.partition_point(|&s| s <= index) - 1;
+        (part, index - self.starts[part])
+    }
+
+    pub fn load(&self, index: usize) -> Result<FrameSample, DataError> {
+        let (p, i) = self.locate(index);
+        self.parts[p].load(i)
+    }
+
+    pub fn total(&self) -> usize {
+        self.parts.iter().map(SourceDataset::len).sum()
+    }
+}
+
+impl Dataset<FrameSample> for TrainingSet {
+    fn get(&self, index: usize) -> Result<FrameSample, DatasetError> {
+        self.load(index).map_err(DatasetError::new)
+    }
+
+    fn len(&self) -> usize {
+        self.total()
+    }
+}
