@@ -732,29 +732,12 @@ fn eval_panoptic(
     device: &Device,
     quiet: bool,
 ) -> Result<(Metrics, serde_json::Value)> {
-    use mvmp_data::panoptic::{
-        VOXELPOSE_CAMERAS, VOXELPOSE_TRAIN, VOXELPOSE_VALIDATION, split_by_name,
-    };
+    use mvmp_data::panoptic::VOXELPOSE_CAMERAS;
     let Source::Run(run_dir) = args.source else {
         bail!("--format panoptic scores a run (--run RUN_DIR)");
     };
-    let split = match args.split_name {
-        "test" => Some(VOXELPOSE_VALIDATION),
-        "train" => Some(VOXELPOSE_TRAIN),
-        name => split_by_name(name),
-    };
-    let (sequences, split_stride, split_label): (Vec<String>, usize, &str) = match &split {
-        Some(sp) => (
-            sp.sequences.iter().map(|s| s.to_string()).collect(),
-            sp.stride,
-            sp.name,
-        ),
-        None => (
-            args.split_name.split(',').map(str::to_string).collect(),
-            1,
-            args.split_name,
-        ),
-    };
+    let (sequences, split_stride, split_label) =
+        mvmp_data::sources::panoptic_split(args.split_name);
     let stride = args.stride.unwrap_or(split_stride);
     let cams = VOXELPOSE_CAMERAS;
     let views = args.views.unwrap_or(cams.len());

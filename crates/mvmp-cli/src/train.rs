@@ -157,6 +157,7 @@ pub fn train(args: TrainArgs, device: &Device, monitor: &mut BarMonitor) -> Resu
                 .map(|(s, p)| format!("{} {} ({} frames)", s.format.name(), s.root, p.len()))
                 .collect();
             eprintln!("training on {}", counts.join(", "));
+            mvmp_train::check_validation_source(&cfg)?;
             let out = match args.out {
                 Some(o) => o.to_path_buf(),
                 None => {

@@ -831,6 +831,70 @@ fn train_eval_infer_end_to_end() {
         ],
         &["--stride", "panoptic and h36m"],
     );
+
+    // Training on MVMP-HMR (--data) plus this Human3.6M tree as a second source, validated on it: the
+    // sources are listed with their frame counts, and a wrong validation path stops before a run exists.
+    let h = h36m.to_string_lossy();
+    let sources = format!(
+        "\n[[sources]]\nformat = \"h36m\"\nroot = \"{h}\"\nsplit = \"S9\"\nstride = 2\ncameras = [\"54138969\", \"55011271\"]\n"
+    );
+    let validation = |root: &str| {
+        format!(
+            "\n[validation]\nformat = \"h36m\"\nroot = \"{root}\"\nsplit = \"S9\"\nstride = 2\ncameras = [\"54138969\", \"55011271\"]\n"
+        )
+    };
+    let base = std::fs::read_to_string(p("train.toml")).unwrap();
+    std::fs::write(
+        p("mixed.toml"),
+        format!("{base}{sources}{}", validation(&format!("{h}-missing"))),
+    )
+    .unwrap();
+    expect_error(
+        &[
+            "train",
+            "--config",
+            &p("mixed.toml"),
+            "--data",
+            &p("ds"),
+            "--out",
+            &p("mixed"),
+        ],
+        &["h36m-missing"],
+    );
+    assert!(!dir.path().join("mixed").exists());
+    std::fs::write(
+        p("mixed.toml"),
+        format!("{base}{sources}{}", validation(&h)),
+    )
+    .unwrap();
+    let o = mvmp(&[
+        "train",
+        "--config",
+        &p("mixed.toml"),
+        "--data",
+        &p("ds"),
+        "--out",
+        &p("mixed"),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("h36m") && stderr(&o).contains("(3 frames)"),
+        "{}",
+        stderr(&o)
+    );
+    let log = std::fs::read_to_string(dir.path().join("mixed/metrics.jsonl")).unwrap();
+    let vals: Vec<serde_json::Value> = log
+        .lines()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+        .filter(|l| l["kind"] == "val")
+        .collect();
+    assert_eq!(vals.len(), 2, "{log}");
+    assert!(vals[1]["recall_500"].is_number(), "{}", vals[1]);
+    let saved = std::fs::read_to_string(dir.path().join("mixed/train.toml")).unwrap();
+    assert!(
+        saved.contains("[[sources]]") && saved.contains("[validation]"),
+        "{saved}"
+    );
 }
 
 #[test]

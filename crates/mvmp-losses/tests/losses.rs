@@ -280,3 +280,30 @@ fn heatmap_target_peaks_where_the_fusion_samples() {
     assert!(h[6 + 4] > 0.0);
     assert_eq!(h[6 + 5], 0.0);
 }
+
+/// Per-point weights: an unannotated point (weight 0) does not count however wrong it is; the mean runs
+/// over the annotated coordinates only: (|1|+|1|+|1| + |2|) / (2 points x 3) = 5/6. With every point of a
+/// valid pair weighted 1 it is the per-pair loss.
+#[test]
+fn weighted_mesh_3d_loss_by_hand() {
+    let d = Device::default();
+    let pts = t(
+        vec![1.0, 1.0, 1.0, 100.0, -100.0, 100.0, 2.0, 0.0, 0.0],
+        [1, 1, 3, 3],
+        &d,
+    );
+    let gt = Tensor::<4>::zeros([1, 1, 3, 3], &d);
+    let w = t(vec![1.0, 0.0, 1.0], [1, 1, 3], &d);
+    let l = scalar(mesh_3d_loss_weighted(pts.clone(), gt.clone(), w));
+    assert!((l - 5.0 / 6.0).abs() < 1e-6, "{l}");
+    let all = scalar(mesh_3d_loss_weighted(
+        pts.clone(),
+        gt.clone(),
+        Tensor::ones([1, 1, 3], &d),
+    ));
+    let pair = scalar(mesh_3d_loss(pts, gt, mask(vec![1.0], 1, 1, &d)));
+    assert!(
+        (all - pair).abs() < 1e-5 && (pair - 305.0 / 9.0).abs() < 1e-4,
+        "{all} {pair}"
+    );
+}

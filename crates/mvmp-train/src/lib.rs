@@ -12,6 +12,6 @@ pub use error::TrainError;
 pub use predict::{EvalOptions, PersonPrediction, Predictor, evaluate};
 pub use run::{RunDir, RunState};
 pub use train::{
-    Monitor, Outcome, Quiet, StepRecord, TrainOptions, ValRecord, open_training_set, seeded_init,
-    train,
+    Monitor, Outcome, Quiet, StepRecord, TrainOptions, ValRecord, check_validation_source,
+    open_training_set, seeded_init, train,
 };

@@ -153,6 +153,60 @@ pub fn open_training_set(
     Ok(set)
 }
 
+/// Open the validation source the way validation will (its split, the first `test_views` cameras), so
+/// that a wrong path or split stops the run before training rather than after the first epoch.
+pub fn check_validation_source(cfg: &TrainConfig) -> Result<(), TrainError> {
+    let Some(src) = cfg.validation_source() else {
+        return Ok(());
+    };
+    if src.format == SourceFormat::Mvmp {
+        let split: Split = src
+            .split
+            .as_deref()
+            .unwrap_or("test")
+            .parse()
+            .map_err(|e: String| TrainError::file(&src.root, e))?;
+        FrameDataset::open(
+            Path::new(&src.root),
+            split,
+            ViewChoice::Fixed((0..cfg.test_views).collect()),
+            14,
+        )?;
+        return Ok(());
+    }
+    let seqs = validation_sequences(cfg, &src)?;
+    if seqs.iter().all(|s| s.is_empty()) {
+        return Err(TrainError::file(
+            &src.root,
+            "the validation split has no frames",
+        ));
+    }
+    Ok(())
+}
+
+/// The sequences of a joint-annotated validation source, with the first `test_views` cameras.
+fn validation_sequences(
+    cfg: &TrainConfig,
+    source: &SourceSpec,
+) -> Result<Vec<Box<dyn mvmp_data::sources::JointAnnotated>>, TrainError> {
+    let cams = source.camera_names();
+    if cfg.test_views == 0 || cfg.test_views > cams.len() {
+        return Err(TrainError::file(
+            &source.root,
+            format!(
+                "test_views = {} but the validation source has {} cameras",
+                cfg.test_views,
+                cams.len()
+            ),
+        ));
+    }
+    let spec = SourceSpec {
+        cameras: Some(cams[..cfg.test_views].to_vec()),
+        ..source.clone()
+    };
+    Ok(spec.open_sequences("test")?)
+}
+
 /// A model initialised from `seed`. Seeding and drawing the initial weights happen under one process-wide
 /// lock: the backend's generator is shared, and another thread drawing in between would change the weights.
 /// Other code that draws random tensors concurrently (a model init elsewhere) should use this too.
@@ -208,6 +262,7 @@ pub fn train(
     let layer = SmplxLayer::new(&body, &ad);
     let val_layer = SmplxLayer::new(&body, &plain);
     let ds = open_training_set(cfg, model_cfg, &config_path)?;
+    check_validation_source(cfg)?;
     // Ground-truth meshes are posed with the body model of the (first) MVMP-HMR source; joint-annotated
     // people have none.
     let gt_body = match ds.parts.iter().find_map(|p| match p {
@@ -506,22 +561,7 @@ fn validate_joints(
     source: &SourceSpec,
     stage: u32,
 ) -> Result<ValRecord, TrainError> {
-    let cams = source.camera_names();
-    if cfg.test_views > cams.len() {
-        return Err(TrainError::file(
-            &source.root,
-            format!(
-                "test_views = {} but the validation source has {} cameras",
-                cfg.test_views,
-                cams.len()
-            ),
-        ));
-    }
-    let spec = SourceSpec {
-        cameras: Some(cams[..cfg.test_views].to_vec()),
-        ..source.clone()
-    };
-    let seqs = spec.open_sequences("test")?;
+    let seqs = validation_sequences(cfg, source)?;
     let metrics = if stage == 1 {
         let ds = JointFrameDataset::new(
             &source.root,

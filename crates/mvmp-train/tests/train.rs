@@ -780,3 +780,367 @@ fn pseudo_ground_truth_meshes_give_pve_on_joint_datasets() {
     let e = score(Some(&pseudo), 0.5).unwrap_err().to_string();
     assert!(e.contains("S9/Walking/000003/people.npz"), "{e}");
 }
+
+/// A Panoptic source over the fixture sequence `160906_pizza1` with the first `views` cameras.
+fn panoptic_source(root: &Path, views: usize) -> mvmp_data::sources::SourceSpec {
+    mvmp_data::sources::SourceSpec {
+        format: mvmp_data::sources::SourceFormat::Panoptic,
+        root: root.to_string_lossy().into_owned(),
+        split: Some("160906_pizza1".into()),
+        stride: Some(1),
+        cameras: Some(
+            mvmp_data::panoptic::VOXELPOSE_CAMERAS[..views]
+                .iter()
+                .map(|s| s.to_string())
+                .collect(),
+        ),
+    }
+}
+
+#[test]
+fn panoptic_frames_become_samples_with_their_joints_in_smplx_slots() {
+    use mvmp_data::sources::{SourceDataset, covered_slots};
+    use mvmp_smplx::joint_sets::JointSet;
+    let root = tempfile::tempdir().unwrap();
+    panoptic_fixture(root.path(), "160906_pizza1", 3);
+    // Frame 0, person 0: the left elbow (joints19 index 4) below the confidence threshold.
+    let f0 = root
+        .path()
+        .join("160906_pizza1/hdPose3d_stage1_coco19/body3DScene_00000000.json");
+    let mut v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&f0).unwrap()).unwrap();
+    v["bodies"][0]["joints19"][4 * 4 + 3] = serde_json::json!(0.05);
+    std::fs::write(&f0, v.to_string()).unwrap();
+
+    let spec = panoptic_source(root.path(), 3);
+    let ds = match spec
+        .open_training(ViewChoice::Fixed(vec![0, 2]), 64)
+        .unwrap()
+    {
+        SourceDataset::Joints(d) => d,
+        SourceDataset::Mvmp(_) => panic!("a Panoptic source reads joint-annotated sequences"),
+    };
+    assert_eq!(ds.len(), 3);
+    let s = ds.load(0).unwrap();
+    assert_eq!(
+        (s.scene.as_str(), s.frame.as_str()),
+        ("160906_pizza1", "00000000")
+    );
+    assert_eq!(s.cameras.len(), 2);
+    assert_eq!(s.cameras[1].name, "00_12");
+    assert_eq!(s.people.len(), 2);
+    let slots = JointSet::Panoptic15.smplx_indices();
+    assert_eq!(s.cover, covered_slots(JointSet::Panoptic15));
+    assert_eq!(s.cover.iter().filter(|&&c| c).count(), 15);
+    let raw = mvmp_data::panoptic::read_bodies(&f0).unwrap();
+    for (p, b) in s.people.iter().zip(&raw) {
+        assert!(!p.smplx, "joint-annotated people have no SMPL-X");
+        assert_eq!(p.joints_3d.len(), 127);
+        for (k, &slot) in slots.iter().enumerate() {
+            let want = b.valid(k);
+            assert_eq!(p.joint_valid[slot] == 1.0, want, "joint {k} slot {slot}");
+            if want {
+                for a in 0..3 {
+                    assert!((p.joints_3d[slot][a] as f64 - b.joints[k][a]).abs() < 1e-5);
+                }
+            }
+        }
+        // Slots outside the set carry nothing.
+        let total: f32 = p.joint_valid.iter().sum();
+        assert_eq!(total as usize, (0..15).filter(|&k| b.valid(k)).count());
+        // The root is the body centre (in the pelvis slot, the model's primary joint).
+        assert_eq!(p.pelvis, b.joints[2].map(|x| x as f32));
+        // 2D joints: the projection of each annotated joint into each view's network pixels.
+        for (vi, (cam, lb)) in s.cameras.iter().zip(&s.letterboxes).enumerate() {
+            for (k, &slot) in slots.iter().enumerate() {
+                let [u, vv, vis] = p.joints_2d[vi][slot];
+                let q = mvmp_data::loader::project_to_network(cam, lb, b.joints[k]);
+                let (uv, _) = cam.project(&nalgebra::Vector3::from(b.joints[k]));
+                let inside = uv.x >= 0.0
+                    && uv.y >= 0.0
+                    && uv.x < cam.width as f64
+                    && uv.y < cam.height as f64;
+                match q {
+                    Some(q) if b.valid(k) && inside => {
+                        assert_eq!(vis, 1.0);
+                        assert!((u as f64 - q.x).abs() < 1e-3 && (vv as f64 - q.y).abs() < 1e-3);
+                    }
+                    _ => assert_eq!(vis, 0.0, "joint {k} view {vi}"),
+                }
+            }
+        }
+    }
+    assert_eq!(
+        s.people[0].joint_valid[slots[4]], 0.0,
+        "the low-confidence elbow"
+    );
+    // Frame 1: the second person has no annotated body centre and is left out.
+    assert_eq!(ds.load(1).unwrap().people.len(), 1);
+    // Errors name what is wrong: a sequence of the split that is not there, too many views.
+    let e = mvmp_data::sources::SourceSpec {
+        split: Some("160906_band4".into()),
+        ..spec.clone()
+    }
+    .open_training(ViewChoice::Fixed(vec![0]), 64)
+    .err()
+    .unwrap()
+    .to_string();
+    assert!(e.contains("160906_band4"), "{e}");
+    let e = spec
+        .open_training(ViewChoice::Random { count: 4, seed: 0 }, 64)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(e.contains("4 views") && e.contains("3 cameras"), "{e}");
+}
+
+/// Stage 2 on a batch of joint-annotated people: the SMPL-X terms (parameters, density; orientation needs
+/// spine1, which Panoptic lacks) are exactly zero and the joint terms are finite and positive; in a batch
+/// with an MVMP-HMR frame beside it every term is active and gradients are finite.
+#[test]
+fn joint_annotated_people_get_joint_losses_only() {
+    let root = tempfile::tempdir().unwrap();
+    panoptic_fixture(root.path(), "160906_pizza1", 1);
+    let ad = Device::flex().autodiff();
+    let cfg = model_config();
+    let model = mvmp_train::seeded_init(&cfg, &ad, 2);
+    let pan = match panoptic_source(root.path(), 2)
+        .open_training(ViewChoice::Fixed(vec![0, 1]), 64)
+        .unwrap()
+    {
+        mvmp_data::sources::SourceDataset::Joints(d) => d,
+        _ => unreachable!(),
+    };
+    let ds =
+        FrameDataset::open(dataset(), Split::Train, ViewChoice::Fixed(vec![0, 1]), 64).unwrap();
+    let body = ds.layout().body_model().unwrap();
+    let layer = SmplxLayer::new(&body, &ad);
+    let batcher = FrameBatcher::with_vertices(body);
+    let weights = mvmp_losses::LossWeights::default();
+    let terms = |batch: &mvmp_data::loader::FrameBatch| {
+        let l = stage2_loss(
+            &model,
+            batch,
+            &cfg,
+            &layer,
+            &weights,
+            QueryMode::Gt,
+            0.5,
+            &ad,
+        );
+        let t: std::collections::BTreeMap<&str, f32> = l
+            .terms
+            .iter()
+            .map(|(n, t)| (*n, t.clone().into_scalar::<f32>()))
+            .collect();
+        (l, t)
+    };
+    let joints_only = batcher.batch(vec![pan.load(0).unwrap()], &ad);
+    assert!(
+        joints_only.vertices.is_none(),
+        "no SMPL-X person, no vertices"
+    );
+    let (_, t) = terms(&joints_only);
+    assert_eq!(t["parameters"], 0.0, "{t:?}");
+    assert_eq!(t["density"], 0.0, "{t:?}");
+    assert_eq!(t["orientation"], 0.0, "{t:?}");
+    assert!(t["mesh"].is_finite() && t["mesh"] > 0.0, "{t:?}");
+    assert!(t["detection"].is_finite(), "{t:?}");
+    let s1 = stage1_loss(&model, &joints_only, &cfg, &weights, &ad);
+    for (n, v) in &s1.terms {
+        let v: f32 = v.clone().into_scalar();
+        assert!(v.is_finite() && v > 0.0, "stage 1 {n} = {v}");
+    }
+
+    let mixed = batcher.batch(vec![ds.load(0).unwrap(), pan.load(0).unwrap()], &ad);
+    assert!(mixed.vertices.is_some());
+    let (l, t) = terms(&mixed);
+    for name in ["parameters", "density", "orientation", "mesh", "detection"] {
+        assert!(t[name].is_finite() && t[name] > 0.0, "{name}: {t:?}");
+    }
+    let grads = l.total.backward();
+    struct Finite<'a>(&'a burn::tensor::Gradients, usize);
+    impl ModuleVisitor for Finite<'_> {
+        fn visit_float<const D: usize>(&mut self, p: &Param<Tensor<D>>) {
+            if let Some(g) = p.val().grad(self.0) {
+                assert!(
+                    g.into_data()
+                        .convert::<f32>()
+                        .iter::<f32>()
+                        .all(f32::is_finite),
+                    "a non-finite gradient"
+                );
+                self.1 += 1;
+            }
+        }
+    }
+    let mut f = Finite(&grads, 0);
+    model.visit(&mut f);
+    assert!(f.1 > 10, "{} parameter tensors got gradients", f.1);
+}
+
+/// `mvmp train` on MVMP-HMR plus a Panoptic source, validated on Panoptic: both stages run over the
+/// frames of both, and the validation lines carry Panoptic's metrics.
+#[test]
+fn a_run_trains_on_mvmp_and_panoptic_and_validates_on_panoptic() {
+    let root = tempfile::tempdir().unwrap();
+    panoptic_fixture(root.path(), "160906_pizza1", 2);
+    let dir = tempfile::tempdir().unwrap();
+    let pan = root.path().display().to_string();
+    let (run, cfg, model) = new_run(dir.path(), "run", &|t| {
+        let table = format!(
+            "format = \"panoptic\"\nroot = \"{pan}\"\nsplit = \"160906_pizza1\"\nstride = 1\n"
+        );
+        format!("{t}\n[[sources]]\n{table}\n[validation]\n{table}").replacen(
+            "keep_checkpoints = 2\n",
+            "keep_checkpoints = 2\nval_frames = 2\n",
+            1,
+        )
+    });
+    assert_eq!(cfg.sources.len(), 1);
+    assert_eq!(cfg.training_sources().len(), 2);
+    let set = mvmp_train::open_training_set(&cfg, &model, &run.root.join("train.toml")).unwrap();
+    let mvmp_frames = set.parts[0].len();
+    assert_eq!(set.parts[1].len(), 2);
+    assert_eq!(set.total(), mvmp_frames + 2);
+    let out = mvmp_train::train(&run, &cfg, &model, &options(None), &mut Quiet).unwrap();
+    assert_eq!(out, Outcome::Finished);
+    let log = std::fs::read_to_string(run.root.join("metrics.jsonl")).unwrap();
+    let lines: Vec<serde_json::Value> = log
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    let steps = lines.iter().filter(|l| l["kind"] == "step").count();
+    assert_eq!(
+        steps,
+        2 * (mvmp_frames + 2),
+        "both stages over both sources"
+    );
+    let vals: Vec<&serde_json::Value> = lines.iter().filter(|l| l["kind"] == "val").collect();
+    assert_eq!(vals.len(), 2);
+    assert!(vals[0]["root_recall"].is_number(), "{}", vals[0]);
+    assert!(vals[1]["recall_500"].is_number(), "{}", vals[1]);
+    assert!(vals[1].get("pve_mm").is_none(), "Panoptic has no meshes");
+}
+
+#[test]
+fn source_configs_are_checked() {
+    let root = tempfile::tempdir().unwrap();
+    panoptic_fixture(root.path(), "160906_pizza1", 1);
+    let pan = root.path().display().to_string();
+    let dir = tempfile::tempdir().unwrap();
+    let read = |extra: &str, edit: &dyn Fn(String) -> String| {
+        let p = write_configs(dir.path(), &|t| edit(format!("{t}{extra}")));
+        TrainConfig::read(&p).map(|(c, m)| (c, m, p))
+    };
+    let e = read(
+        &format!("[[sources]]\nformat = \"mvmp\"\nroot = \"{pan}\"\nstride = 2\n"),
+        &|t| t,
+    )
+    .err()
+    .unwrap()
+    .to_string();
+    assert!(e.contains("sources[0]") && e.contains("stride"), "{e}");
+    let e = read(
+        &format!("[[sources]]\nformat = \"kinect\"\nroot = \"{pan}\"\n"),
+        &|t| t,
+    )
+    .err()
+    .unwrap()
+    .to_string();
+    assert!(e.contains("kinect"), "{e}");
+    // A primary joint the source does not annotate (Panoptic has no spine joint).
+    std::fs::write(dir.path().join("m.toml"), {
+        let mut m = model_config();
+        m.primary_joint = mvmp_model::config::PrimaryJoint::Spine;
+        m.heatmap_joints
+            .push(mvmp_model::config::PrimaryJoint::Spine.joint());
+        toml::to_string(&m).unwrap()
+    })
+    .unwrap();
+    let (cfg, model, path) = read(
+        &format!(
+            "[[sources]]\nformat = \"panoptic\"\nroot = \"{pan}\"\nsplit = \"160906_pizza1\"\n"
+        ),
+        &|t| t.replace("model = \"model.toml\"", "model = \"m.toml\""),
+    )
+    .unwrap();
+    let e = mvmp_train::open_training_set(&cfg, &model, &path)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(
+        e.contains("sources[1].format") && e.contains("Spine"),
+        "{e}"
+    );
+    // No data at all.
+    let (cfg, model, path) = read("", &|t| {
+        t.lines()
+            .filter(|l| !l.starts_with("data"))
+            .collect::<Vec<_>>()
+            .join("\n")
+    })
+    .unwrap();
+    let e = mvmp_train::open_training_set(&cfg, &model, &path)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(e.contains("data") && e.contains("[[sources]]"), "{e}");
+}
+
+#[test]
+fn h36m_frames_become_samples_with_all_17_joints() {
+    use mvmp_data::sources::{SourceDataset, SourceFormat, SourceSpec};
+    use mvmp_smplx::joint_sets::JointSet;
+    let root = tempfile::tempdir().unwrap();
+    h36m_fixture(root.path());
+    let spec = SourceSpec {
+        format: SourceFormat::H36m,
+        root: root.path().to_string_lossy().into_owned(),
+        split: Some("S9".into()),
+        stride: Some(2),
+        cameras: Some(
+            mvmp_data::h36m::CAMERAS[..2]
+                .iter()
+                .map(|s| s.to_string())
+                .collect(),
+        ),
+    };
+    let SourceDataset::Joints(ds) = spec
+        .open_training(ViewChoice::Random { count: 2, seed: 1 }, 64)
+        .unwrap()
+    else {
+        panic!("Human3.6M is joint-annotated")
+    };
+    // 5 pose rows, every 2nd: rows 0, 2, 4.
+    assert_eq!(ds.len(), 3);
+    let s = ds.load(1).unwrap();
+    assert_eq!(
+        (s.scene.as_str(), s.frame.as_str()),
+        ("S9/Walking", "000003")
+    );
+    assert_eq!(s.people.len(), 1);
+    let p = &s.people[0];
+    let seq = mvmp_data::h36m::H36mSequence::open(root.path(), "S9", "Walking", &["54138969"], 1)
+        .unwrap();
+    let slots = JointSet::H36m17.smplx_indices();
+    for (k, &slot) in slots.iter().enumerate() {
+        assert_eq!(p.joint_valid[slot], 1.0);
+        for a in 0..3 {
+            assert!((p.joints_3d[slot][a] as f64 - seq.joints[2][k][a]).abs() < 1e-5);
+        }
+    }
+    assert_eq!(p.joint_valid.iter().sum::<f32>(), 17.0);
+    assert_eq!(p.pelvis, seq.joints[2][0].map(|x| x as f32));
+    // The camera without images is named when a sample needs it.
+    let e = SourceSpec {
+        cameras: Some(vec!["54138969".into(), "58860488".into()]),
+        ..spec
+    }
+    .open_training(ViewChoice::Fixed(vec![0, 1]), 64)
+    .and_then(|d| d.load(0))
+    .err()
+    .unwrap()
+    .to_string();
+    assert!(e.contains("58860488"), "{e}");
+}
