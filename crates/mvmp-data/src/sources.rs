@@ -128,7 +128,7 @@ pub fn read_frame_images(
             return Err(DataError::file(
                 path,
                 format!(
-                    "the image is {} x {} but camera {} is {} x {} in the calibration",
+                    "the image is {}x{} but camera {} is {}x{} in the calibration",
                     img.width(),
                     img.height(),
                     cam.name,

@@ -518,26 +518,7 @@ pub fn evaluate_joint_sequences(
     for (i, &(si, fi)) in frames.iter().enumerate() {
         let seq = &seqs[si];
         let cams = seq.cameras();
-        let mut images = Vec::with_capacity(cams.len());
-        for (path, cam) in seq.images(fi).iter().zip(cams) {
-            let img = image::open(path)
-                .map_err(|e| TrainError::file(path, format!("unreadable image: {e}")))?
-                .to_rgb8();
-            if img.dimensions() != (cam.width, cam.height) {
-                return Err(TrainError::file(
-                    path,
-                    format!(
-                        "the image is {}x{} but camera {} is {}x{} in the calibration",
-                        img.width(),
-                        img.height(),
-                        cam.name,
-                        cam.width,
-                        cam.height
-                    ),
-                ));
-            }
-            images.push(img);
-        }
+        let images = mvmp_data::sources::read_frame_images(&seq.images(fi), cams)?;
         let people = pred.predict_images(&images, cams)?;
         let poses: Vec<PersonPose> = people
             .iter()
