@@ -188,10 +188,16 @@ impl FrameDataset {
 
     /// Load sample `index`.
     pub fn load(&self, index: usize) -> Result<FrameSample, DataError> {
+        self.load_with_draw(index, index)
+    }
+
+    /// Frame `index` with the views of draw number `draw` (a frame drawn repeatedly in an epoch gets a
+    /// view draw per repeat).
+    pub fn load_with_draw(&self, index: usize, draw: usize) -> Result<FrameSample, DataError> {
         let f = &self.frames[index];
         let scene = &self.layout.scenes[f.scene];
         let ann = Annotation::read(&f.dir.join("annotation.json"), scene.rig.len())?;
-        let views = self.select_views(index, scene.rig.len());
+        let views = self.select_views(draw, scene.rig.len());
         let s = self.size as usize;
         let mut images = vec![0f32; views.len() * 3 * s * s];
         let mut cameras = Vec::new();

@@ -293,13 +293,18 @@ impl JointFrameDataset {
     }
 
     pub fn load(&self, index: usize) -> Result<FrameSample, DataError> {
+        self.load_with_draw(index, index)
+    }
+
+    /// Frame `index` with the views of draw number `draw`.
+    pub fn load_with_draw(&self, index: usize, draw: usize) -> Result<FrameSample, DataError> {
         let (si, fi) = self.frames[index];
         let seq = &self.seqs[si];
         let all = seq.cameras();
         let views = select_views(
             &self.views,
             self.epoch.load(Ordering::Relaxed),
-            index,
+            draw,
             all.len(),
         );
         let paths = seq.images(fi);
@@ -388,6 +393,10 @@ pub struct SourceSpec {
     /// Camera names (default: VoxelPose's 5 HD cameras for Panoptic, the 4 cameras for Human3.6M).
     #[serde(default)]
     pub cameras: Option<Vec<String>>,
+    /// Training only: each frame of this source is drawn this many times per epoch (each time with its
+    /// own view draw), to balance a small source against a large one. Default 1.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub repeat: Option<usize>,
 }
 
 /// Panoptic's split by a name: `train` (VoxelPose's training sequences), `test` (its validation sequences),
@@ -520,6 +529,11 @@ impl SourceSpec {
             )?)),
         }
     }
+
+    /// How many times each frame is drawn per epoch.
+    pub fn repeat(&self) -> usize {
+        self.repeat.unwrap_or(1)
+    }
 }
 
 /// One source's samples.
@@ -553,23 +567,51 @@ impl SourceDataset {
             SourceDataset::Joints(d) => d.load(index),
         }
     }
+
+    /// Sample `n` of a source drawn repeatedly: frame `n mod len`, views drawn for `n` (so each repeat of
+    /// a frame sees its own views).
+    pub fn load_repeated(&self, n: usize) -> Result<FrameSample, DataError> {
+        match self {
+            SourceDataset::Mvmp(d) => d.load_with_draw(n % d.frames().len(), n),
+            SourceDataset::Joints(d) => d.load_with_draw(n % d.len(), n),
+        }
+    }
 }
 
-/// Several sources as one dataset: the samples of each, one after the other.
+/// Several sources as one dataset: the samples of each (each frame `repeat` times), one after the other.
 pub struct TrainingSet {
     pub parts: Vec<SourceDataset>,
+    repeats: Vec<usize>,
     starts: Vec<usize>,
 }
 
 impl TrainingSet {
+    /// Sources drawn once per epoch each.
     pub fn new(parts: Vec<SourceDataset>) -> Self {
+        let repeats = vec![1; parts.len()];
+        Self::with_repeats(parts, repeats)
+    }
+
+    /// Sources whose frames are drawn `repeats[i]` times per epoch (at least once).
+    pub fn with_repeats(parts: Vec<SourceDataset>, repeats: Vec<usize>) -> Self {
+        assert_eq!(parts.len(), repeats.len(), "one repeat count per source");
+        let repeats: Vec<usize> = repeats.into_iter().map(|r| r.max(1)).collect();
         let mut starts = Vec::with_capacity(parts.len());
         let mut n = 0;
-        for p in &parts {
+        for (p, r) in parts.iter().zip(&repeats) {
             starts.push(n);
-            n += p.len();
+            n += p.len() * r;
         }
-        TrainingSet { parts, starts }
+        TrainingSet {
+            parts,
+            repeats,
+            starts,
+        }
+    }
+
+    /// Samples per epoch of source `i`.
+    pub fn samples_of(&self, i: usize) -> usize {
+        self.parts[i].len() * self.repeats[i]
     }
 
     pub fn set_epoch(&self, epoch: u64) {
@@ -578,7 +620,7 @@ impl TrainingSet {
         }
     }
 
-    /// The source and local index of sample `index`.
+    /// The source of sample `index` and the sample's number within it (frame = number mod frames).
     fn locate(&self, index: usize) -> (usize, usize) {
         let part = self.starts.partition_point(|&s| s <= index) - 1;
         (part, index - self.starts[part])
@@ -586,11 +628,11 @@ impl TrainingSet {
 
     pub fn load(&self, index: usize) -> Result<FrameSample, DataError> {
         let (p, i) = self.locate(index);
-        self.parts[p].load(i)
+        self.parts[p].load_repeated(i)
     }
 
     pub fn total(&self) -> usize {
-        self.parts.iter().map(SourceDataset::len).sum()
+        (0..self.parts.len()).map(|i| self.samples_of(i)).sum()
     }
 }
 

@@ -182,12 +182,24 @@ impl TrainConfig {
                     "0: keep every N-th frame with N >= 1".into(),
                 ));
             }
+            if src.repeat == Some(0) {
+                return Err(bad(
+                    &format!("sources[{i}].repeat"),
+                    "0: each frame is drawn at least once per epoch".into(),
+                ));
+            }
             if src.format == SourceFormat::Mvmp && (src.stride.is_some() || src.cameras.is_some()) {
                 return Err(bad(
                     &format!("sources[{i}]"),
                     "stride and cameras apply to panoptic and h36m sources; an mvmp source uses every frame".into(),
                 ));
             }
+        }
+        if self.validation.as_ref().is_some_and(|v| v.repeat.is_some()) {
+            return Err(bad(
+                "validation.repeat",
+                "repeat applies to training sources; validation uses each frame once".into(),
+            ));
         }
         self.loss.validate().map_err(|what| TrainError::Config {
             path: path.into(),
@@ -207,6 +219,7 @@ impl TrainConfig {
                 split: None,
                 stride: None,
                 cameras: None,
+                repeat: None,
             })
             .collect();
         out.extend(self.sources.iter().cloned());

@@ -143,7 +143,7 @@ pub fn open_training_set(
             model_cfg.image_size,
         )?);
     }
-    let set = TrainingSet::new(parts);
+    let set = TrainingSet::with_repeats(parts, specs.iter().map(SourceSpec::repeat).collect());
     if set.total() == 0 {
         return Err(TrainError::file(
             config,

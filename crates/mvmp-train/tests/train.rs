@@ -794,6 +794,7 @@ fn panoptic_source(root: &Path, views: usize) -> mvmp_data::sources::SourceSpec 
                 .map(|s| s.to_string())
                 .collect(),
         ),
+        repeat: None,
     }
 }
 
@@ -991,7 +992,7 @@ fn a_run_trains_on_mvmp_and_panoptic_and_validates_on_panoptic() {
         let table = format!(
             "format = \"panoptic\"\nroot = \"{pan}\"\nsplit = \"160906_pizza1\"\nstride = 1\n"
         );
-        format!("{t}\n[[sources]]\n{table}\n[validation]\n{table}").replacen(
+        format!("{t}\n[[sources]]\n{table}repeat = 2\n\n[validation]\n{table}").replacen(
             "keep_checkpoints = 2\n",
             "keep_checkpoints = 2\nval_frames = 2\n",
             1,
@@ -1002,7 +1003,17 @@ fn a_run_trains_on_mvmp_and_panoptic_and_validates_on_panoptic() {
     let set = mvmp_train::open_training_set(&cfg, &model, &run.root.join("train.toml")).unwrap();
     let mvmp_frames = set.parts[0].len();
     assert_eq!(set.parts[1].len(), 2);
-    assert_eq!(set.total(), mvmp_frames + 2);
+    // `repeat = 2`: each Panoptic frame twice per epoch.
+    assert_eq!(set.samples_of(1), 4);
+    assert_eq!(set.total(), mvmp_frames + 4);
+    let (a, b) = (
+        set.load(mvmp_frames).unwrap(),
+        set.load(mvmp_frames + 2).unwrap(),
+    );
+    assert_eq!(
+        (a.scene.as_str(), a.frame.as_str()),
+        (b.scene.as_str(), b.frame.as_str())
+    );
     let out = mvmp_train::train(&run, &cfg, &model, &options(None), &mut Quiet).unwrap();
     assert_eq!(out, Outcome::Finished);
     let log = std::fs::read_to_string(run.root.join("metrics.jsonl")).unwrap();
@@ -1013,7 +1024,7 @@ fn a_run_trains_on_mvmp_and_panoptic_and_validates_on_panoptic() {
     let steps = lines.iter().filter(|l| l["kind"] == "step").count();
     assert_eq!(
         steps,
-        2 * (mvmp_frames + 2),
+        2 * (mvmp_frames + 4),
         "both stages over both sources"
     );
     let vals: Vec<&serde_json::Value> = lines.iter().filter(|l| l["kind"] == "val").collect();
@@ -1049,6 +1060,14 @@ fn source_configs_are_checked() {
     .unwrap()
     .to_string();
     assert!(e.contains("kinect"), "{e}");
+    let e = read(
+        &format!("[[sources]]\nformat = \"panoptic\"\nroot = \"{pan}\"\nrepeat = 0\n"),
+        &|t| t,
+    )
+    .err()
+    .unwrap()
+    .to_string();
+    assert!(e.contains("sources[0].repeat"), "{e}");
     // A primary joint the source does not annotate (Panoptic has no spine joint).
     std::fs::write(dir.path().join("m.toml"), {
         let mut m = model_config();
@@ -1105,6 +1124,7 @@ fn h36m_frames_become_samples_with_all_17_joints() {
                 .map(|s| s.to_string())
                 .collect(),
         ),
+        repeat: None,
     };
     let SourceDataset::Joints(ds) = spec
         .open_training(ViewChoice::Random { count: 2, seed: 1 }, 64)
