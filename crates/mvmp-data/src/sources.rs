@@ -228,7 +228,6 @@ pub fn select_views(views: &ViewChoice, epoch: u64, index: usize, available: usi
 
 /// Training samples from joint-annotated sequences.
 pub struct JointFrameDataset {
-    label: String,
     seqs: Vec<Box<dyn JointAnnotated>>,
     frames: Vec<(usize, usize)>,
     views: ViewChoice,
@@ -267,7 +266,6 @@ impl JointFrameDataset {
             .flat_map(|(si, s)| (0..s.len()).map(move |fi| (si, fi)))
             .collect();
         Ok(JointFrameDataset {
-            label: label.into(),
             seqs,
             frames,
             views,
@@ -282,10 +280,6 @@ impl JointFrameDataset {
 
     pub fn is_empty(&self) -> bool {
         self.frames.is_empty()
-    }
-
-    pub fn sequences(&self) -> &[Box<dyn JointAnnotated>] {
-        &self.seqs
     }
 
     pub fn set_epoch(&self, epoch: u64) {
@@ -337,10 +331,6 @@ impl JointFrameDataset {
             people,
             cover: covered_slots(set),
         })
-    }
-
-    pub fn label(&self) -> &str {
-        &self.label
     }
 }
 
@@ -422,6 +412,48 @@ pub fn panoptic_split(name: &str) -> (Vec<String>, usize, String) {
     }
 }
 
+/// Panoptic sequences `names` under `root` with the named cameras, every `stride`-th frame.
+pub fn open_panoptic(
+    root: &Path,
+    names: &[String],
+    cameras: &[&str],
+    stride: usize,
+) -> Result<Vec<Box<dyn JointAnnotated>>, DataError> {
+    let mut out: Vec<Box<dyn JointAnnotated>> = Vec::new();
+    for name in names {
+        let dir = root.join(name);
+        if !dir.is_dir() {
+            return Err(DataError::file(
+                &dir,
+                format!(
+                    "sequence {name:?} of the split is not under {}",
+                    root.display()
+                ),
+            ));
+        }
+        out.push(Box::new(PanopticSequence::open(&dir, cameras, stride)?));
+    }
+    Ok(out)
+}
+
+/// Every action of the Human3.6M `subjects` under `root` with the named cameras, every `stride`-th frame.
+pub fn open_h36m(
+    root: &Path,
+    subjects: &[String],
+    cameras: &[&str],
+    stride: usize,
+) -> Result<Vec<Box<dyn JointAnnotated>>, DataError> {
+    let mut out: Vec<Box<dyn JointAnnotated>> = Vec::new();
+    for subject in subjects {
+        for action in crate::h36m::actions(root, subject)? {
+            out.push(Box::new(H36mSequence::open(
+                root, subject, &action, cameras, stride,
+            )?));
+        }
+    }
+    Ok(out)
+}
+
 /// Human3.6M's default frame stride (50 Hz video; every 5th frame).
 pub const H36M_STRIDE: usize = 5;
 
@@ -457,46 +489,22 @@ impl SourceSpec {
                 "stride 0: keep every N-th frame, N >= 1",
             ));
         }
-        let mut out: Vec<Box<dyn JointAnnotated>> = Vec::new();
         match self.format {
-            SourceFormat::Mvmp => {
-                return Err(DataError::file(
-                    root,
-                    "an mvmp source has scenes, not joint-annotated sequences",
-                ));
-            }
+            SourceFormat::Mvmp => Err(DataError::file(
+                root,
+                "an mvmp source has scenes, not joint-annotated sequences",
+            )),
             SourceFormat::Panoptic => {
                 let (seqs, stride, _) = panoptic_split(&split);
-                for name in seqs {
-                    let dir = root.join(&name);
-                    if !dir.is_dir() {
-                        return Err(DataError::file(
-                            &dir,
-                            format!("sequence {name:?} of split {split:?} is not in the tree"),
-                        ));
-                    }
-                    out.push(Box::new(PanopticSequence::open(
-                        &dir,
-                        &cams,
-                        self.stride.unwrap_or(stride),
-                    )?));
-                }
+                open_panoptic(root, &seqs, &cams, self.stride.unwrap_or(stride))
             }
-            SourceFormat::H36m => {
-                for subject in crate::h36m::split_subjects(&split) {
-                    for action in crate::h36m::actions(root, &subject)? {
-                        out.push(Box::new(H36mSequence::open(
-                            root,
-                            &subject,
-                            &action,
-                            &cams,
-                            self.stride.unwrap_or(H36M_STRIDE),
-                        )?));
-                    }
-                }
-            }
+            SourceFormat::H36m => open_h36m(
+                root,
+                &crate::h36m::split_subjects(&split),
+                &cams,
+                self.stride.unwrap_or(H36M_STRIDE),
+            ),
         }
-        Ok(out)
     }
 
     /// The training samples of this source's split (default `train`).
@@ -586,12 +594,6 @@ pub struct TrainingSet {
 }
 
 impl TrainingSet {
-    /// Sources drawn once per epoch each.
-    pub fn new(parts: Vec<SourceDataset>) -> Self {
-        let repeats = vec![1; parts.len()];
-        Self::with_repeats(parts, repeats)
-    }
-
     /// Sources whose frames are drawn `repeats[i]` times per epoch (at least once).
     pub fn with_repeats(parts: Vec<SourceDataset>, repeats: Vec<usize>) -> Self {
         assert_eq!(parts.len(), repeats.len(), "one repeat count per source");

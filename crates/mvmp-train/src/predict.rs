@@ -590,21 +590,7 @@ pub fn evaluate_panoptic(
     pseudo: Option<&PseudoGt>,
     each: impl FnMut(usize, usize),
 ) -> Result<(Evaluator, PseudoGtCount), TrainError> {
-    use mvmp_data::panoptic::PanopticSequence;
-    let mut seqs: Vec<Box<dyn JointAnnotated>> = Vec::new();
-    for name in sequences {
-        let dir = root.join(name);
-        if !dir.is_dir() {
-            return Err(TrainError::file(
-                &dir,
-                format!(
-                    "sequence {name:?} of the split is not under {}",
-                    root.display()
-                ),
-            ));
-        }
-        seqs.push(Box::new(PanopticSequence::open(&dir, cameras, stride)?));
-    }
+    let seqs = mvmp_data::sources::open_panoptic(root, sequences, cameras, stride)?;
     evaluate_joint_sequences(
         pred,
         &seqs,
@@ -631,13 +617,7 @@ pub fn evaluate_h36m(
     pseudo: Option<&PseudoGt>,
     each: impl FnMut(usize, usize),
 ) -> Result<(Evaluator, PseudoGtCount), TrainError> {
-    use mvmp_data::h36m::{H36mSequence, actions};
-    let mut seqs: Vec<Box<dyn JointAnnotated>> = Vec::new();
-    for s in subjects {
-        for a in actions(root, s)? {
-            seqs.push(Box::new(H36mSequence::open(root, s, &a, cameras, stride)?));
-        }
-    }
+    let seqs = mvmp_data::sources::open_h36m(root, subjects, cameras, stride)?;
     evaluate_joint_sequences(
         pred,
         &seqs,

@@ -536,21 +536,26 @@ fn validate(
         root_metrics(&pred, data, &opts)?
     } else {
         let m = evaluate(&pred, data, &opts, |_, _, _| Ok(()))?.overall();
-        [
+        measured(&[
             ("mpjpe_mm", m.mpjpe_mm),
             ("pve_mm", m.pve_mm),
             ("pa_pve_mm", m.pa_pve_mm),
             ("recall_500", m.recall_500),
-        ]
-        .into_iter()
-        .filter_map(|(k, v)| v.map(|v| (k.to_string(), v)))
-        .collect()
+        ])
     };
     Ok(ValRecord {
         stage,
         epoch: 0,
         metrics,
     })
+}
+
+/// The metrics that were computed (a metric is absent when nothing was matched).
+fn measured(metrics: &[(&str, Option<f64>)]) -> Vec<(String, f64)> {
+    metrics
+        .iter()
+        .filter_map(|&(k, v)| v.map(|v| (k.to_string(), v)))
+        .collect()
 }
 
 /// Validation on a joint-annotated dataset: root metrics in stage 1; MPJPE on the dataset's joint set and
@@ -587,10 +592,7 @@ fn validate_joints(
             |_, _| {},
         )?;
         let m = ev.overall();
-        [("mpjpe_mm", m.mpjpe_mm), ("recall_500", m.recall_500)]
-            .into_iter()
-            .filter_map(|(k, v)| v.map(|v| (k.to_string(), v)))
-            .collect()
+        measured(&[("mpjpe_mm", m.mpjpe_mm), ("recall_500", m.recall_500)])
     };
     Ok(ValRecord {
         stage,
