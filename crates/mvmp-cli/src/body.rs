@@ -248,6 +248,13 @@ pub fn bench(model: Option<&Path>, batch: usize, iters: usize, device: &Device) 
     }
     times.sort_by(f64::total_cmp);
     let median = times[times.len() / 2];
+    // The line on stdout keeps its documented form; which path ran goes to stderr.
+    let path = if layer.is_fused() {
+        "the fused CPU pass"
+    } else {
+        "tensor ops"
+    };
+    eprintln!("smplx forward on {device:?}: {path}");
     println!("smplx forward batch {batch}: {median:.2} ms");
     Ok(())
 }

@@ -10,9 +10,12 @@
 //!    landmarks (barycentric over faces), all from the posed mesh; then the translation.
 //!
 //! Hands are relative to a flat hand (smplx's `flat_hand_mean = True`): the file's hand means are not added.
+use std::sync::Arc;
+
 use burn::tensor::{Device, Int, Tensor, TensorData};
 
 use crate::BodyModel;
+use crate::fused::FusedLbs;
 use crate::names::{
     EXTRA_VERTEX_JOINTS, NUM_BETAS, NUM_EXPRESSION, NUM_JOINTS, NUM_POSE_JOINTS, NUM_REGRESSED,
 };
@@ -66,6 +69,8 @@ pub struct SmplxLayer {
     num_extra: usize,
     faces: Vec<[u32; 3]>,
     device: Device,
+    /// The fused CPU pass, made when the layer lives on the CPU backend without autodiff.
+    fused: Option<Arc<FusedLbs>>,
 }
 
 impl SmplxLayer {
@@ -193,6 +198,13 @@ impl SmplxLayer {
         let parents: Vec<usize> = (0..NUM_JOINTS)
             .map(|j| model.parents[j].max(0) as usize)
             .collect();
+        let fused = (!device.is_autodiff() && *device == Device::flex()).then(|| {
+            let taps = extra_rows
+                .iter()
+                .map(|row| std::array::from_fn(|k| row.get(k).copied().unwrap_or((row[0].0, 0.0))))
+                .collect();
+            FusedLbs::new(model, j_template.clone(), j_sd.clone(), taps)
+        });
         let f2 = |d: Vec<f32>, s: [usize; 2]| Tensor::<2>::from_data(TensorData::new(d, s), device);
         let mut weights_t = vec![0f32; NUM_JOINTS * v];
         for vi in 0..v {
@@ -219,6 +231,7 @@ impl SmplxLayer {
             num_extra: nx,
             faces: model.faces.clone(),
             device: device.clone(),
+            fused,
         }
     }
 
@@ -264,7 +277,66 @@ impl SmplxLayer {
 
     /// Forward from rotation matrices `[N, 55, 3, 3]`, betas `[N, 10]`, expression `[N, 10]`,
     /// translation `[N, 3]`.
+    ///
+    /// On the CPU backend without autodiff (inference) this runs the fused pass of `fused.rs`; otherwise,
+    /// and whenever a gradient can flow, the tensor ops of [`SmplxLayer::forward_tensor_ops`]. Both compute
+    /// the same function (tested to 1e-5 m).
     pub fn forward(
+        &self,
+        rot: Tensor<4>,
+        betas: Tensor<2>,
+        expression: Tensor<2>,
+        transl: Tensor<2>,
+        mode: Translation,
+    ) -> SmplxOutput {
+        if let Some(fused) = &self.fused
+            && [
+                rot.device(),
+                betas.device(),
+                expression.device(),
+                transl.device(),
+            ]
+            .iter()
+            .all(|d| !d.is_autodiff())
+            && let Some(out) = self.forward_fused(fused, &rot, &betas, &expression, &transl, mode)
+        {
+            return out;
+        }
+        self.forward_tensor_ops(rot, betas, expression, transl, mode)
+    }
+
+    /// Whether [`SmplxLayer::forward`] runs the fused CPU pass for inputs without autodiff.
+    pub fn is_fused(&self) -> bool {
+        self.fused.is_some()
+    }
+
+    fn forward_fused(
+        &self,
+        fused: &FusedLbs,
+        rot: &Tensor<4>,
+        betas: &Tensor<2>,
+        expression: &Tensor<2>,
+        transl: &Tensor<2>,
+        mode: Translation,
+    ) -> Option<SmplxOutput> {
+        let n = rot.dims()[0];
+        let host = |t: Tensor<2>| t.into_data_as::<f32>().try_into_vec::<f32>().ok();
+        let rot = host(rot.clone().reshape([n, NUM_JOINTS * 9]))?;
+        let coeffs = host(Tensor::cat(vec![betas.clone(), expression.clone()], 1))?;
+        let transl = host(transl.clone())?;
+        let out = fused.forward(n, &rot, &coeffs, &transl, mode);
+        let nj = self.num_joints();
+        Some(SmplxOutput {
+            vertices: Tensor::from_data(
+                TensorData::new(out.vertices, [n, self.num_vertices, 3]),
+                &self.device,
+            ),
+            joints: Tensor::from_data(TensorData::new(out.joints, [n, nj, 3]), &self.device),
+        })
+    }
+
+    /// The forward as tensor ops on any backend, differentiable in every input.
+    pub fn forward_tensor_ops(
         &self,
         rot: Tensor<4>,
         betas: Tensor<2>,

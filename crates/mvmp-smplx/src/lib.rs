@@ -1,6 +1,7 @@
 //! SMPL-X for mvmp: body-model files, the batched differentiable layer, the stand-in model and mesh export.
 pub mod error;
 pub mod export;
+mod fused;
 pub mod joint_sets;
 pub mod layer;
 pub mod model;
