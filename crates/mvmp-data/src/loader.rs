@@ -369,7 +369,10 @@ impl FrameBatcher {
     fn layer(&self, model: &mvmp_smplx::BodyModel, device: &Device) -> mvmp_smplx::SmplxLayer {
         let mut cached = self.layer.lock().unwrap_or_else(|e| e.into_inner());
         match cached.as_ref() {
-            Some(l) if l.device() == device => l.clone(),
+            // `Device` equality does not tell autodiff from plain flex; the layer's path depends on it.
+            Some(l) if l.device() == device && l.device().is_autodiff() == device.is_autodiff() => {
+                l.clone()
+            }
             _ => {
                 let l = mvmp_smplx::SmplxLayer::new(model, device);
                 *cached = Some(l.clone());

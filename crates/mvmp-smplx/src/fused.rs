@@ -482,6 +482,19 @@ mod x86 {
         acc: bool,
     }
 
+    /// The tiles of a panel product in the order they run, with their widths: chunks of KC rows, and
+    /// within a chunk every column tile, so each chunk is used from L1 by all columns and the panel
+    /// streams from L3 once, overlapped with the arithmetic.
+    fn tiles(k: usize, n: usize, nr_max: usize) -> impl Iterator<Item = (Tile, usize)> {
+        (0..k).step_by(KC).flat_map(move |q0| {
+            let q1 = (q0 + KC).min(k);
+            (0..n).step_by(nr_max).map(move |c0| {
+                let acc = q0 > 0;
+                (Tile { q0, q1, n, c0, acc }, (n - c0).min(nr_max))
+            })
+        })
+    }
+
     /// Columns per tile: 2 x 12 accumulators of 16 lanes leave registers for the panel.
     const NR512: usize = 12;
     /// Columns per tile with 8-lane registers: 4 x 3 accumulators.
@@ -495,36 +508,24 @@ mod x86 {
         n: usize,
         dst: &mut [f32],
     ) {
-        // Chunks of KC rows: every column tile uses a chunk while it is in L1, so the panel streams
-        // from L3 once, overlapped with the arithmetic of all columns.
-        let mut q0 = 0;
-        while q0 < k {
-            let q1 = (q0 + KC).min(k);
-            let acc = q0 > 0;
-            let mut c0 = 0;
-            while c0 < n {
-                let nr = (n - c0).min(NR512);
-                let t = Tile { q0, q1, n, c0, acc };
-                // SAFETY: columns c0..c0+nr < n and rows q0..q1 <= k; the caller checked the lengths.
-                unsafe {
-                    match nr {
-                        12 => tile512::<12>(panel, feat, t, dst),
-                        11 => tile512::<11>(panel, feat, t, dst),
-                        10 => tile512::<10>(panel, feat, t, dst),
-                        9 => tile512::<9>(panel, feat, t, dst),
-                        8 => tile512::<8>(panel, feat, t, dst),
-                        7 => tile512::<7>(panel, feat, t, dst),
-                        6 => tile512::<6>(panel, feat, t, dst),
-                        5 => tile512::<5>(panel, feat, t, dst),
-                        4 => tile512::<4>(panel, feat, t, dst),
-                        3 => tile512::<3>(panel, feat, t, dst),
-                        2 => tile512::<2>(panel, feat, t, dst),
-                        _ => tile512::<1>(panel, feat, t, dst),
-                    }
+        for (t, nr) in tiles(k, n, NR512) {
+            // SAFETY: columns c0..c0+nr < n and rows q0..q1 <= k; the caller checked the lengths.
+            unsafe {
+                match nr {
+                    12 => tile512::<12>(panel, feat, t, dst),
+                    11 => tile512::<11>(panel, feat, t, dst),
+                    10 => tile512::<10>(panel, feat, t, dst),
+                    9 => tile512::<9>(panel, feat, t, dst),
+                    8 => tile512::<8>(panel, feat, t, dst),
+                    7 => tile512::<7>(panel, feat, t, dst),
+                    6 => tile512::<6>(panel, feat, t, dst),
+                    5 => tile512::<5>(panel, feat, t, dst),
+                    4 => tile512::<4>(panel, feat, t, dst),
+                    3 => tile512::<3>(panel, feat, t, dst),
+                    2 => tile512::<2>(panel, feat, t, dst),
+                    _ => tile512::<1>(panel, feat, t, dst),
                 }
-                c0 += nr;
             }
-            q0 = q1;
         }
     }
 
@@ -582,25 +583,15 @@ mod x86 {
         n: usize,
         dst: &mut [f32],
     ) {
-        let mut q0 = 0;
-        while q0 < k {
-            let q1 = (q0 + KC).min(k);
-            let acc = q0 > 0;
-            let mut c0 = 0;
-            while c0 < n {
-                let nr = (n - c0).min(NR256);
-                let t = Tile { q0, q1, n, c0, acc };
-                // SAFETY: as for AVX-512.
-                unsafe {
-                    match nr {
-                        3 => tile256::<3>(panel, feat, t, dst),
-                        2 => tile256::<2>(panel, feat, t, dst),
-                        _ => tile256::<1>(panel, feat, t, dst),
-                    }
+        for (t, nr) in tiles(k, n, NR256) {
+            // SAFETY: as for AVX-512.
+            unsafe {
+                match nr {
+                    3 => tile256::<3>(panel, feat, t, dst),
+                    2 => tile256::<2>(panel, feat, t, dst),
+                    _ => tile256::<1>(panel, feat, t, dst),
                 }
-                c0 += nr;
             }
-            q0 = q1;
         }
     }
 
