@@ -2,14 +2,14 @@
 //! letterboxed to 1288 x 1288, 92 x 92 feature maps (stride 14), 32 channels; and the Human Transformer
 //! Blocks with 30 queries over that volume. CPU flex backend. Run: `cargo bench --bench fusion`.
 //! Targets (DESIGN.md): sampling + fusion from cached grids <= 140 ms; peak memory of the step <= 1.5x one
-//! fused volume. Peak memory is measured with a counting allocator around one call, outside criterion.
+//! fused volume. `fuse_views` on flex is the fused CPU pass; `_tensor_ops` rows are the training path. Peak memory is measured with a counting allocator around one call, outside criterion.
 use std::alloc::{GlobalAlloc, Layout};
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 use burn::tensor::{Bool, Device, Tensor, TensorData};
 use criterion::{Criterion, criterion_group, criterion_main};
 use mvmp::decoder::DecoderConfig;
-use mvmp::fusion::{FusionMode, SamplingGrid, fuse_views};
+use mvmp::fusion::{FusionMode, SamplingGrid, fuse_views, fuse_views_tensor_ops};
 use mvmp::geom::{Camera, Letterbox, VoxelGrid};
 use nalgebra::{Matrix3, Vector3};
 
@@ -116,6 +116,18 @@ fn bench(c: &mut Criterion) {
                     .into_scalar::<f32>()
             })
         });
+        // The differentiable path that training takes (here without autodiff).
+        g.bench_function(
+            format!("sample_and_mean_fuse_32ch_{views}_views_tensor_ops"),
+            |b| {
+                b.iter(|| {
+                    fuse_views_tensor_ops(m.clone(), std::slice::from_ref(&sg), FusionMode::Mean)
+                        .narrow(2, 0, 1)
+                        .sum()
+                        .into_scalar::<f32>()
+                })
+            },
+        );
     }
     // Two HTBs, 30 queries, cross-attention over the volume pooled by 4 (75 x 75 x 5 tokens).
     let dec = DecoderConfig::new(32)

@@ -347,3 +347,51 @@ fn deformable_fusion_starts_as_mean_fusion_and_learns() {
         .into_scalar();
     assert!(gw > 0.0);
 }
+
+/// The fused CPU pass (`fuse_views` on plain flex) and the tensor ops compute the same volumes: two
+/// batch items with different rigs, channel counts that are not a multiple of the vector width, a voxel
+/// count that is not a multiple of the block, voxels outside or behind a view.
+#[test]
+fn fused_pass_matches_the_tensor_ops() {
+    let d = Device::flex();
+    let voxels = VoxelGrid::new([0.0, 0.0, 1.0], [4.0, 4.0, 2.0], [7, 9, 5]).unwrap();
+    let (_, _, g0) = setup_with(&d, voxels);
+    let cams: Vec<Camera> = vec![
+        camera("c", [-4.0, 2.0, 2.5], [0.0, 0.0, 1.0], 0.03),
+        camera("d", [1.0, 1.0, 1.2], [3.0, 3.0, 1.0], -0.02),
+    ];
+    let lbs: Vec<Letterbox> = cams
+        .iter()
+        .map(|c| Letterbox::new(c.width, c.height, S).unwrap())
+        .collect();
+    let g1 = SamplingGrid::new(&voxels, &cams, &lbs, STRIDE, [MAP, MAP], &d);
+    let grids = [g0, g1];
+    assert!(grids.iter().all(|g| g.is_fused()));
+    // Another backend keeps no host copy (burn-ndarray is deprecated upstream but still a backend here).
+    #[allow(deprecated)]
+    let other = Device::ndarray();
+    assert!(!setup(&other).2.is_fused());
+    for c in [1usize, 5, 33] {
+        let n = 2 * 2 * c * MAP * MAP;
+        let maps: Vec<f32> = (0..n)
+            .map(|i| ((i * 7919) % 1009) as f32 / 1009.0 - 0.3)
+            .collect();
+        let maps = Tensor::<5>::from_data(TensorData::new(maps, [2, 2, c, MAP, MAP]), &d);
+        for mode in [FusionMode::Mean, FusionMode::Max] {
+            let a = fuse_views(maps.clone(), &grids, mode);
+            let b = fuse_views_tensor_ops(maps.clone(), &grids, mode);
+            assert_eq!(a.dims(), [2, c, 7, 9, 5]);
+            assert_eq!(a.dims(), b.dims());
+            let (a, b) = (vals(a), vals(b));
+            let worst = a
+                .iter()
+                .zip(&b)
+                .map(|(x, y)| (x - y).abs())
+                .fold(0.0, f32::max);
+            // Same bilinear weights from coordinates computed along two routes: float32 rounding.
+            assert!(worst < 1e-5, "{c} channels, {mode:?}: max diff {worst}");
+            // The rigs leave some voxels unseen and some seen by one view only.
+            assert!(a.iter().filter(|&&x| x == 0.0).count() > 0, "{mode:?}");
+        }
+    }
+}

@@ -1,0 +1,249 @@
+//! Sampling and fusion as one pass on the CPU backend, for inference (no gradient).
+//!
+//! The tensor path of [`crate::fuse_views`] samples one view at a time into a `[C, P]` plane, masks it
+//! and adds it to the running sum, so at paper scale (1.8 M voxels, 32 channels) every view writes and
+//! reads several full volumes. Here the maps are turned channels-last once, and each block of voxels
+//! gathers all its views' bilinear samples while its `[voxels][C]` accumulator is in L1, then writes the
+//! finished values once, channels-first, into the output. Same arithmetic as the tensor path: border
+//! padding, align_corners = false, views that do not see a voxel left out, 0 where none does.
+use rayon::prelude::*;
+
+use crate::FusionMode;
+
+/// Voxels per block: the accumulator of 16 voxels x 32 channels is 2 KiB.
+const BLOCK: usize = 16;
+
+/// Host copy of a rig's sampling positions: `[V][P]` map-pixel coordinates `(x, y)`, already clamped to
+/// the map (border padding); NaN where the view does not see the voxel.
+#[derive(Debug)]
+pub(crate) struct HostGrid {
+    xy: Vec<[f32; 2]>,
+    views: usize,
+    voxels: usize,
+    map_hw: [usize; 2],
+}
+
+impl HostGrid {
+    /// From the projected network pixels `uv [V, P, 2]` and visibility `[V, P]` (1 seen, 0 not) of maps
+    /// of `map_hw` at `stride` network pixels per map pixel.
+    pub(crate) fn new(
+        uv: &[f32],
+        visible: &[f32],
+        views: usize,
+        voxels: usize,
+        stride: f64,
+        map_hw: [usize; 2],
+    ) -> Self {
+        let [h, w] = map_hw;
+        let (xmax, ymax) = ((w - 1) as f32, (h - 1) as f32);
+        let s = stride as f32;
+        let xy = uv
+            .chunks_exact(2)
+            .zip(visible)
+            .map(|(u, &seen)| {
+                if seen > 0.5 {
+                    // f = (u' + 0.5) / k - 0.5, then border padding clamps it into the map.
+                    let x = ((u[0] + 0.5) / s - 0.5).clamp(0.0, xmax);
+                    let y = ((u[1] + 0.5) / s - 0.5).clamp(0.0, ymax);
+                    if x.is_finite() && y.is_finite() {
+                        return [x, y];
+                    }
+                }
+                [f32::NAN, f32::NAN]
+            })
+            .collect();
+        HostGrid {
+            xy,
+            views,
+            voxels,
+            map_hw,
+        }
+    }
+}
+
+#[derive(Clone, Copy)]
+struct SendPtr(*mut f32);
+// SAFETY: used only for writes to disjoint voxel columns (see `fuse`).
+unsafe impl Send for SendPtr {}
+unsafe impl Sync for SendPtr {}
+
+impl SendPtr {
+    /// A method, so that closures capture the whole (Send) wrapper rather than its raw field.
+    fn get(self) -> *mut f32 {
+        self.0
+    }
+}
+
+/// Fuse one batch item: `maps [V][C][h][w]` into `out [C][P]` (every element is written).
+pub(crate) fn fuse(
+    grid: &HostGrid,
+    maps: &[f32],
+    channels: usize,
+    mode: FusionMode,
+    out: &mut [std::mem::MaybeUninit<f32>],
+) {
+    let (v, p, c) = (grid.views, grid.voxels, channels);
+    let [h, w] = grid.map_hw;
+    assert_eq!(maps.len(), v * c * h * w, "maps vs grid");
+    assert_eq!(out.len(), c * p, "output vs grid");
+    // Channels last, so a bilinear tap is C contiguous floats.
+    let mut last = vec![0f32; v * h * w * c];
+    last.par_chunks_mut(h * w * c)
+        .zip(maps.par_chunks(c * h * w))
+        .for_each(|(dst, src)| {
+            for (ch, plane) in src.chunks_exact(h * w).enumerate() {
+                for (px, &x) in plane.iter().enumerate() {
+                    dst[px * c + ch] = x;
+                }
+            }
+        });
+    let out = SendPtr(out.as_mut_ptr().cast::<f32>());
+    let isa = Isa::detect();
+    let max = mode == FusionMode::Max;
+    (0..p.div_ceil(BLOCK))
+        .into_par_iter()
+        .with_min_len(64)
+        .for_each_init(
+            || (vec![0f32; BLOCK * c], [0u32; BLOCK]),
+            |(acc, count), blk| {
+                let p0 = blk * BLOCK;
+                let n = BLOCK.min(p - p0);
+                acc.fill(if max { f32::NEG_INFINITY } else { 0.0 });
+                count.fill(0);
+                for vi in 0..v {
+                    let xy = &grid.xy[vi * p + p0..vi * p + p0 + n];
+                    let map = &last[vi * h * w * c..(vi + 1) * h * w * c];
+                    sample_block(isa, xy, map, [h, w], c, max, acc, count);
+                }
+                for ch in 0..c {
+                    // SAFETY: `out` holds c * p floats; block `blk` writes only voxels p0..p0+n of each
+                    // channel row, which no other block touches.
+                    let row =
+                        unsafe { std::slice::from_raw_parts_mut(out.get().add(ch * p + p0), n) };
+                    for (i, o) in row.iter_mut().enumerate() {
+                        let a = acc[i * c + ch];
+                        *o = match (max, count[i]) {
+                            (_, 0) => 0.0,
+                            (true, _) => a,
+                            (false, k) => a / k as f32,
+                        };
+                    }
+                }
+            },
+        );
+}
+
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Isa {
+    #[cfg(target_arch = "x86_64")]
+    Avx512,
+    #[cfg(target_arch = "x86_64")]
+    Avx2,
+    Portable,
+}
+
+impl Isa {
+    fn detect() -> Isa {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::arch::is_x86_feature_detected!("avx512f") {
+                return Isa::Avx512;
+            }
+            if std::arch::is_x86_feature_detected!("avx2")
+                && std::arch::is_x86_feature_detected!("fma")
+            {
+                return Isa::Avx2;
+            }
+        }
+        Isa::Portable
+    }
+}
+
+/// Add one view's samples of a block of voxels to their accumulators `[voxel][C]`.
+///
+/// The loop is compiled once per instruction set: the default x86-64 target has only SSE2.
+#[allow(clippy::too_many_arguments)]
+fn sample_block(
+    isa: Isa,
+    xy: &[[f32; 2]],
+    map: &[f32],
+    hw: [usize; 2],
+    c: usize,
+    max: bool,
+    acc: &mut [f32],
+    count: &mut [u32; BLOCK],
+) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        type Args<'a> = (
+            &'a [[f32; 2]],
+            &'a [f32],
+            [usize; 2],
+            usize,
+            bool,
+            &'a mut [f32],
+            &'a mut [u32; BLOCK],
+        );
+        #[target_feature(enable = "avx512f")]
+        fn avx512(a: Args) {
+            sample_block_body(a.0, a.1, a.2, a.3, a.4, a.5, a.6)
+        }
+        #[target_feature(enable = "avx2,fma")]
+        fn avx2(a: Args) {
+            sample_block_body(a.0, a.1, a.2, a.3, a.4, a.5, a.6)
+        }
+        let args = (xy, map, hw, c, max, acc, count);
+        match isa {
+            // SAFETY: the features were detected at run time.
+            Isa::Avx512 => unsafe { avx512(args) },
+            // SAFETY: as above.
+            Isa::Avx2 => unsafe { avx2(args) },
+            Isa::Portable => {
+                let (xy, map, hw, c, max, acc, count) = args;
+                sample_block_body(xy, map, hw, c, max, acc, count)
+            }
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        let _ = isa;
+        sample_block_body(xy, map, hw, c, max, acc, count)
+    }
+}
+
+#[inline(always)]
+fn sample_block_body(
+    xy: &[[f32; 2]],
+    map: &[f32],
+    [h, w]: [usize; 2],
+    c: usize,
+    max: bool,
+    acc: &mut [f32],
+    count: &mut [u32; BLOCK],
+) {
+    for (i, &[x, y]) in xy.iter().enumerate() {
+        if x.is_nan() {
+            continue;
+        }
+        let (x0, y0) = (x.floor(), y.floor());
+        let (fx, fy) = (x - x0, y - y0);
+        let (x0, y0) = (x0 as usize, y0 as usize);
+        let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+        let tap = |yy: usize, xx: usize| &map[(yy * w + xx) * c..(yy * w + xx + 1) * c];
+        let (m00, m01, m10, m11) = (tap(y0, x0), tap(y0, x1), tap(y1, x0), tap(y1, x1));
+        let (w00, w01) = ((1.0 - fx) * (1.0 - fy), fx * (1.0 - fy));
+        let (w10, w11) = ((1.0 - fx) * fy, fx * fy);
+        let a = &mut acc[i * c..(i + 1) * c];
+        let taps = m00.iter().zip(m01).zip(m10).zip(m11);
+        if max {
+            for (a, (((&p00, &p01), &p10), &p11)) in a.iter_mut().zip(taps) {
+                *a = a.max(w00 * p00 + w01 * p01 + w10 * p10 + w11 * p11);
+            }
+        } else {
+            for (a, (((&p00, &p01), &p10), &p11)) in a.iter_mut().zip(taps) {
+                *a += w00 * p00 + w01 * p01 + w10 * p10 + w11 * p11;
+            }
+        }
+        count[i] += 1;
+    }
+}
