@@ -39,8 +39,7 @@ pub struct SamplingGrid {
     /// Size `[h, w]` of the maps the grid samples and their stride in network pixels.
     pub map_hw: [usize; 2],
     pub stride: f64,
-    /// The positions on the host for the fused CPU pass: made on the CPU backend, also for autodiff
-    /// (training validates with maps that carry none).
+    /// The positions on the host for the fused CPU pass (made on the CPU backend without autodiff).
     host: Option<Arc<HostGrid>>,
 }
 
@@ -64,7 +63,9 @@ impl SamplingGrid {
         let v = cameras.len();
         let ct = CameraTensors::new(cameras, Some(letterboxes), device);
         let proj = ct.project(Tensor::from_data(TensorData::new(centers, [p, 3]), device));
-        let host = if *device == Device::flex() {
+        // Only for plain flex: training builds grids on the autodiff device every step, and its maps
+        // carry gradients, so a host copy there would be made and never used.
+        let host = if !device.is_autodiff() && *device == Device::flex() {
             let f32s = |t: Tensor<3>| t.into_data_as::<f32>().try_into_vec::<f32>().ok();
             let uv = f32s(proj.uv.clone());
             let seen = f32s(proj.visible.clone().float().reshape([v, p, 1]));

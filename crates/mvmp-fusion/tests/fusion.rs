@@ -367,10 +367,12 @@ fn fused_pass_matches_the_tensor_ops() {
     let g1 = SamplingGrid::new(&voxels, &cams, &lbs, STRIDE, [MAP, MAP], &d);
     let grids = [g0, g1];
     assert!(grids.iter().all(|g| g.is_fused()));
-    // Another backend keeps no host copy (burn-ndarray is deprecated upstream but still a backend here).
+    // Autodiff (training) and other backends keep no host copy (burn-ndarray is deprecated upstream but
+    // still a backend here).
     #[allow(deprecated)]
     let other = Device::ndarray();
     assert!(!setup(&other).2.is_fused());
+    assert!(!setup(&Device::flex().autodiff()).2.is_fused());
     for c in [1usize, 5, 33] {
         let n = 2 * 2 * c * MAP * MAP;
         let maps: Vec<f32> = (0..n)
