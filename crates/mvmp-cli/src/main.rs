@@ -271,6 +271,17 @@ enum BenchCommand {
         #[arg(long, default_value_t = 20)]
         iters: usize,
     },
+    /// Projection and fusion at a model config's scale (its grid, input size, channels): the sampling
+    /// grids of a ring rig and the median fusion times from them.
+    Fusion {
+        #[arg(long)]
+        config: PathBuf,
+        #[arg(long, default_value_t = 5)]
+        views: usize,
+        /// Timed repetitions after the warm-up.
+        #[arg(long, default_value_t = 5)]
+        iters: usize,
+    },
     /// Per-stage forward times of a model config (batch 1) and the fraction of GEMM speed each reaches.
     Model {
         #[arg(long)]
@@ -445,6 +456,11 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             views,
             iters,
         }) => model::bench(&config, views, iters, &device),
+        Command::Bench(BenchCommand::Fusion {
+            config,
+            views,
+            iters,
+        }) => model::bench_fusion(&config, views, iters, &device),
         Command::Bench(BenchCommand::Smplx {
             batch,
             model,

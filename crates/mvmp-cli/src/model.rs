@@ -1,4 +1,4 @@
-//! `mvmp model summary` and `mvmp bench model`.
+//! `mvmp model summary`, `mvmp bench model` and `mvmp bench fusion`.
 use std::path::Path;
 use std::time::Instant;
 
@@ -8,7 +8,7 @@ use nalgebra::Vector3;
 
 use mvmp_data::synth::look_at;
 use mvmp_fusion::{FusionMode, extract_roots, fuse_views};
-use mvmp_geom::Letterbox;
+use mvmp_geom::{Camera, Letterbox};
 use mvmp_model::summary::summarize;
 use mvmp_model::{ModelConfig, RigGrids};
 use mvmp_smplx::{SmplxLayer, Translation, regressed_to_full_pose};
@@ -79,16 +79,11 @@ fn time<const D: usize>(iters: usize, mut f: impl FnMut() -> Tensor<D>) -> (Tens
     (out, times[times.len() / 2])
 }
 
-pub fn bench(config: &Path, views: usize, iters: usize, device: &Device) -> Result<()> {
-    let cfg = ModelConfig::read(config)?;
-    if views == 0 || iters == 0 {
-        bail!("--views and --iters must be at least 1");
-    }
-    let net = cfg.init(device);
-    let layer = SmplxLayer::new(&mvmp_smplx::standin_model(0), device);
-    let s = cfg.image_size;
+/// `views` 1920 x 1080 cameras on a ring around the config's grid, looking at its centre, letterboxed to
+/// the config's input size.
+fn ring_rig(cfg: &ModelConfig, views: usize) -> Result<(Vec<Camera>, Vec<Letterbox>)> {
     let g = &cfg.grid;
-    let cams: Vec<_> = (0..views)
+    let cams: Vec<Camera> = (0..views)
         .map(|i| {
             let a = i as f64 / views as f64 * std::f64::consts::TAU;
             let r = 0.75 * g.size[0].max(g.size[1]);
@@ -103,10 +98,92 @@ pub fn bench(config: &Path, views: usize, iters: usize, device: &Device) -> Resu
             )
         })
         .collect::<Result<_, _>>()?;
-    let lbs: Vec<Letterbox> = cams
+    let lbs = cams
         .iter()
-        .map(|_| Letterbox::new(1920, 1080, s))
+        .map(|_| Letterbox::new(1920, 1080, cfg.image_size))
         .collect::<Result<_, _>>()?;
+    Ok((cams, lbs))
+}
+
+/// Projection and fusion alone at a config's scale: the sampling grids of a ring rig, then the fusion of
+/// the feature maps (the config's channels and fusion mode) and of the heatmaps (mean), from the cached
+/// grids, with maps of the sizes the backbones would give.
+pub fn bench_fusion(config: &Path, views: usize, iters: usize, device: &Device) -> Result<()> {
+    let cfg = ModelConfig::read(config)?;
+    if views == 0 || iters == 0 {
+        bail!("--views and --iters must be at least 1");
+    }
+    let mode = match cfg.fusion {
+        // Its offsets and weights are parameters of the model: `bench model` times it.
+        FusionMode::Deformable => bail!(
+            "{}: fusion = \"deformable\" has learned parameters; `mvmp bench model --config` times it",
+            config.display()
+        ),
+        m => m,
+    };
+    let (cams, lbs) = ring_rig(&cfg, views)?;
+    let t0 = Instant::now();
+    let grids = RigGrids::new(&cfg, &cams, &lbs, device);
+    sync(&grids.features.grid);
+    sync(&grids.heatmaps.grid);
+    let t_grids = t0.elapsed().as_secs_f64();
+    let maps = |c: usize, side: usize| {
+        let n = views * c * side * side;
+        let v: Vec<f32> = (0..n).map(|i| ((i * 7919) % 997) as f32 / 997.0).collect();
+        Tensor::<5>::from_data(TensorData::new(v, [1, views, c, side, side]), device)
+    };
+    let [fh, _] = grids.features.map_hw;
+    let [hh, _] = grids.heatmaps.map_hw;
+    let feats = maps(cfg.feature_channels, fh);
+    let hm = maps(cfg.heatmap_joints.len(), hh);
+    let fg = std::slice::from_ref(&grids.features);
+    let hg = std::slice::from_ref(&grids.heatmaps);
+    let (_, t_feat) = time(iters, || fuse_views(feats.clone(), fg, mode));
+    let (_, t_hm) = time(iters, || fuse_views(hm.clone(), hg, FusionMode::Mean));
+    let [x, y, z] = cfg.grid.shape;
+    let p = x * y * z;
+    let path = if grids.features.is_fused() && !device.is_autodiff() {
+        "the fused CPU pass"
+    } else {
+        "tensor ops"
+    };
+    println!(
+        "fusion for {} on {:?} ({path}): {} views, {} x {} x {} voxels, median of {} runs",
+        config.display(),
+        device,
+        views,
+        x,
+        y,
+        z,
+        iters
+    );
+    println!("sampling grids (once per rig): {:.1} ms", t_grids * 1e3);
+    let mb = |c: usize| (c * p * 4) as f64 / 1e6;
+    println!(
+        "{mode:?} fusion of {} channels from {fh} x {fh} maps: {:.1} ms ({:.1} MB volume)",
+        cfg.feature_channels,
+        t_feat * 1e3,
+        mb(cfg.feature_channels)
+    );
+    println!(
+        "Mean fusion of {} heatmaps from {hh} x {hh} maps: {:.1} ms ({:.1} MB volume)",
+        cfg.heatmap_joints.len(),
+        t_hm * 1e3,
+        mb(cfg.heatmap_joints.len())
+    );
+    Ok(())
+}
+
+pub fn bench(config: &Path, views: usize, iters: usize, device: &Device) -> Result<()> {
+    let cfg = ModelConfig::read(config)?;
+    if views == 0 || iters == 0 {
+        bail!("--views and --iters must be at least 1");
+    }
+    let net = cfg.init(device);
+    let layer = SmplxLayer::new(&mvmp_smplx::standin_model(0), device);
+    let s = cfg.image_size;
+    let g = &cfg.grid;
+    let (cams, lbs) = ring_rig(&cfg, views)?;
     let t0 = Instant::now();
     let grids = [RigGrids::new(&cfg, &cams, &lbs, device)];
     sync(&grids[0].features.grid);

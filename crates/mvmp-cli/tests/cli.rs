@@ -232,6 +232,35 @@ fn model_summary_and_bench_run_and_reject_bad_configs() {
     ]);
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(String::from_utf8_lossy(&o.stdout).contains("% of GEMM"));
+    let o = mvmp(&[
+        "bench",
+        "fusion",
+        "--config",
+        &config("model/tiny.toml"),
+        "--views",
+        "2",
+        "--iters",
+        "1",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = String::from_utf8_lossy(&o.stdout);
+    for needle in [
+        "the fused CPU pass",
+        "sampling grids",
+        "Mean fusion of 32 channels",
+        "Mean fusion of 17 heatmaps",
+    ] {
+        assert!(out.contains(needle), "{needle} missing from {out}");
+    }
+    expect_error(
+        &[
+            "bench",
+            "fusion",
+            "--config",
+            &config("model/ablations/fusion_deformable.toml"),
+        ],
+        &["fusion_deformable.toml", "deformable", "bench model"],
+    );
     let dir = tempfile::tempdir().unwrap();
     let bad = dir.path().join("bad.toml");
     std::fs::write(&bad, "image_size = 224\nbackbone = \"vit_huge\"\n").unwrap();
