@@ -35,7 +35,7 @@ impl HostGrid {
         map_hw: [usize; 2],
     ) -> Self {
         let [h, w] = map_hw;
-        let (xmax, ymax) = ((w - 1) as f32, (h - 1) as f32);
+        let (xmax, ymax) = (w.saturating_sub(1) as f32, h.saturating_sub(1) as f32);
         let s = stride as f32;
         let xy = uv
             .chunks_exact(2)
@@ -86,6 +86,16 @@ pub(crate) fn fuse(
     let [h, w] = grid.map_hw;
     assert_eq!(maps.len(), v * c * h * w, "maps vs grid");
     assert_eq!(out.len(), c * p, "output vs grid");
+    if h * w == 0 {
+        // Empty maps: no view sees anything, so every voxel is unseen.
+        out.iter_mut().for_each(|o| {
+            o.write(0.0);
+        });
+        return;
+    }
+    if out.is_empty() {
+        return;
+    }
     // Channels last, so a bilinear tap is C contiguous floats.
     let mut last = vec![0f32; v * h * w * c];
     last.par_chunks_mut(h * w * c)

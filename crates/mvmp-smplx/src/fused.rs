@@ -651,6 +651,7 @@ mod tests {
     /// counts that exercise every tile width and tail).
     #[test]
     fn gemm_kernels_match_a_plain_product() {
+        #[allow(unused_mut)] // only x86-64 adds kernels
         let mut isas = vec![Isa::Portable];
         #[cfg(target_arch = "x86_64")]
         {
