@@ -226,6 +226,12 @@ pub fn select_views(views: &ViewChoice, epoch: u64, index: usize, available: usi
     }
 }
 
+/// Gives the people of a joint-annotated sample SMPL-X ground truth from elsewhere (pseudo-ground-truth
+/// fits), after the sample is loaded.
+pub trait MeshSource: Send + Sync {
+    fn attach(&self, sample: &mut FrameSample) -> Result<(), DataError>;
+}
+
 /// Training samples from joint-annotated sequences.
 pub struct JointFrameDataset {
     seqs: Vec<Box<dyn JointAnnotated>>,
@@ -233,6 +239,7 @@ pub struct JointFrameDataset {
     views: ViewChoice,
     size: u32,
     epoch: AtomicU64,
+    meshes: Option<std::sync::Arc<dyn MeshSource>>,
 }
 
 impl JointFrameDataset {
@@ -271,7 +278,16 @@ impl JointFrameDataset {
             views,
             size,
             epoch: AtomicU64::new(0),
+            meshes: None,
         })
+    }
+
+    /// Samples whose people `meshes` gives SMPL-X ground truth to.
+    pub fn with_meshes(self, meshes: std::sync::Arc<dyn MeshSource>) -> Self {
+        JointFrameDataset {
+            meshes: Some(meshes),
+            ..self
+        }
     }
 
     pub fn len(&self) -> usize {
@@ -321,7 +337,7 @@ impl JointFrameDataset {
             .iter()
             .map(|p| person_from_joints(p, set, &cameras, &letterboxes))
             .collect();
-        Ok(FrameSample {
+        let mut sample = FrameSample {
             scene: seq.name(),
             frame: seq.frame_key(fi),
             images,
@@ -330,7 +346,11 @@ impl JointFrameDataset {
             letterboxes,
             people,
             cover: covered_slots(set),
-        })
+        };
+        if let Some(m) = &self.meshes {
+            m.attach(&mut sample)?;
+        }
+        Ok(sample)
     }
 }
 
@@ -387,6 +407,11 @@ pub struct SourceSpec {
     /// own view draw), to balance a small source against a large one. Default 1.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub repeat: Option<usize>,
+    /// Training only, panoptic and h36m: SMPL-X pseudo-ground-truth fits in infer's layout
+    /// (`DIR/<sequence>/<frame>/people.npz`). Each annotated person takes the nearest fit within the match
+    /// gate (pelvis to the dataset's root) and is trained with the SMPL-X terms as well.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pseudo_gt: Option<String>,
 }
 
 /// Panoptic's split by a name: `train` (VoxelPose's training sequences), `test` (its validation sequences),
@@ -516,10 +541,10 @@ impl SourceSpec {
                     .split_or("train")
                     .parse()
                     .map_err(|e: String| DataError::file(&self.root, e))?;
-                if self.stride.is_some() || self.cameras.is_some() {
+                if self.stride.is_some() || self.cameras.is_some() || self.pseudo_gt.is_some() {
                     return Err(DataError::file(
                         &self.root,
-                        "stride and cameras apply to panoptic and h36m sources; an mvmp source uses every frame and draws its views",
+                        "stride, cameras and pseudo_gt apply to panoptic and h36m sources; an mvmp source uses every frame, draws its views and has SMPL-X ground truth",
                     ));
                 }
                 Ok(SourceDataset::Mvmp(FrameDataset::open(

@@ -194,6 +194,23 @@ impl TrainConfig {
                     "stride and cameras apply to panoptic and h36m sources; an mvmp source uses every frame".into(),
                 ));
             }
+            if src.format == SourceFormat::Mvmp && src.pseudo_gt.is_some() {
+                return Err(bad(
+                    &format!("sources[{i}].pseudo_gt"),
+                    "applies to panoptic and h36m sources; an mvmp source has SMPL-X ground truth"
+                        .into(),
+                ));
+            }
+        }
+        if self
+            .validation
+            .as_ref()
+            .is_some_and(|v| v.pseudo_gt.is_some())
+        {
+            return Err(bad(
+                "validation.pseudo_gt",
+                "applies to training sources; validation scores the dataset's joints (use `mvmp eval --pseudo-gt` for meshes)".into(),
+            ));
         }
         if self.validation.as_ref().is_some_and(|v| v.repeat.is_some()) {
             return Err(bad(
@@ -220,6 +237,7 @@ impl TrainConfig {
                 stride: None,
                 cameras: None,
                 repeat: None,
+                pseudo_gt: None,
             })
             .collect();
         out.extend(self.sources.iter().cloned());

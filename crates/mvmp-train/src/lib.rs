@@ -3,6 +3,7 @@ pub mod config;
 pub mod error;
 pub mod output;
 pub mod predict;
+pub mod pseudo;
 pub mod run;
 pub mod step;
 pub mod train;

@@ -135,13 +135,36 @@ pub fn open_training_set(
                 ),
             });
         }
-        parts.push(spec.open_training(
+        let part = spec.open_training(
             ViewChoice::Random {
                 count: cfg.train_views,
                 seed: cfg.seed,
             },
             model_cfg.image_size,
-        )?);
+        )?;
+        parts.push(match (&spec.pseudo_gt, part) {
+            (Some(dir), SourceDataset::Joints(d)) => {
+                let dir = PathBuf::from(dir);
+                if !dir.is_dir() {
+                    return Err(TrainError::Config {
+                        path: config.into(),
+                        // `data`, when set, is the first spec and not in `sources`.
+                        key: format!("sources[{}].pseudo_gt", i + cfg.sources.len() - specs.len()),
+                        what: format!("{}: not a directory", dir.display()),
+                    });
+                }
+                // The body model resolves as the run resolves it (relative to the run directory).
+                let base = config.parent().unwrap_or(Path::new("."));
+                let body = mvmp_data::layout::load_body_model(&model_cfg.body_model, base)?;
+                let layer = SmplxLayer::new(&body, &Device::flex());
+                SourceDataset::Joints(d.with_meshes(Arc::new(crate::pseudo::PseudoGtMeshes::new(
+                    dir,
+                    layer,
+                    cfg.match_gate,
+                ))))
+            }
+            (_, part) => part,
+        });
     }
     let set = TrainingSet::with_repeats(parts, specs.iter().map(SourceSpec::repeat).collect());
     if set.total() == 0 {

@@ -795,6 +795,7 @@ fn panoptic_source(root: &Path, views: usize) -> mvmp_data::sources::SourceSpec 
                 .collect(),
         ),
         repeat: None,
+        pseudo_gt: None,
     }
 }
 
@@ -1068,6 +1069,23 @@ fn source_configs_are_checked() {
     .unwrap()
     .to_string();
     assert!(e.contains("sources[0].repeat"), "{e}");
+    // Pseudo-ground-truth fits belong to joint-annotated training sources.
+    let e = read(
+        &format!("[[sources]]\nformat = \"mvmp\"\nroot = \"{pan}\"\npseudo_gt = \"fits\"\n"),
+        &|t| t,
+    )
+    .err()
+    .unwrap()
+    .to_string();
+    assert!(e.contains("sources[0].pseudo_gt"), "{e}");
+    let e = read(
+        &format!("[validation]\nformat = \"panoptic\"\nroot = \"{pan}\"\npseudo_gt = \"fits\"\n"),
+        &|t| t,
+    )
+    .err()
+    .unwrap()
+    .to_string();
+    assert!(e.contains("validation.pseudo_gt"), "{e}");
     // A primary joint the source does not annotate (Panoptic has no spine joint).
     std::fs::write(dir.path().join("m.toml"), {
         let mut m = model_config();
@@ -1125,6 +1143,7 @@ fn h36m_frames_become_samples_with_all_17_joints() {
                 .collect(),
         ),
         repeat: None,
+        pseudo_gt: None,
     };
     let SourceDataset::Joints(ds) = spec
         .open_training(ViewChoice::Random { count: 2, seed: 1 }, 64)
@@ -1163,4 +1182,116 @@ fn h36m_frames_become_samples_with_all_17_joints() {
     .unwrap()
     .to_string();
     assert!(e.contains("58860488"), "{e}");
+}
+
+/// `pseudo_gt` on a joint-annotated source: the annotated person nearest a fit (within the match gate)
+/// becomes an SMPL-X person with the fit's parameters and pelvis; the others, and every joint target, stay
+/// as the dataset gives them; a missing fits directory or frame is named.
+#[test]
+fn pseudo_ground_truth_fits_become_smplx_targets() {
+    use burn::tensor::TensorData;
+    use mvmp_train::output::write_people_npz;
+    let root = tempfile::tempdir().unwrap();
+    panoptic_fixture(root.path(), "160906_pizza1", 2);
+    let pan = root.path().display().to_string();
+    let fits = root.path().join("fits");
+    let dir = tempfile::tempdir().unwrap();
+    let (run, cfg, model) = new_run(dir.path(), "run", &|t| {
+        format!(
+            "{t}\n[[sources]]\nformat = \"panoptic\"\nroot = \"{pan}\"\nsplit = \"160906_pizza1\"\n\
+             stride = 1\npseudo_gt = \"{}\"\n",
+            fits.display()
+        )
+    });
+    let open = || mvmp_train::open_training_set(&cfg, &model, &run.root.join("train.toml"));
+    let e = open().err().unwrap().to_string();
+    assert!(
+        e.contains("sources[0].pseudo_gt") && e.contains("not a directory"),
+        "{e}"
+    );
+
+    // The same frames without fits give the dataset's roots.
+    let plain = panoptic_source(root.path(), 5)
+        .open_training(ViewChoice::Fixed(vec![0, 1]), 64)
+        .unwrap();
+    let d = Device::flex();
+    let layer = SmplxLayer::new(&mvmp_smplx::standin_model(0), &d);
+    let betas = [0.8, -0.5, 0.3, 0.0, 0.2, 0.0, -0.1, 0.0, 0.0, 0.4];
+    let mut written = Vec::new();
+    for f in 0..2 {
+        let r = plain.load(f).unwrap().people[0].pelvis;
+        // 5 cm from person 0's root; the other fit is far from everyone.
+        let mut near = fit_at(&layer, [r[0] as f64 + 0.05, r[1] as f64, r[2] as f64]);
+        near.betas = betas;
+        near.pose[3 * 18 + 2] = 0.4; // left elbow
+        let fd = fits.join(format!("160906_pizza1/{f:08}"));
+        std::fs::create_dir_all(&fd).unwrap();
+        write_people_npz(
+            &fd.join("people.npz"),
+            &[fit_at(&layer, [9.0, 9.0, 0.9]), near.clone()],
+        )
+        .unwrap();
+        written.push(near);
+    }
+    // Independent expectation of the fit's pelvis: the shaped rest pelvis plus smplx's transl.
+    let rest: Vec<f32> = layer
+        .rest_joints(
+            Tensor::from_data(TensorData::new(betas.to_vec(), [1, 10]), &d),
+            Tensor::zeros([1, 10], &d),
+        )
+        .into_data()
+        .try_into_vec()
+        .unwrap();
+    let set = open().unwrap();
+    let part = &set.parts[1];
+    for (f, near) in written.iter().enumerate() {
+        let (s, p) = (part.load(f).unwrap(), plain.load(f).unwrap());
+        assert_eq!(s.people.len(), p.people.len());
+        let (a, b) = (&s.people[0], &p.people[0]);
+        assert!(a.smplx && !b.smplx, "frame {f}");
+        assert_eq!(a.betas, betas);
+        assert!((a.pose[3 * 18 + 2] - 0.4).abs() < 1e-6);
+        for (k, (&r, &t)) in rest.iter().zip(&near.transl).enumerate() {
+            let want = r + t;
+            assert!(
+                (a.pelvis[k] - want).abs() < 1e-4,
+                "frame {f} axis {k}: {} vs {want}",
+                a.pelvis[k]
+            );
+        }
+        assert_eq!(a.joints_3d, b.joints_3d);
+        assert_eq!(a.joint_valid, b.joint_valid);
+        for (x, y) in s.people.iter().zip(&p.people).skip(1) {
+            assert!(!x.smplx);
+            assert_eq!(x.pelvis, y.pelvis);
+        }
+    }
+    // A batch of such a frame has vertices and every SMPL-X term of stage 2.
+    let ad = Device::flex().autodiff();
+    let mcfg = model_config();
+    let net = mvmp_train::seeded_init(&mcfg, &ad, 2);
+    let batch = FrameBatcher::with_vertices(mvmp_smplx::standin_model(0))
+        .batch(vec![part.load(0).unwrap()], &ad);
+    assert!(batch.vertices.is_some());
+    let l = stage2_loss(
+        &net,
+        &batch,
+        &mcfg,
+        &SmplxLayer::new(&mvmp_smplx::standin_model(0), &ad),
+        &mvmp_losses::LossWeights::default(),
+        QueryMode::Gt,
+        0.5,
+        &ad,
+    );
+    for (name, t) in &l.terms {
+        let v: f32 = t.clone().into_scalar();
+        assert!(v.is_finite(), "{name} = {v}");
+        if ["parameters", "density", "mesh"].contains(name) {
+            assert!(v > 0.0, "{name} = {v}");
+        }
+    }
+    // A frame without fits stops the load, naming the file.
+    std::fs::remove_file(fits.join("160906_pizza1/00000001/people.npz")).unwrap();
+    let e = part.load(1).unwrap_err().to_string();
+    assert!(e.contains("00000001/people.npz"), "{e}");
 }
