@@ -6,6 +6,7 @@
 //! gathers all its views' bilinear samples while its `[voxels][C]` accumulator is in L1, then writes the
 //! finished values once, channels-first, into the output. Same arithmetic as the tensor path: border
 //! padding, align_corners = false, views that do not see a voxel left out, 0 where none does.
+use mvmp_geom::simd::Isa;
 use rayon::prelude::*;
 
 use crate::FusionMode;
@@ -141,32 +142,6 @@ pub(crate) fn fuse(
                 }
             },
         );
-}
-
-#[derive(Clone, Copy, PartialEq, Eq)]
-enum Isa {
-    #[cfg(target_arch = "x86_64")]
-    Avx512,
-    #[cfg(target_arch = "x86_64")]
-    Avx2,
-    Portable,
-}
-
-impl Isa {
-    fn detect() -> Isa {
-        #[cfg(target_arch = "x86_64")]
-        {
-            if std::arch::is_x86_feature_detected!("avx512f") {
-                return Isa::Avx512;
-            }
-            if std::arch::is_x86_feature_detected!("avx2")
-                && std::arch::is_x86_feature_detected!("fma")
-            {
-                return Isa::Avx2;
-            }
-        }
-        Isa::Portable
-    }
 }
 
 /// Add one view's samples of a block of voxels to their accumulators `[voxel][C]`.

@@ -13,6 +13,7 @@
 //! in float32), on every core. The kinematic chain and the joints are small and run per body.
 use std::sync::Arc;
 
+use mvmp_geom::simd::Isa;
 use rayon::prelude::*;
 
 use crate::BodyModel;
@@ -400,33 +401,6 @@ fn add3(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
 
 fn sub3(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-/// The instruction set the GEMM kernel runs on, detected at run time.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) enum Isa {
-    #[cfg(target_arch = "x86_64")]
-    Avx512,
-    #[cfg(target_arch = "x86_64")]
-    Avx2,
-    Portable,
-}
-
-impl Isa {
-    pub(crate) fn detect() -> Isa {
-        #[cfg(target_arch = "x86_64")]
-        {
-            if std::arch::is_x86_feature_detected!("avx512f") {
-                return Isa::Avx512;
-            }
-            if std::arch::is_x86_feature_detected!("avx2")
-                && std::arch::is_x86_feature_detected!("fma")
-            {
-                return Isa::Avx2;
-            }
-        }
-        Isa::Portable
-    }
 }
 
 /// `dst [N][BLOCK] = panel [K][BLOCK]^T . feat [K][N]`.
