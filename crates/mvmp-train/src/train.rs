@@ -120,13 +120,18 @@ pub fn open_training_set(
         });
     }
     let primary = model_cfg.primary_joint.joint();
+    // `data`, when set, is the first spec; errors name a source by its index in `[[sources]]`.
+    let key = |i: usize, field: &str| match (i + cfg.sources.len()).checked_sub(specs.len()) {
+        Some(k) => format!("sources[{k}].{field}"),
+        None => "data".to_string(),
+    };
     let mut parts = Vec::with_capacity(specs.len());
     for (i, spec) in specs.iter().enumerate() {
         let set = spec.format.joint_set();
         if !covered_slots(set)[primary] {
             return Err(TrainError::Config {
                 path: config.into(),
-                key: format!("sources[{i}].format"),
+                key: key(i, "format"),
                 what: format!(
                     "{}: its joints ({}) do not include the model's primary joint {:?}",
                     spec.format.name(),

@@ -1107,7 +1107,7 @@ fn source_configs_are_checked() {
         .unwrap()
         .to_string();
     assert!(
-        e.contains("sources[1].format") && e.contains("Spine"),
+        e.contains("sources[0].format") && e.contains("Spine"),
         "{e}"
     );
     // No data at all.
