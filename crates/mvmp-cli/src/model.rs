@@ -142,7 +142,7 @@ pub fn bench_fusion(config: &Path, views: usize, iters: usize, device: &Device) 
     let (_, t_hm) = time(iters, || fuse_views(hm.clone(), hg, FusionMode::Mean));
     let [x, y, z] = cfg.grid.shape;
     let p = x * y * z;
-    let path = if grids.features.is_fused() && !device.is_autodiff() {
+    let path = if grids.features.is_fused() {
         "the fused CPU pass"
     } else {
         "tensor ops"

@@ -65,7 +65,7 @@ impl SamplingGrid {
         let proj = ct.project(Tensor::from_data(TensorData::new(centers, [p, 3]), device));
         // Only for plain flex: training builds grids on the autodiff device every step, and its maps
         // carry gradients, so a host copy there would be made and never used.
-        let host = if !device.is_autodiff() && *device == Device::flex() {
+        let host = if mvmp_geom::simd::runs_fused(device) {
             let f32s = |t: Tensor<3>| t.into_data_as::<f32>().try_into_vec::<f32>().ok();
             let uv = f32s(proj.uv.clone());
             let seen = f32s(proj.visible.clone().float().reshape([v, p, 1]));
@@ -119,27 +119,25 @@ impl SamplingGrid {
 /// volume once; otherwise, and whenever a gradient can flow, [`fuse_views_tensor_ops`]. Both compute the
 /// same values (tested to 1e-5 of the map scale).
 pub fn fuse_views(maps: Tensor<5>, grids: &[SamplingGrid], mode: FusionMode) -> Tensor<5> {
-    let device = maps.device();
     if mode != FusionMode::Deformable
-        && !device.is_autodiff()
-        && device == Device::flex()
-        && let Some(hosts) = grids
-            .iter()
-            .map(|g| g.host.clone())
-            .collect::<Option<Vec<_>>>()
-        && let Some(out) = fuse_views_host(&maps, grids, &hosts, mode)
+        && mvmp_geom::simd::runs_fused(&maps.device())
+        && let Some(out) = fuse_views_host(&maps, grids, mode)
     {
         return out;
     }
     fuse_views_tensor_ops(maps, grids, mode)
 }
 
+/// The fused pass, or `None` when a grid has no host copy or the maps cannot be read.
 fn fuse_views_host(
     maps: &Tensor<5>,
     grids: &[SamplingGrid],
-    hosts: &[Arc<HostGrid>],
     mode: FusionMode,
 ) -> Option<Tensor<5>> {
+    let hosts: Vec<&HostGrid> = grids
+        .iter()
+        .map(|g| g.host.as_deref())
+        .collect::<Option<_>>()?;
     let [b, v, c, h, w] = maps.dims();
     assert_eq!(grids.len(), b, "one sampling grid per batch item");
     let [x, y, z] = grids[0].voxels.shape;

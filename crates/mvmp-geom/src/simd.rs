@@ -1,4 +1,12 @@
-//! The vector instruction set the CPU kernels of the fused inference passes (SMPL-X, fusion) run on.
+//! Where the fused CPU inference passes (SMPL-X, fusion) run, and the vector instruction set their kernels
+//! use.
+use burn::tensor::Device;
+
+/// Whether `device` takes the fused CPU passes: burn's flex backend without autodiff. (`Device` equality
+/// does not tell autodiff flex from plain flex, hence both checks.)
+pub fn runs_fused(device: &Device) -> bool {
+    !device.is_autodiff() && *device == Device::flex()
+}
 
 /// Detected at run time, so one binary runs everywhere and uses the widest registers it finds.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -198,7 +198,7 @@ impl SmplxLayer {
         let parents: Vec<usize> = (0..NUM_JOINTS)
             .map(|j| model.parents[j].max(0) as usize)
             .collect();
-        let fused = (!device.is_autodiff() && *device == Device::flex()).then(|| {
+        let fused = mvmp_geom::simd::runs_fused(device).then(|| {
             let taps = extra_rows
                 .iter()
                 .map(|row| std::array::from_fn(|k| row.get(k).copied().unwrap_or((row[0].0, 0.0))))

@@ -153,8 +153,7 @@ pub fn open_training_set(
                 if !dir.is_dir() {
                     return Err(TrainError::Config {
                         path: config.into(),
-                        // `data`, when set, is the first spec and not in `sources`.
-                        key: format!("sources[{}].pseudo_gt", i + cfg.sources.len() - specs.len()),
+                        key: key(i, "pseudo_gt"),
                         what: format!("{}: not a directory", dir.display()),
                     });
                 }
