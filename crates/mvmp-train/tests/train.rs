@@ -1290,8 +1290,15 @@ fn pseudo_ground_truth_fits_become_smplx_targets() {
             assert!(v > 0.0, "{name} = {v}");
         }
     }
-    // A frame without fits stops the load, naming the file.
-    std::fs::remove_file(fits.join("160906_pizza1/00000001/people.npz")).unwrap();
+    // A malformed fits file and a frame without fits stop the load, naming the file.
+    let bad = fits.join("160906_pizza1/00000001/people.npz");
+    std::fs::write(&bad, b"not an npz archive").unwrap();
     let e = part.load(1).unwrap_err().to_string();
     assert!(e.contains("00000001/people.npz"), "{e}");
+    std::fs::remove_file(&bad).unwrap();
+    let e = part.load(1).unwrap_err().to_string();
+    assert!(
+        e.contains("00000001/people.npz") && e.contains("no pseudo-ground-truth"),
+        "{e}"
+    );
 }
