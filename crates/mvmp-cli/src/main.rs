@@ -126,6 +126,9 @@ enum Command {
         /// Output directory (must not exist or be empty).
         #[arg(long, default_value = "out/demo")]
         out: PathBuf,
+        /// Training seed (initial weights, frame order, view draws); the dataset stays the same.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
     },
     /// Train MVMP-HMR (stage 1: HRNet + RootNet; stage 2: the whole model), or resume a run.
     Train {
@@ -432,7 +435,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             &device,
             false,
         ),
-        Command::Demo { out } => run::demo(&out, &device),
+        Command::Demo { out, seed } => run::demo(&out, seed, &device),
         Command::Train {
             config,
             data,

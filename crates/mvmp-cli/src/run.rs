@@ -452,7 +452,7 @@ const DEMO_MODEL: &str = include_str!("../../../configs/model/tiny.toml");
 const DEMO_TRAIN: &str = include_str!("../../../configs/train/tiny.toml");
 
 /// `mvmp demo`: synthesise, train both stages, evaluate on held-out scenes beside two references, infer.
-pub fn demo(out: &Path, device: &Device) -> Result<()> {
+pub fn demo(out: &Path, seed: u64, device: &Device) -> Result<()> {
     let t0 = std::time::Instant::now();
     if out.exists()
         && std::fs::read_dir(out)
@@ -467,7 +467,13 @@ pub fn demo(out: &Path, device: &Device) -> Result<()> {
     }
     let cfg_dir = out.join("configs");
     std::fs::create_dir_all(&cfg_dir).with_context(|| format!("creating {}", cfg_dir.display()))?;
-    let train_text = DEMO_TRAIN.replace("\"../model/tiny.toml\"", "\"model.toml\"");
+    let train_text = DEMO_TRAIN
+        .replace("\"../model/tiny.toml\"", "\"model.toml\"")
+        .replace("\nseed = 0\n", &format!("\nseed = {seed}\n"));
+    anyhow::ensure!(
+        train_text.contains(&format!("\nseed = {seed}\n")),
+        "the embedded training config has no `seed = 0` line to set the seed in"
+    );
     for (name, text) in [
         ("synth.toml", DEMO_SYNTH),
         ("model.toml", DEMO_MODEL),

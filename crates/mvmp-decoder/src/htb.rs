@@ -166,6 +166,26 @@ fn voxel_encoding(grid: &VoxelGrid, pool: [usize; 3], device: &Device) -> Tensor
     )
 }
 
+/// The same encoding as [`voxel_encoding`] for arbitrary world points `[B, K, 3]` -> `[B, K, 6 * POS_FREQS]`.
+/// Each person query gets its root's encoding: without it a query's cross-attention starts uniform over
+/// the whole volume and can find the tokens around its own person only through their content.
+pub fn point_encoding(points: Tensor<3>, grid: &VoxelGrid) -> Tensor<3> {
+    let [b, k, _] = points.dims();
+    let device = points.device();
+    let lo = grid.min_corner();
+    let to_vec = |v: [f64; 3]| v.iter().map(|&x| x as f32).collect::<Vec<_>>();
+    let lo = Tensor::<1>::from_data(TensorData::new(to_vec(lo), [3]), &device);
+    let size = Tensor::<1>::from_data(TensorData::new(to_vec(grid.size), [3]), &device);
+    let x = (points - lo.reshape([1, 1, 3])) / size.reshape([1, 1, 3]); // 0..1 inside the grid
+    let freqs: Vec<f32> = (0..POS_FREQS)
+        .map(|f| (std::f64::consts::PI * (1u64 << f) as f64) as f32)
+        .collect();
+    let freqs = Tensor::<1>::from_data(TensorData::new(freqs, [POS_FREQS]), &device);
+    let w = x.reshape([b, k, 3, 1]) * freqs.reshape([1, 1, 1, POS_FREQS]); // [B, K, 3, F]
+    // Per axis and frequency: (sin, cos), the order of `voxel_encoding`.
+    Tensor::stack::<5>(vec![w.clone().sin(), w.cos()], 4).reshape([b, k, 6 * POS_FREQS])
+}
+
 impl DecoderConfig {
     pub fn init(&self, device: &Device) -> Decoder {
         let d = self.dim;
@@ -241,6 +261,8 @@ impl Decoder {
                 .pos_proj
                 .forward(voxel_encoding(grid, [px, py, pz], &device)); // [P, D]
             let tokens = tokens + pos.unsqueeze_dim::<3>(0);
+            // The queries carry their root's position in the tokens' own encoding.
+            q = q + self.pos_proj.forward(point_encoding(roots.clone(), grid));
             let padding = present.bool_not();
             for blk in &self.blocks {
                 q = blk.forward(q, padding.clone(), tokens.clone());

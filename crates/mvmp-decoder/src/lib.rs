@@ -3,5 +3,5 @@
 pub mod htb;
 pub mod queries;
 
-pub use htb::{Decoder, DecoderConfig, DecoderOutput, HumanTransformerBlock};
+pub use htb::{Decoder, DecoderConfig, DecoderOutput, HumanTransformerBlock, point_encoding};
 pub use queries::{mean_params, trilinear_sample};

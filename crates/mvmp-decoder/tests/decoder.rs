@@ -145,3 +145,34 @@ fn every_parameter_gets_a_gradient() {
         c.1
     );
 }
+
+#[test]
+fn root_encoding_matches_the_voxel_encoding_at_voxel_centres() {
+    // The queries and the tokens share one encoding (both go through `pos_proj`): at a voxel centre a
+    // root is encoded as that voxel's token is.
+    let d = Device::flex();
+    let grid = VoxelGrid::new([0.5, -1.0, 1.0], [4.0, 2.0, 2.0], [8, 4, 4]).unwrap();
+    let centres = grid.centers();
+    let pts: Vec<f32> = centres.iter().flat_map(|c| c.map(|x| x as f32)).collect();
+    let n = centres.len();
+    let enc = vals(point_encoding(
+        Tensor::from_data(TensorData::new(pts, [1, n, 3]), &d),
+        &grid,
+    ));
+    let lo = grid.min_corner();
+    // Independent: per axis a, frequency f: sin and cos of pi 2^f (c_a - lo_a) / size_a.
+    for (i, c) in centres.iter().enumerate() {
+        for a in 0..3 {
+            let x = (c[a] - lo[a]) / grid.size[a];
+            for f in 0..8 {
+                let w = std::f64::consts::PI * (1 << f) as f64 * x;
+                let o = i * 48 + (a * 8 + f) * 2;
+                assert!((enc[o] as f64 - w.sin()).abs() < 1e-4, "sin at {i} {a} {f}");
+                assert!(
+                    (enc[o + 1] as f64 - w.cos()).abs() < 1e-4,
+                    "cos at {i} {a} {f}"
+                );
+            }
+        }
+    }
+}

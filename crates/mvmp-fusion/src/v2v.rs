@@ -6,7 +6,9 @@
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::conv::{Conv3d, Conv3dConfig, ConvTranspose3d, ConvTranspose3dConfig};
-use burn::nn::{BatchNorm, BatchNormConfig, Initializer, PaddingConfig3d};
+use burn::nn::{
+    BatchNorm, BatchNormConfig, GroupNorm, GroupNormConfig, Initializer, PaddingConfig3d,
+};
 use burn::tensor::activation::relu;
 use burn::tensor::{Device, Tensor};
 
@@ -28,83 +30,128 @@ fn conv(ci: usize, co: usize, k: usize, device: &Device) -> Conv3d {
         .init(device)
 }
 
-/// Conv3d(k) -> BN -> ReLU.
+/// The normalisation of the V2V blocks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum VolumeNorm {
+    /// Batch normalisation, as the reference V2V.
+    Batch,
+    /// Group normalisation (4 channels a group): the same in training and inference. At batch 1 the
+    /// batch statistics are one volume's, and the running averages inference uses lag behind weights that
+    /// still move, so a batch-normalised detector can score people in training and miss them in
+    /// validation.
+    Group,
+}
+
+/// One normalisation site: exactly one of the pair is present. Separate optional fields (rather than an
+/// enum module, whose variant would enter the parameter names) keep the names of batch-normalised
+/// checkpoints (`bn.gamma`, ...) as they were.
+fn norm(c: usize, kind: VolumeNorm, device: &Device) -> (Option<BatchNorm>, Option<GroupNorm>) {
+    match kind {
+        VolumeNorm::Batch => (Some(BatchNormConfig::new(c).init(device)), None),
+        VolumeNorm::Group => {
+            let groups = if c.is_multiple_of(4) { c / 4 } else { 1 };
+            (None, Some(GroupNormConfig::new(groups, c).init(device)))
+        }
+    }
+}
+
+fn apply(bn: &Option<BatchNorm>, gn: &Option<GroupNorm>, x: Tensor<5>) -> Tensor<5> {
+    match (bn, gn) {
+        (Some(b), _) => b.forward(x),
+        (None, Some(g)) => g.forward(x),
+        (None, None) => x,
+    }
+}
+
+/// Conv3d(k) -> norm -> ReLU.
 #[derive(Module, Debug)]
 pub struct Basic3DBlock {
     conv: Conv3d,
-    bn: BatchNorm,
+    bn: Option<BatchNorm>,
+    gn: Option<GroupNorm>,
 }
 
 impl Basic3DBlock {
-    pub fn new(ci: usize, co: usize, k: usize, device: &Device) -> Self {
+    pub fn new(ci: usize, co: usize, k: usize, kind: VolumeNorm, device: &Device) -> Self {
+        let (bn, gn) = norm(co, kind, device);
         Basic3DBlock {
             conv: conv(ci, co, k, device),
-            bn: BatchNormConfig::new(co).init(device),
+            bn,
+            gn,
         }
     }
 
     pub fn forward(&self, x: Tensor<5>) -> Tensor<5> {
-        relu(self.bn.forward(self.conv.forward(x)))
+        relu(apply(&self.bn, &self.gn, self.conv.forward(x)))
     }
 }
 
-/// conv3 -> BN -> ReLU -> conv3 -> BN, plus the identity (or conv1 + BN when widths differ), then ReLU.
+/// conv3 -> norm -> ReLU -> conv3 -> norm, plus the identity (or conv1 + norm when widths differ), then
+/// ReLU.
 #[derive(Module, Debug)]
 pub struct Res3DBlock {
     conv1: Conv3d,
-    bn1: BatchNorm,
+    bn1: Option<BatchNorm>,
+    gn1: Option<GroupNorm>,
     conv2: Conv3d,
-    bn2: BatchNorm,
-    skip: Option<(Conv3d, BatchNorm)>,
+    bn2: Option<BatchNorm>,
+    gn2: Option<GroupNorm>,
+    skip: Option<(Conv3d, Option<BatchNorm>, Option<GroupNorm>)>,
 }
 
 impl Res3DBlock {
-    pub fn new(ci: usize, co: usize, device: &Device) -> Self {
+    pub fn new(ci: usize, co: usize, kind: VolumeNorm, device: &Device) -> Self {
+        let (bn1, gn1) = norm(co, kind, device);
+        let (bn2, gn2) = norm(co, kind, device);
         Res3DBlock {
             conv1: conv(ci, co, 3, device),
-            bn1: BatchNormConfig::new(co).init(device),
+            bn1,
+            gn1,
             conv2: conv(co, co, 3, device),
-            bn2: BatchNormConfig::new(co).init(device),
+            bn2,
+            gn2,
             skip: (ci != co).then(|| {
-                (
-                    conv(ci, co, 1, device),
-                    BatchNormConfig::new(co).init(device),
-                )
+                let (b, g) = norm(co, kind, device);
+                (conv(ci, co, 1, device), b, g)
             }),
         }
     }
 
     pub fn forward(&self, x: Tensor<5>) -> Tensor<5> {
-        let r = relu(self.bn1.forward(self.conv1.forward(x.clone())));
-        let r = self.bn2.forward(self.conv2.forward(r));
+        let r = relu(apply(&self.bn1, &self.gn1, self.conv1.forward(x.clone())));
+        let r = apply(&self.bn2, &self.gn2, self.conv2.forward(r));
         let s = match &self.skip {
-            Some((c, b)) => b.forward(c.forward(x)),
+            Some((c, b, g)) => apply(b, g, c.forward(x)),
             None => x,
         };
         relu(r + s)
     }
 }
 
-/// ConvTranspose3d(k 2, s 2) -> BN -> ReLU.
+/// ConvTranspose3d(k 2, s 2) -> norm -> ReLU.
 #[derive(Module, Debug)]
 pub struct Upsample3DBlock {
     deconv: ConvTranspose3d,
-    bn: BatchNorm,
+    bn: Option<BatchNorm>,
+    gn: Option<GroupNorm>,
 }
 
 impl Upsample3DBlock {
-    pub fn new(ci: usize, co: usize, device: &Device) -> Self {
+    pub fn new(ci: usize, co: usize, kind: VolumeNorm, device: &Device) -> Self {
+        let (bn, gn) = norm(co, kind, device);
         Upsample3DBlock {
             deconv: ConvTranspose3dConfig::new([ci, co], [2; 3])
                 .with_stride([2; 3])
                 .with_initializer(init())
                 .init(device),
-            bn: BatchNormConfig::new(co).init(device),
+            bn,
+            gn,
         }
     }
 
     pub fn forward(&self, x: Tensor<5>) -> Tensor<5> {
-        relu(self.bn.forward(self.deconv.forward(x)))
+        relu(apply(&self.bn, &self.gn, self.deconv.forward(x)))
     }
 }
 
@@ -115,6 +162,8 @@ pub struct V2VNetConfig {
     /// Multiplier of the reference widths (16, 32, 64, 128).
     #[config(default = 1.0)]
     pub width: f64,
+    #[config(default = "VolumeNorm::Batch")]
+    pub norm: VolumeNorm,
 }
 
 #[derive(Module, Debug)]
@@ -140,18 +189,19 @@ impl V2VNetConfig {
 
     pub fn init(&self, device: &Device) -> V2VNet {
         let [w0, w1, w2, w3] = self.widths();
+        let n = self.norm;
         V2VNet {
-            front: Basic3DBlock::new(self.in_channels, w0, 7, device),
-            front_res: Res3DBlock::new(w0, w1, device),
-            skip1: Res3DBlock::new(w1, w1, device),
-            enc1: Res3DBlock::new(w1, w2, device),
-            skip2: Res3DBlock::new(w2, w2, device),
-            enc2: Res3DBlock::new(w2, w3, device),
-            mid1: Res3DBlock::new(w3, w3, device),
-            mid2: Res3DBlock::new(w3, w3, device),
-            up2: Upsample3DBlock::new(w3, w2, device),
-            dec2: Res3DBlock::new(w2, w2, device),
-            up1: Upsample3DBlock::new(w2, w1, device),
+            front: Basic3DBlock::new(self.in_channels, w0, 7, n, device),
+            front_res: Res3DBlock::new(w0, w1, n, device),
+            skip1: Res3DBlock::new(w1, w1, n, device),
+            enc1: Res3DBlock::new(w1, w2, n, device),
+            skip2: Res3DBlock::new(w2, w2, n, device),
+            enc2: Res3DBlock::new(w2, w3, n, device),
+            mid1: Res3DBlock::new(w3, w3, n, device),
+            mid2: Res3DBlock::new(w3, w3, n, device),
+            up2: Upsample3DBlock::new(w3, w2, n, device),
+            dec2: Res3DBlock::new(w2, w2, n, device),
+            up1: Upsample3DBlock::new(w2, w1, n, device),
             output: Conv3dConfig::new([w1, self.out_channels], [1; 3])
                 .with_initializer(init())
                 .init(device),
@@ -182,6 +232,8 @@ pub struct RootNetConfig {
     pub joints: usize,
     #[config(default = 1.0)]
     pub width: f64,
+    #[config(default = "VolumeNorm::Batch")]
+    pub norm: VolumeNorm,
 }
 
 #[derive(Module, Debug)]
@@ -194,6 +246,7 @@ impl RootNetConfig {
         RootNet {
             v2v: V2VNetConfig::new(self.joints, 4)
                 .with_width(self.width)
+                .with_norm(self.norm)
                 .init(device),
         }
     }

@@ -307,3 +307,17 @@ fn weighted_mesh_3d_loss_by_hand() {
         "{all} {pair}"
     );
 }
+
+#[test]
+fn detection_positive_loss_by_hand() {
+    let d = Device::flex();
+    // Four voxels; target mass 1 + 0.5 = 1.5 at the first two.
+    let target = t(vec![1.0, 0.5, 0.0, 0.0], [1, 1, 1, 1, 4], &d);
+    let lik = t(vec![0.4, 0.5, 0.9, 0.0], [1, 1, 1, 1, 4], &d);
+    // (1 * 0.6^2 + 0.5 * 0^2) / 1.5; the empty voxel at 0.9 does not count.
+    let want = 0.36 / 1.5;
+    assert!((scalar(detection_positive_loss(lik.clone(), target)) - want).abs() < 1e-6);
+    // An empty target gives 0, not a division by zero.
+    let empty = t(vec![0.0; 4], [1, 1, 1, 1, 4], &d);
+    assert_eq!(scalar(detection_positive_loss(lik, empty)), 0.0);
+}

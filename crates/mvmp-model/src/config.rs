@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use mvmp_backbone::{HRNetConfig, ViTConfig};
-use mvmp_fusion::FusionMode;
+use mvmp_fusion::{FusionMode, VolumeNorm};
 use mvmp_geom::VoxelGrid;
 
 #[derive(Debug, thiserror::Error)]
@@ -87,6 +87,9 @@ pub struct ModelConfig {
     pub fusion: FusionMode,
     /// RootNet width multiplier (1.0 = the reference V2V).
     pub rootnet_width: f64,
+    /// RootNet normalisation: `batch` (the reference V2V) or `group` (the same in training and inference;
+    /// what batch-1 training on a CPU needs, see `VolumeNorm`).
+    pub rootnet_norm: VolumeNorm,
     pub primary_joint: PrimaryJoint,
     /// Most people per scene (top-K of root extraction).
     pub max_people: usize,
@@ -112,6 +115,7 @@ impl Default for ModelConfig {
             },
             fusion: FusionMode::Mean,
             rootnet_width: 0.5,
+            rootnet_norm: VolumeNorm::Batch,
             primary_joint: PrimaryJoint::Pelvis,
             max_people: 10,
             root_threshold: 0.3,

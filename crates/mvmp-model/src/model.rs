@@ -110,6 +110,7 @@ impl ModelConfig {
             hrnet: self.hrnet_config().init(device),
             rootnet: RootNetConfig::new(self.heatmap_joints.len())
                 .with_width(self.rootnet_width)
+                .with_norm(self.rootnet_norm)
                 .init(device),
             decoder: DecoderConfig::new(self.feature_channels)
                 .with_dim(self.decoder.dim)

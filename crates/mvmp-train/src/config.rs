@@ -22,20 +22,61 @@ pub enum QueryMode {
     Mixed,
 }
 
+/// The learning-rate curve of a stage after its warm-up.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LrSchedule {
+    #[default]
+    Constant,
+    Cosine,
+}
+
+fn final_lr_factor() -> f64 {
+    0.01
+}
+
 /// One training stage.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct StageConfig {
     /// Passes over the training split (0 skips the stage).
     pub epochs: usize,
-    /// Adam learning rate (constant).
+    /// Adam's peak learning rate.
     pub lr: f64,
+    /// Steps of linear warm-up from 0 to `lr` at the start of the stage (0 = none).
+    #[serde(default)]
+    pub warmup_steps: usize,
+    /// The learning rate after the warm-up: constant, or a cosine decay to `lr * final_lr_factor` at the
+    /// stage's last step.
+    #[serde(default)]
+    pub schedule: LrSchedule,
+    #[serde(default = "final_lr_factor")]
+    pub final_lr_factor: f64,
     /// Clip the global gradient norm to this value (0 = off).
     #[serde(default)]
     pub grad_clip: f32,
     /// Keep the ViT backbone fixed (stage 2 only; stage 1 never touches it).
     #[serde(default)]
     pub freeze_backbone: bool,
+}
+
+impl StageConfig {
+    /// The learning rate of the stage's step `step` (0-based) of `total`. A pure function of the step, so
+    /// that a resumed run follows the same curve.
+    pub fn lr_at(&self, step: usize, total: usize) -> f64 {
+        if step < self.warmup_steps {
+            return self.lr * (step + 1) as f64 / (self.warmup_steps + 1) as f64;
+        }
+        match self.schedule {
+            LrSchedule::Constant => self.lr,
+            LrSchedule::Cosine => {
+                let span = total.saturating_sub(self.warmup_steps).max(2) - 1;
+                let t = ((step - self.warmup_steps) as f64 / span as f64).min(1.0);
+                let floor = self.lr * self.final_lr_factor;
+                floor + (self.lr - floor) * 0.5 * (1.0 + (std::f64::consts::PI * t).cos())
+            }
+        }
+    }
 }
 
 /// A training run's configuration.
@@ -156,6 +197,12 @@ impl TrainConfig {
                     format!("{}: must be positive", s.lr),
                 ));
             }
+            if !(s.final_lr_factor.is_finite() && (0.0..=1.0).contains(&s.final_lr_factor)) {
+                return Err(bad(
+                    &format!("{name}.final_lr_factor"),
+                    format!("{}: must be within [0, 1]", s.final_lr_factor),
+                ));
+            }
             if !(s.grad_clip.is_finite() && s.grad_clip >= 0.0) {
                 return Err(bad(
                     &format!("{name}.grad_clip"),
@@ -266,5 +313,42 @@ impl TrainConfig {
         } else {
             &self.stage2
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn stage(warmup_steps: usize, schedule: LrSchedule) -> StageConfig {
+        StageConfig {
+            epochs: 1,
+            lr: 1e-3,
+            warmup_steps,
+            schedule,
+            final_lr_factor: 0.1,
+            grad_clip: 0.0,
+            freeze_backbone: false,
+        }
+    }
+
+    #[test]
+    fn learning_rate_curves() {
+        let close = |a: f64, b: f64| (a - b).abs() < 1e-12;
+        let c = stage(0, LrSchedule::Constant);
+        assert!((0..10).all(|s| close(c.lr_at(s, 10), 1e-3)));
+        // Warm-up of 3 steps: 1/4, 2/4, 3/4 of the peak, then the peak.
+        let w = stage(3, LrSchedule::Constant);
+        let got: Vec<f64> = (0..5).map(|s| w.lr_at(s, 10)).collect();
+        for (g, want) in got.iter().zip([0.25e-3, 0.5e-3, 0.75e-3, 1e-3, 1e-3]) {
+            assert!(close(*g, want), "{got:?}");
+        }
+        // Cosine after a warm-up of 2 over 12 steps: the peak at step 2, the floor (0.1 lr) at step 11,
+        // halfway between at the middle step (2 + 9/2 = 6.5: the mean of steps 6 and 7 by symmetry).
+        let k = stage(2, LrSchedule::Cosine);
+        assert!(close(k.lr_at(2, 12), 1e-3));
+        assert!(close(k.lr_at(11, 12), 1e-4));
+        assert!(close(k.lr_at(6, 12) + k.lr_at(7, 12), 1e-3 + 1e-4));
+        assert!((2..11).all(|s| k.lr_at(s + 1, 12) < k.lr_at(s, 12)));
     }
 }

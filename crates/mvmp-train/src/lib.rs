@@ -1,5 +1,6 @@
 //! Training, prediction and evaluation runs of MVMP-HMR, and the files inference writes.
 pub mod config;
+pub mod curves;
 pub mod error;
 pub mod output;
 pub mod predict;
@@ -8,7 +9,7 @@ pub mod run;
 pub mod step;
 pub mod train;
 
-pub use config::{QueryMode, StageConfig, TrainConfig};
+pub use config::{LrSchedule, QueryMode, StageConfig, TrainConfig};
 pub use error::TrainError;
 pub use predict::{EvalOptions, PersonPrediction, Predictor, evaluate};
 pub use run::{RunDir, RunState};

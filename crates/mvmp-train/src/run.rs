@@ -168,7 +168,29 @@ impl RunDir {
             .append(true)
             .open(&path)
             .map_err(|e| TrainError::io(&path, e))?;
-        writeln!(f, "{value}").map_err(|e| TrainError::io(&path, e))
+        // One write per line: a kill mid-step then leaves whole lines, or at worst one torn last line that
+        // `truncate_log` drops.
+        let line = format!("{value}\n");
+        f.write_all(line.as_bytes())
+            .map_err(|e| TrainError::io(&path, e))
+    }
+
+    /// Remove temporary files a kill left in `checkpoints/` (a checkpoint or optimizer state being written);
+    /// the checkpoint the state names was complete before it was named.
+    pub fn remove_stale_temporaries(&self) -> Result<(), TrainError> {
+        let dir = self.root.join("checkpoints");
+        let Ok(entries) = std::fs::read_dir(&dir) else {
+            return Ok(());
+        };
+        for e in entries {
+            let p = e.map_err(|e| TrainError::io(&dir, e))?.path();
+            let name = p.file_name().and_then(|f| f.to_str()).unwrap_or("");
+            if name.starts_with('.') && p.is_file() {
+                tracing::warn!("removing {} (left by an interrupted write)", p.display());
+                std::fs::remove_file(&p).map_err(|e| TrainError::io(&p, e))?;
+            }
+        }
+        Ok(())
     }
 
     /// Drop log lines written after `global_step` (steps a crash lost, trained again on resume).
@@ -179,9 +201,19 @@ impl RunDir {
         }
         let text = std::fs::read_to_string(&path).map_err(|e| TrainError::io(&path, e))?;
         let mut kept = String::new();
-        for line in text.lines() {
-            let v: serde_json::Value =
-                serde_json::from_str(line).map_err(|e| TrainError::file(&path, e.to_string()))?;
+        let lines: Vec<&str> = text.lines().collect();
+        for (i, line) in lines.iter().enumerate() {
+            let v: serde_json::Value = match serde_json::from_str(line) {
+                Ok(v) => v,
+                // A kill while the last line was written: that step is trained again.
+                Err(e) if i + 1 == lines.len() && !text.ends_with('\n') => {
+                    tracing::warn!("{}: dropping a torn last line ({e})", path.display());
+                    continue;
+                }
+                Err(e) => {
+                    return Err(TrainError::file(&path, format!("line {}: {e}", i + 1)));
+                }
+            };
             if v.get("global_step").and_then(|s| s.as_u64()).unwrap_or(0) <= global_step {
                 kept.push_str(line);
                 kept.push('\n');

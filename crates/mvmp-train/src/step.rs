@@ -8,8 +8,9 @@ use mvmp_fusion::roots::{DEFAULT_SIGMA, gaussian_target, root_voxel_and_offset};
 use mvmp_geom::CameraTensors;
 use mvmp_geom::rotation::axis_angle_to_matrix;
 use mvmp_losses::{
-    LossWeights, density_grid, density_loss, detection_loss_weighted, heatmap_loss, heatmap_target,
-    mesh_2d_loss_weighted, mesh_3d_loss_weighted, orientation_loss, parameter_loss,
+    LossWeights, density_grid, density_loss, detection_loss_weighted, detection_positive_loss,
+    heatmap_loss, heatmap_target, mesh_2d_loss_weighted, mesh_3d_loss_weighted, orientation_loss,
+    parameter_loss,
 };
 use mvmp_model::{Detection, ModelConfig, MvmpHmr, RigGrids};
 use mvmp_smplx::SmplxLayer;
@@ -29,6 +30,9 @@ pub struct StepLoss {
     /// likelihood at the ground-truth root voxels; detection works once both pass the root threshold.
     pub root_peak: f32,
     pub root_at_gt: f32,
+    /// The highest likelihood away from every person (where the Gaussian target is below 0.01): a
+    /// detector that separates people from empty space keeps it below the threshold.
+    pub root_background: f32,
 }
 
 /// The ground truth of a batch on the host, as the targets need it.
@@ -137,9 +141,9 @@ pub fn detection_term(
     det: &Detection,
     gt: &HostGt,
     cfg: &ModelConfig,
-    offset_weight: f32,
+    weights: &LossWeights,
     device: &Device,
-) -> (Tensor<1>, [f32; 2]) {
+) -> (Tensor<1>, [f32; 3]) {
     let roots = gt.roots(cfg.primary_joint.joint());
     let target = gaussian_target(&cfg.grid, &roots, DEFAULT_SIGMA, device);
     let b = roots.len();
@@ -167,9 +171,20 @@ pub fn detection_term(
         .detach()
         .reshape([b, cfg.grid.num_voxels()]);
     let peak: f32 = mvmp_losses::mean_all(mvmp_losses::max_rows(lik.clone())).into_scalar();
-    let at: f32 = mvmp_losses::sum_all(lik.gather(1, vox.clone()) * maskt.clone())
+    let at: f32 = mvmp_losses::sum_all(lik.clone().gather(1, vox.clone()) * maskt.clone())
         .into_scalar::<f32>()
         / mask.iter().sum::<f32>().max(1.0);
+    let empty = target
+        .clone()
+        .reshape([b, cfg.grid.num_voxels()])
+        .lower_elem(0.01);
+    let background: f32 = lik
+        .mask_fill(empty.bool_not(), f32::NEG_INFINITY)
+        .max()
+        .into_scalar();
+    let positive = (weights.detection_positive > 0.0).then(|| {
+        detection_positive_loss(det.likelihood.clone(), target.clone()) * weights.detection_positive
+    });
     let loss = detection_loss_weighted(
         det.likelihood.clone(),
         target,
@@ -177,9 +192,13 @@ pub fn detection_term(
         vox,
         Tensor::from_data(TensorData::new(off, [b, r, 3]), device),
         maskt,
-        offset_weight,
+        weights.detection_offset,
     );
-    (loss, [peak, at])
+    let loss = match positive {
+        Some(p) => loss + p,
+        None => loss,
+    };
+    (loss, [peak, at, background])
 }
 
 /// The 2D heatmap loss of the pose network: targets drawn at the visible ground-truth joints.
@@ -246,7 +265,7 @@ pub fn stage1_loss(
     let grids = batch_grids(cfg, batch, device);
     let det = model.detect(batch.images.clone(), &grids);
     let mut terms = Vec::new();
-    let (d, diag) = detection_term(&det, &gt, cfg, weights.detection_offset, device);
+    let (d, diag) = detection_term(&det, &gt, cfg, weights, device);
     if weights.detection > 0.0 {
         terms.push(("detection", d * weights.detection));
     }
@@ -262,7 +281,7 @@ pub fn stage1_loss(
 fn finish(
     terms: Vec<(&'static str, Tensor<1>)>,
     queries: usize,
-    diag: [f32; 2],
+    diag: [f32; 3],
     device: &Device,
 ) -> StepLoss {
     let total = terms
@@ -276,6 +295,7 @@ fn finish(
         queries,
         root_peak: diag[0],
         root_at_gt: diag[1],
+        root_background: diag[2],
     }
 }
 
@@ -393,7 +413,7 @@ pub fn stage2_loss(
         likelihood: out.likelihood.clone(),
         offset: out.offset.clone(),
     };
-    let (d, diag) = detection_term(&det, &gt, cfg, weights.detection_offset, device);
+    let (d, diag) = detection_term(&det, &gt, cfg, weights, device);
     if weights.detection > 0.0 {
         terms.push(("detection", d * weights.detection));
     }

@@ -284,6 +284,7 @@ pub fn train(
         resume_optim = s.optimizer.as_ref().map(|o| run.root.join(o));
     }
     run.truncate_log(global)?;
+    run.remove_stale_temporaries()?;
 
     let body = mvmp_data::layout::load_body_model(&model_cfg.body_model, &run.root)?;
     let layer = SmplxLayer::new(&body, &ad);
@@ -373,7 +374,8 @@ pub fn train(
                 }
                 let total: f32 = terms.iter().map(|t| t.1).sum();
                 let grads = GradientsParams::from_grads(loss.total.backward(), &model);
-                model = optim.step(sc.lr, model, grads);
+                let lr = sc.lr_at(epoch * steps_per_epoch + bi, sc.epochs * steps_per_epoch);
+                model = optim.step(lr, model, grads);
                 global += 1;
                 step_in_epoch = bi + 1;
                 let rec = StepRecord {
@@ -382,15 +384,16 @@ pub fn train(
                     step: bi + 1,
                     steps_per_epoch,
                     global_step: global,
-                    lr: sc.lr,
+                    lr,
                     seconds: t0.elapsed().as_secs_f64(),
                     terms,
                     total,
                 };
                 let mut line = json!({
                     "kind": "step", "stage": stage, "epoch": rec.epoch, "step": rec.step,
-                    "global_step": global, "lr": sc.lr, "seconds": rec.seconds, "total": total,
+                    "global_step": global, "lr": lr, "seconds": rec.seconds, "total": total,
                     "queries": loss.queries, "root_peak": loss.root_peak, "root_at_gt": loss.root_at_gt,
+                    "root_background": loss.root_background,
                 });
                 for (k, v) in &rec.terms {
                     line[k] = json!(v);
@@ -438,6 +441,7 @@ pub fn train(
             }
             let val = ValRecord { epoch, ..val };
             run.log(&line)?;
+            crate::curves::write_curves(&run.metrics_path(), &run.root.join("curves.png"))?;
             mon.validation(&val);
             let name = format!("step{global:07}-stage{stage}-epoch{epoch:03}");
             let path = save(run, cfg, &model, &optim, &name, stage, epoch, 0, global)?;
