@@ -123,6 +123,24 @@ pub struct TrainArgs<'a> {
 }
 
 /// Start or resume a run; returns its directory.
+/// A new run that failed before its first checkpoint has nothing to resume: remove its directory, so that
+/// a failed command leaves nothing half-done, and say so beside the error.
+fn discard_unstarted(run: &RunDir, fresh: bool, err: anyhow::Error) -> anyhow::Error {
+    if !fresh || !matches!(run.state(), Ok(None)) {
+        return err;
+    }
+    match std::fs::remove_dir_all(&run.root) {
+        Ok(()) => anyhow::anyhow!(
+            "{err:#} (no checkpoint was written: the run directory {} was removed)",
+            run.root.display()
+        ),
+        Err(e) => anyhow::anyhow!(
+            "{err:#} (no checkpoint was written; removing the run directory {} failed too: {e})",
+            run.root.display()
+        ),
+    }
+}
+
 pub fn train(args: TrainArgs, device: &Device, monitor: &mut BarMonitor) -> Result<PathBuf> {
     let (run, cfg, model) = match (args.resume, args.config) {
         (Some(dir), None) => {
@@ -180,7 +198,11 @@ pub fn train(args: TrainArgs, device: &Device, monitor: &mut BarMonitor) -> Resu
         stop: stop_flag(),
         stop_after_steps: args.stop_after_steps,
     };
-    match mvmp_train::train(&run, &cfg, &model, &opts, monitor)? {
+    let outcome = match mvmp_train::train(&run, &cfg, &model, &opts, monitor) {
+        Ok(o) => o,
+        Err(e) => return Err(discard_unstarted(&run, args.config.is_some(), e.into())),
+    };
+    match outcome {
         Outcome::Finished => {
             eprintln!("finished: {}", run.root.join("model.bpk").display());
         }

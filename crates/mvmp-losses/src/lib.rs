@@ -332,6 +332,10 @@ pub struct LossWeights {
     pub detection_offset: f32,
     /// Weight of [`detection_positive_loss`] inside the detection loss (the paper: 0, a plain volume MSE).
     pub detection_positive: f32,
+    /// Width (metres) of the Gaussian root target (0.2, the reference's). On a coarse grid it covers
+    /// about one voxel per person (0.25 m voxels: the neighbours get 0.46); a wider target gives the
+    /// detector more voxels to learn from, and the sub-voxel offsets still place the root.
+    pub detection_sigma: f64,
     /// Weight of the 2D heatmap loss of stage 1 (the pose network's pre-training; not one of the five).
     pub heatmap_2d: f32,
     /// Width of the 2D heatmap targets in heatmap pixels (HRNet: 2).
@@ -352,6 +356,7 @@ impl Default for LossWeights {
             density_extent: 2.2,
             detection_offset: 1.0,
             detection_positive: 0.0,
+            detection_sigma: 0.2,
             heatmap_2d: 1.0,
             heatmap_sigma: 2.0,
         }
@@ -382,6 +387,12 @@ impl LossWeights {
             return Err(format!(
                 "loss.density_sigma = {}: must be positive",
                 self.density_sigma
+            ));
+        }
+        if !(self.detection_sigma.is_finite() && self.detection_sigma > 0.0) {
+            return Err(format!(
+                "loss.detection_sigma = {}: must be positive",
+                self.detection_sigma
             ));
         }
         if !(self.heatmap_sigma.is_finite() && self.heatmap_sigma > 0.0) {

@@ -100,6 +100,10 @@ pub struct ModelConfig {
     pub body_model: String,
 }
 
+/// The most people a config may decode per scene: 1000 slots of 10475 vertices are 126 MB of meshes per
+/// batch item, which every stage after the decoder holds several times.
+pub const MAX_PEOPLE: usize = 1000;
+
 impl Default for ModelConfig {
     fn default() -> Self {
         ModelConfig {
@@ -223,8 +227,20 @@ impl ModelConfig {
                 format!("{}: expected (0, 4]", self.rootnet_width),
             ));
         }
-        if self.max_people == 0 {
-            return Err(bad("max_people", "must be at least 1".into()));
+        if self.max_people == 0 || self.max_people > MAX_PEOPLE {
+            return Err(bad(
+                "max_people",
+                format!(
+                    "{}: expected 1 to {MAX_PEOPLE} (each slot is a decoded SMPL-X mesh)",
+                    self.max_people
+                ),
+            ));
+        }
+        if !self.root_threshold.is_finite() {
+            return Err(bad(
+                "root_threshold",
+                format!("{}: must be a finite number", self.root_threshold),
+            ));
         }
         let d = &self.decoder;
         if d.dim == 0 || d.heads == 0 || !d.dim.is_multiple_of(d.heads) {

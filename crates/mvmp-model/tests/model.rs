@@ -220,3 +220,22 @@ fn view_features_equal_the_reduce_convolution() {
         "largest difference {diff} (scale {scale})"
     );
 }
+
+#[test]
+fn unusable_people_caps_and_thresholds_name_the_key() {
+    let cases: [(&str, fn(&mut ModelConfig)); 4] = [
+        ("max_people", |c| c.max_people = 100_000_000),
+        ("max_people", |c| c.max_people = 0),
+        ("root_threshold", |c| c.root_threshold = f32::NAN),
+        ("root_threshold", |c| c.root_threshold = f32::INFINITY),
+    ];
+    for (key, edit) in cases {
+        let mut c = ModelConfig::default();
+        edit(&mut c);
+        let e = c.validate().expect_err(key).to_string();
+        assert!(e.contains(key), "{e}");
+    }
+    let mut c = ModelConfig::default();
+    c.max_people = mvmp_model::config::MAX_PEOPLE;
+    c.validate().unwrap();
+}

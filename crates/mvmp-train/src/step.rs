@@ -4,7 +4,7 @@ use burn::tensor::{Bool, Device, Int, Tensor, TensorData};
 
 use mvmp_data::loader::FrameBatch;
 use mvmp_fusion::Root;
-use mvmp_fusion::roots::{DEFAULT_SIGMA, gaussian_target, root_voxel_and_offset};
+use mvmp_fusion::roots::{gaussian_target, root_voxel_and_offset};
 use mvmp_geom::CameraTensors;
 use mvmp_geom::rotation::axis_angle_to_matrix;
 use mvmp_losses::{
@@ -145,7 +145,7 @@ pub fn detection_term(
     device: &Device,
 ) -> (Tensor<1>, [f32; 3]) {
     let roots = gt.roots(cfg.primary_joint.joint());
-    let target = gaussian_target(&cfg.grid, &roots, DEFAULT_SIGMA, device);
+    let target = gaussian_target(&cfg.grid, &roots, weights.detection_sigma, device);
     let b = roots.len();
     let r = roots.iter().map(Vec::len).max().unwrap_or(0).max(1);
     let mut vox = vec![0i64; b * r];

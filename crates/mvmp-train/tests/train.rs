@@ -305,6 +305,22 @@ fn bad_configs_name_the_key() {
         (("seed = 3", "seed = 3\nbatch_size = 0"), "batch_size"),
         (("seed = 3", "seed = 3\nlearning_rate = 1"), "learning_rate"),
         (("seed = 3", "seed = 3\n[loss]\nmesh_3d = -2.0"), "mesh_3d"),
+        (
+            ("seed = 3", "seed = 3\n[loss]\ndetection_sigma = 0.0"),
+            "detection_sigma",
+        ),
+        (
+            ("seed = 3", "seed = 3\n[loss]\ndetection_positive = nan"),
+            "detection_positive",
+        ),
+        (
+            ("lr = 1e-3", "lr = 1e-3\nfinal_lr_factor = 2.0"),
+            "stage1.final_lr_factor",
+        ),
+        (
+            ("lr = 1e-3", "lr = 1e-3\nschedule = \"linear\""),
+            "schedule",
+        ),
     ] {
         let path = write_configs(dir.path(), &|s| s.replacen(edit.0, edit.1, 1));
         let e = TrainConfig::read(&path).unwrap_err().to_string();
