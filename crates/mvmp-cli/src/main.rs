@@ -18,6 +18,11 @@ mod model;
 mod run;
 mod train;
 
+/// A count flag that must be at least 1 (0 views would project into no camera at all).
+fn at_least_one() -> clap::builder::RangedU64ValueParser<usize> {
+    clap::builder::RangedU64ValueParser::<usize>::new().range(1..)
+}
+
 #[derive(Parser)]
 #[command(
     name = "mvmp",
@@ -67,7 +72,7 @@ enum Command {
         #[arg(long, default_value = "test")]
         split: String,
         /// Views per frame (the first N cameras; default: the run's test_views).
-        #[arg(long)]
+        #[arg(long, value_parser = at_least_one())]
         views: Option<usize>,
         /// Score only the first N frames (0 = all).
         #[arg(long, default_value_t = 0)]

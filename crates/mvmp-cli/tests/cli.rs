@@ -88,6 +88,18 @@ fn bad_inputs_give_clear_errors() {
         ],
         &["missing.json"],
     );
+    expect_error(
+        &[
+            "eval",
+            "--run",
+            &d("run"),
+            "--data",
+            &d("data"),
+            "--views",
+            "0",
+        ],
+        &["--views", "'0'"],
+    );
     std::fs::write(d("bad.json"), "{ \"betas\": [1, 2,").unwrap();
     expect_error(
         &["body", "forward", "--params", &d("bad.json"), "--out", &out],

@@ -435,8 +435,8 @@ fn group_normalised_rootnet_scores_alike_in_training_and_inference() {
             .init(&ad);
         let (train, _) = net.forward(rootnet_input(&ad));
         let (infer, _) = net.valid().forward(rootnet_input(&plain));
-        let a: Vec<f32> = train.into_data().convert::<f32>().to_vec().unwrap();
-        let b: Vec<f32> = infer.into_data().convert::<f32>().to_vec().unwrap();
+        let a: Vec<f32> = train.into_data().convert::<f32>().try_into_vec().unwrap();
+        let b: Vec<f32> = infer.into_data().convert::<f32>().try_into_vec().unwrap();
         let diff = a
             .iter()
             .zip(&b)

@@ -221,9 +221,12 @@ fn view_features_equal_the_reduce_convolution() {
     );
 }
 
+/// An edit of a config that makes it invalid.
+type Edit = fn(&mut ModelConfig);
+
 #[test]
 fn unusable_people_caps_and_thresholds_name_the_key() {
-    let cases: [(&str, fn(&mut ModelConfig)); 4] = [
+    let cases: [(&str, Edit); 4] = [
         ("max_people", |c| c.max_people = 100_000_000),
         ("max_people", |c| c.max_people = 0),
         ("root_threshold", |c| c.root_threshold = f32::NAN),
@@ -235,7 +238,9 @@ fn unusable_people_caps_and_thresholds_name_the_key() {
         let e = c.validate().expect_err(key).to_string();
         assert!(e.contains(key), "{e}");
     }
-    let mut c = ModelConfig::default();
-    c.max_people = mvmp_model::config::MAX_PEOPLE;
+    let c = ModelConfig {
+        max_people: mvmp_model::config::MAX_PEOPLE,
+        ..Default::default()
+    };
     c.validate().unwrap();
 }

@@ -83,9 +83,9 @@ detection_positive = 1.0
 "#;
 
 /// Bound on the training-frame MPJPE. This run reached 95.8 mm at its last validation (step 200 of 220;
-/// 300.6 mm after the first stage-2 epoch, 233.9 after the second), so 150 mm leaves room for the spread
-/// that other thread counts and summation orders bring, and still fails when any part of the gradient
-/// path stops learning: before the root encoding of the queries the same kind of run sat near 300 mm.
+/// 300.6 mm after the first stage-2 epoch, when the decoder has barely trained, 233.9 after the second),
+/// so 150 mm leaves room for the spread that other thread counts and summation orders bring, and still
+/// fails when the stage-2 gradient path stops learning.
 const MPJPE_BOUND_MM: f64 = 150.0;
 
 #[test]
