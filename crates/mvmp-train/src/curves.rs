@@ -130,6 +130,20 @@ fn x_range(sets: &[&[Series]]) -> std::ops::Range<f64> {
 
 type DrawErr = Box<dyn std::error::Error>;
 
+/// The legend box of both panels.
+fn draw_legend<'a, 'b: 'a, CT: plotters::coord::CoordTranslate>(
+    chart: &mut ChartContext<'a, BitMapBackend<'b>, CT>,
+) -> Result<(), DrawErr> {
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::UpperRight)
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .label_font(("sans-serif", 13))
+        .draw()?;
+    Ok(())
+}
+
 fn draw_losses(
     area: &DrawingArea<BitMapBackend, plotters::coord::Shift>,
     c: &Curves,
@@ -166,14 +180,7 @@ fn draw_losses(
                 PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(2))
             });
     }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::UpperRight)
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .label_font(("sans-serif", 13))
-        .draw()?;
-    Ok(())
+    draw_legend(&mut chart)
 }
 
 fn draw_validation(
@@ -227,14 +234,7 @@ fn draw_validation(
                 PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(2))
             });
     }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::UpperRight)
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .label_font(("sans-serif", 13))
-        .draw()?;
-    Ok(())
+    draw_legend(&mut chart)
 }
 
 /// Register the embedded font once (plotters' text needs one; no system fonts are assumed).
