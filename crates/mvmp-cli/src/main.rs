@@ -18,6 +18,15 @@ mod model;
 mod run;
 mod train;
 
+/// A distance flag in metres: finite and positive.
+fn positive_metres(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() && v > 0.0 => Ok(v),
+        Ok(v) => Err(format!("{v}: expected a positive, finite number of metres")),
+        Err(e) => Err(format!("{e}")),
+    }
+}
+
 /// A count flag that must be at least 1 (0 views would project into no camera at all).
 fn at_least_one() -> clap::builder::RangedU64ValueParser<usize> {
     clap::builder::RangedU64ValueParser::<usize>::new().range(1..)
@@ -78,7 +87,7 @@ enum Command {
         #[arg(long, default_value_t = 0)]
         frames: usize,
         /// Matching gate on pelvis distance (metres).
-        #[arg(long, default_value_t = mvmp_eval::DEFAULT_GATE)]
+        #[arg(long, default_value_t = mvmp_eval::DEFAULT_GATE, value_parser = positive_metres, allow_negative_numbers = true)]
         gate: f64,
         /// Write the JSON report here (default: RUN_DIR/eval-<split>.json for a run).
         #[arg(long)]
@@ -271,7 +280,8 @@ enum BodyCommand {
 enum BenchCommand {
     /// Median wall time of the SMPL-X forward.
     Smplx {
-        #[arg(long, default_value_t = 30)]
+        /// Bodies per forward (at most 4096: each holds 10475 posed vertices and the packed features).
+        #[arg(long, default_value_t = 30, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=4096))]
         batch: usize,
         #[arg(long)]
         model: Option<PathBuf>,

@@ -100,6 +100,24 @@ fn bad_inputs_give_clear_errors() {
         ],
         &["--views", "'0'"],
     );
+    for gate in ["-1", "NaN", "inf", "x"] {
+        expect_error(
+            &[
+                "eval",
+                "--run",
+                &d("run"),
+                "--data",
+                &d("data"),
+                "--gate",
+                gate,
+            ],
+            &["--gate", gate],
+        );
+    }
+    expect_error(
+        &["bench", "smplx", "--batch", "18446744073709551615"],
+        &["--batch", "18446744073709551615"],
+    );
     std::fs::write(d("bad.json"), "{ \"betas\": [1, 2,").unwrap();
     expect_error(
         &["body", "forward", "--params", &d("bad.json"), "--out", &out],
