@@ -1318,3 +1318,43 @@ fn pseudo_ground_truth_fits_become_smplx_targets() {
         "{e}"
     );
 }
+
+#[test]
+fn a_torn_log_line_and_stale_temporaries_do_not_stop_a_resume() {
+    let dir = tempfile::tempdir().unwrap();
+    let (run, _, _) = new_run(dir.path(), "run", &|s| s);
+    let log = run.metrics_path();
+    // A kill while the fourth line was written leaves it without its end.
+    std::fs::write(
+        &log,
+        "{\"kind\":\"step\",\"global_step\":1}\n{\"kind\":\"step\",\"global_step\":2}\n\
+         {\"kind\":\"step\",\"global_step\":3}\n{\"kind\":\"step\",\"glo",
+    )
+    .unwrap();
+    run.truncate_log(2).unwrap();
+    assert_eq!(
+        std::fs::read_to_string(&log).unwrap(),
+        "{\"kind\":\"step\",\"global_step\":1}\n{\"kind\":\"step\",\"global_step\":2}\n"
+    );
+    // A malformed line that is not the torn last one is an error naming the line.
+    std::fs::write(&log, "{\"global_step\":1}\nnot json\n{\"global_step\":2}\n").unwrap();
+    let e = run.truncate_log(2).unwrap_err().to_string();
+    assert!(e.contains("metrics.jsonl") && e.contains("line 2"), "{e}");
+
+    let ck = run.root.join("checkpoints");
+    std::fs::create_dir_all(&ck).unwrap();
+    for f in [
+        ".tmpAbC123",
+        ".optim-step0000004-part.tmp",
+        "step0000004.bpk",
+    ] {
+        std::fs::write(ck.join(f), b"x").unwrap();
+    }
+    run.remove_stale_temporaries().unwrap();
+    let mut left: Vec<String> = std::fs::read_dir(&ck)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    left.sort();
+    assert_eq!(left, vec!["step0000004.bpk".to_string()]);
+}
