@@ -1,7 +1,7 @@
 //! Projection + fusion at paper scale: a 300 x 300 x 20 grid (30 x 30 x 2 m at 0.1 m), views of 1920 x 1080
 //! letterboxed to 1288 x 1288, 92 x 92 feature maps (stride 14), 32 channels; and the Human Transformer
 //! Blocks with 30 queries over that volume. CPU flex backend. Run: `cargo bench --bench fusion`.
-//! Targets (DESIGN.md): sampling + fusion from cached grids <= 140 ms; peak memory of the step <= 1.5x one
+//! The project's targets: sampling + fusion from cached grids <= 140 ms; peak memory of the step <= 1.5x one
 //! fused volume. `fuse_views` on flex is the fused CPU pass; `_tensor_ops` rows are the training path. Peak memory is measured with a counting allocator around one call, outside criterion.
 use std::alloc::{GlobalAlloc, Layout};
 use std::sync::atomic::{AtomicUsize, Ordering};

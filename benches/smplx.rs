@@ -1,5 +1,5 @@
 //! SMPL-X forward on the CPU backend (flex), float32, stand-in model (SMPL-X sized: 10475 vertices).
-//! Run: `cargo bench --bench smplx`. Target (DESIGN.md): batch 30 <= 10.8 ms on 2 cores.
+//! Run: `cargo bench --bench smplx`. The project's target: batch 30 <= 10.8 ms on 2 cores.
 //! `smplx_forward` is the inference forward (the fused CPU pass); `smplx_forward_tensor_ops` is the
 //! differentiable tensor-op path that training takes, measured here without autodiff.
 use burn::tensor::{Device, Tensor, TensorData};

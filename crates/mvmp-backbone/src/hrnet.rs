@@ -1,5 +1,5 @@
 //! HRNet for 2D joint heatmaps (Sun et al., "Deep High-Resolution Representation Learning for Human Pose
-//! Estimation", CVPR 2019; REFERENCE.md 10), in the layout of the reference `pose_hrnet.py`: a stride-4
+//! Estimation", CVPR 2019), in the layout of the reference `pose_hrnet.py`: a stride-4
 //! stem with a bottleneck layer, four stages of parallel branches at strides 4, 8, 16, 32 with repeated
 //! multi-resolution fusion, and a 1 x 1 head on the highest-resolution branch.
 //!

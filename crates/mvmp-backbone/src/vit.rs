@@ -1,5 +1,5 @@
 //! A Vision Transformer in the DINOv2 layout (Oquab et al., "DINOv2: Learning Robust Visual Features
-//! without Supervision", 2023; REFERENCE.md 9), with module paths that mirror the torch-hub checkpoint
+//! without Supervision", 2023), with module paths that mirror the torch-hub checkpoint
 //! keys (`patch_embed.proj`, `blocks.N.{norm1, attn.qkv, attn.proj, ls1.gamma, norm2, mlp.fc1, mlp.fc2,
 //! ls2.gamma}`, `norm`, `cls_token`, `pos_embed`, `mask_token`).
 //!
