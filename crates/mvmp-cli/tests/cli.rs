@@ -88,31 +88,17 @@ fn bad_inputs_give_clear_errors() {
         ],
         &["missing.json"],
     );
-    expect_error(
-        &[
-            "eval",
-            "--run",
-            &d("run"),
-            "--data",
-            &d("data"),
-            "--views",
-            "0",
-        ],
-        &["--views", "'0'"],
-    );
-    for gate in ["-1", "NaN", "inf", "x"] {
+    // A flag with a bad value is refused before the (missing) run and data are read.
+    let (run, data) = (d("run"), d("data"));
+    let eval_with = |flag: &str, value: &str, needles: &[&str]| {
         expect_error(
-            &[
-                "eval",
-                "--run",
-                &d("run"),
-                "--data",
-                &d("data"),
-                "--gate",
-                gate,
-            ],
-            &["--gate", gate],
-        );
+            &["eval", "--run", &run, "--data", &data, flag, value],
+            needles,
+        )
+    };
+    eval_with("--views", "0", &["--views", "'0'"]);
+    for gate in ["-1", "NaN", "inf", "x"] {
+        eval_with("--gate", gate, &["--gate", gate]);
     }
     expect_error(
         &["bench", "smplx", "--batch", "18446744073709551615"],
