@@ -19,6 +19,56 @@ fn shapes_of_the_feature_maps() {
     assert_eq!(vit.forward(x).dims(), [1, 192, 9, 20]);
 }
 
+/// The matmul patch embedding is the stride-14 convolution: the same tokens and the same weight gradient,
+/// on a size that is not a multiple of 14 (the last rows and columns fall outside every patch).
+#[test]
+fn patch_embedding_is_the_strided_convolution() {
+    let d = Device::flex().autodiff();
+    let vit = ViTConfig::tiny().init(&d);
+    let n = 2 * 3 * 45 * 33;
+    let img: Vec<f32> = (0..n)
+        .map(|i| ((i * 7919) % 1000) as f32 / 500.0 - 1.0)
+        .collect();
+    let x = || Tensor::<4>::from_data(TensorData::new(img.clone(), [2, 3, 45, 33]), &d);
+    let (tokens, hw) = vit.patch_embed.forward(x());
+    assert_eq!(hw, [3, 2]);
+    let conv = vit.patch_embed.proj.forward(x()); // [2, C, 3, 2]
+    let conv_tokens = conv.clone().reshape([2, 192, 6]).swap_dims(1, 2);
+    let (a, b) = (vals(tokens.clone()), vals(conv_tokens));
+    let diff = a
+        .iter()
+        .zip(&b)
+        .map(|(p, q)| (p - q).abs())
+        .fold(0f32, f32::max);
+    assert!(diff < 1e-5, "tokens differ by {diff}");
+
+    // Gradients of the same weighted sum through either path.
+    let w = Tensor::<3>::from_data(
+        TensorData::new(
+            (0..2 * 6 * 192)
+                .map(|i| (i % 13) as f32 - 6.0)
+                .collect::<Vec<_>>(),
+            [2, 6, 192],
+        ),
+        &d,
+    );
+    let weight = vit.patch_embed.proj.weight.val();
+    let g1 = weight.grad(&(tokens * w.clone()).sum().backward()).unwrap();
+    let w_conv = w.swap_dims(1, 2).reshape([2, 192, 3, 2]);
+    let g2 = weight.grad(&(conv * w_conv).sum().backward()).unwrap();
+    let (g1, g2) = (vals(g1), vals(g2));
+    let scale = g2.iter().fold(0f32, |m, v| m.max(v.abs()));
+    let diff = g1
+        .iter()
+        .zip(&g2)
+        .map(|(p, q)| (p - q).abs())
+        .fold(0f32, f32::max);
+    assert!(
+        diff <= 1e-5 * scale,
+        "weight gradients differ by {diff} (scale {scale})"
+    );
+}
+
 #[test]
 fn parameter_counts_follow_the_architecture() {
     let d = Device::flex();
