@@ -1,5 +1,5 @@
 //! DINOv2 import from checkpoints written here in the exact torch-hub and Hugging Face key layouts and shapes
-//! (REFERENCE.md 9.1, 9.2), with deterministic pseudo-random values.
+//! (`dinov2_vit*14_pretrain.pth`, `facebook/dinov2-*`), with deterministic pseudo-random values.
 use std::path::Path;
 
 use burn::tensor::Device;

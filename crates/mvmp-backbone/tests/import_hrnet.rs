@@ -1,4 +1,5 @@
-//! HRNet import from checkpoints written here with the reference key names and shapes (REFERENCE.md 10).
+//! HRNet import from checkpoints written here with the key names and shapes of the reference
+//! `pose_hrnet.py` (deep-high-resolution-net.pytorch).
 use burn::tensor::Device;
 use mvmp_backbone::HRNetConfig;
 use mvmp_backbone::import::import_hrnet;

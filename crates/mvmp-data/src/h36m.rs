@@ -13,9 +13,10 @@
 //! poses are sampled at the videos' 50 Hz. S11's "Directions" is left out, as the usual tool-chains do
 //! (its video is damaged).
 //!
-//! Cameras as published (REFERENCE.md 1.4): the `camera-parameters.json` layout generated from the
-//! official `metadata.xml` (intrinsics per camera id: `calibration_matrix`, `distortion` =
-//! `[k1, k2, p1, p2, k3]`; extrinsics per subject and camera: `R`, `t` with `x_cam = R X + t`, millimetres).
+//! Cameras as published (karfly/human36m-camera-parameters): the `camera-parameters.json` layout
+//! generated from the official `metadata.xml` (intrinsics per camera id: `calibration_matrix`,
+//! `distortion` = `[k1, k2, p1, p2, k3]`; extrinsics per subject and camera: `R`, `t` with
+//! `x_cam = R X + t`, millimetres).
 //! The world is z up in millimetres; it is read into metres.
 //!
 //! Tangential distortion: the coefficients come from the Human3.6M tool-chain, whose projection adds

@@ -73,7 +73,7 @@ pub struct Person {
     pub id: u32,
     /// SMPL-X parameters in the world (standard smplx keys, axis-angle; `transl` in smplx's meaning).
     pub smplx: SmplxParams,
-    /// The pelvis in the world (metres): the translation of DESIGN.md (`T_wld`).
+    /// The pelvis in the world (metres): the model's translation `T_wld` (docs/architecture.md, SMPL-X).
     pub pelvis: [f64; 3],
     /// The 127 SMPL-X joints in the world (metres).
     pub joints_3d: Vec<[f64; 3]>,

@@ -1,7 +1,8 @@
-//! CMU Panoptic Studio files (REFERENCE.md 1.2), converted once, at load time, into mvmp's conventions:
-//! Panoptic's world is in centimetres with y pointing down; mvmp's is in metres with z up. A Panoptic point
-//! `X_p` maps to `X = M X_p / 100` with `M = [[1, 0, 0], [0, 0, -1], [0, 1, 0]]` (a proper rotation), so a
-//! camera `x_cam = R X_p + t` (cm) becomes `x_cam = (R M^T) X + t / 100` (m). Skew and distortion are kept.
+//! CMU Panoptic Studio files (as the panoptic-toolbox publishes them), converted once, at load time, into
+//! mvmp's conventions: Panoptic's world is in centimetres with y pointing down; mvmp's is in metres with z
+//! up. A Panoptic point `X_p = (x, y, z)` maps to `X = M X_p / 100 = (x, z, -y) / 100` with
+//! `M = [[1, 0, 0], [0, 0, 1], [0, -1, 0]]` (a proper rotation), so a camera `x_cam = R X_p + t` (cm)
+//! becomes `x_cam = (R M^T) X + t / 100` (m). Skew and distortion are kept.
 use std::path::Path;
 
 use nalgebra::{Matrix3, Vector3};

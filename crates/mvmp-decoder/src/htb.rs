@@ -1,4 +1,4 @@
-//! The Human Transformer Block and the decoder heads (paper, Sec. 3.4; DESIGN.md).
+//! The Human Transformer Block and the decoder heads (paper, Sec. 4.3; docs/architecture.md, Pipeline).
 //!
 //! Queries `[B, K, D]` (one per detected root), the fused volume as tokens `[B, P, D]` with a 3D sinusoidal
 //! positional encoding of each voxel centre. Each block: pre-norm self-attention among the people (padded
@@ -29,8 +29,8 @@ pub struct DecoderConfig {
     pub heads: usize,
     #[config(default = 4)]
     pub ffn_ratio: usize,
-    /// Average-pool the volume by this factor along x and y (and z when divisible) before cross-attention;
-    /// 1 keeps every voxel.
+    /// Average-pool the volume by this factor along every axis whose voxel count it divides (an axis it
+    /// does not divide stays unpooled) before cross-attention; 1 keeps every voxel.
     #[config(default = 1)]
     pub pool: usize,
     /// Without blocks: the VoxelSMPLX baseline (an MLP on the sampled queries).

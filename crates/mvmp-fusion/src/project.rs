@@ -1,11 +1,11 @@
-//! Projection of per-view 2D maps into the voxel grid (DESIGN.md, Projection details).
+//! Projection of per-view 2D maps into the voxel grid (docs/architecture.md, Cameras and projection).
 //!
 //! Every voxel centre is projected into every view with distortion and the letterbox (mvmp-geom), giving
 //! network pixels `u'`; a feature map of stride `k` samples at `f = (u' + 0.5) / k - 0.5`. A voxel is seen
 //! by a view when it is in front of the camera and its distorted projection lies in the original image.
 //! Seen voxels are sampled bilinearly with border padding; fusion averages (or takes the maximum) over the
-//! views that see the voxel, and is 0 where none does. The sampling grids depend only on the rig and the
-//! voxel grid, so they are computed once per rig ([`SamplingGrid`]) and reused.
+//! views that see the voxel, and is 0 where none does. The sampling grids ([`SamplingGrid`]) depend only on
+//! the rig and the voxel grid, so a caller can build them once per rig and reuse them for every frame.
 use std::sync::Arc;
 
 use burn::tensor::ops::{GridSampleOptions, GridSamplePaddingMode, InterpolateMode};

@@ -1,4 +1,4 @@
-//! The V2V encoder-decoder (VoxelPose's `V2VNet`, REFERENCE.md 3) and the RootNet built on it.
+//! The V2V encoder-decoder (VoxelPose's `V2VNet`) and the RootNet built on it.
 //!
 //! Shapes: input `[B, Cin, X, Y, Z]` with X, Y, Z divisible by 4; output `[B, Cout, X, Y, Z]`.
 //! Widths are the reference's (16, 32, 64, 128) times `width` (1.0 for the paper model, less for the tiny

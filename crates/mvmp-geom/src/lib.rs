@@ -1,7 +1,7 @@
 //! Geometry for mvmp: cameras and projection, the letterbox transform, rotations as tensor ops,
 //! similarity Procrustes, the voxel grid and the camera-rig file.
 //!
-//! Conventions (DESIGN.md): world right-handed, z up, metres. Cameras follow OpenCV:
+//! Conventions (docs/architecture.md, Conventions): world right-handed, z up, metres. Cameras follow OpenCV:
 //! `x_cam = R x_world + t`, the camera looks along +z, u right, v down, integer pixel coordinates are pixel
 //! centres, distortion is Brown-Conrady `[k1, k2, p1, p2, k3]` with OpenCV's tangential form.
 

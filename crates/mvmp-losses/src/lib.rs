@@ -1,4 +1,4 @@
-//! The five MVMP-HMR losses (paper Sec. 3.5; DESIGN.md):
+//! The five MVMP-HMR losses (paper Sec. 4.4; docs/architecture.md, Training):
 //! `L = L_D + w_P L_P + L_mesh + w_O L_O + w_den L_denj3d`, `L_mesh = w_3D L_3D + mean_v L_2D`, paper
 //! weights `w_P = 10`, `w_O = 5`, `w_den = 1`, `w_3D = 100`.
 //!

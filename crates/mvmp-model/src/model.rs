@@ -1,4 +1,4 @@
-//! MVMP-HMR assembled (paper Fig. 2; DESIGN.md pipeline):
+//! MVMP-HMR assembled (paper Fig. 2; docs/architecture.md, Pipeline):
 //!
 //! ```text
 //! images [B, V, 3, S, S]

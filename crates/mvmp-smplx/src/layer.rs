@@ -1,4 +1,4 @@
-//! The batched, differentiable SMPL-X layer on tensors (smplx `lbs.py`; REFERENCE.md 7.2).
+//! The batched, differentiable SMPL-X layer on tensors (smplx's `lbs.py`).
 //!
 //! Forward, for N bodies:
 //! 1. `v_shaped = v_template + [betas, expression] . shapedirs`            `[N, V, 3]`
@@ -27,7 +27,8 @@ pub enum Translation {
     /// smplx's `transl`: added to the model's own origin (the pelvis then sits at `J_0(betas) + transl`).
     #[default]
     Standard,
-    /// DESIGN.md's `T_wld`: the translation is the pelvis position in the world.
+    /// The paper's `T_wld` (docs/architecture.md, SMPL-X): the translation is the pelvis position in the
+    /// world.
     Pelvis,
 }
 

@@ -1,4 +1,4 @@
-//! SMPL-X body-model files in the official `SMPLX_*.npz` layout (REFERENCE.md 7.1), read and written.
+//! SMPL-X body-model files in the official `SMPLX_*.npz` layout (the keys smplx loads), read and written.
 //!
 //! Required keys: `v_template` (V, 3), `f` (F, 3), `shapedirs` (V, 3, L) with L >= 20 (20: 10 shape + 10
 //! expression, v1.0; 400: 300 + 100, v1.1), `posedirs` (V, 3, 486), `J_regressor` (55, V), `weights` (V, 55),

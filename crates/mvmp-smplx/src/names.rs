@@ -1,11 +1,12 @@
 //! SMPL-X joint names, the kinematic tree, the vertex-based extra joints and the regression order,
-//! in one place (smplx `joint_names.py`, `vertex_ids.py`; REFERENCE.md section 7.3).
+//! in one place (smplx's `joint_names.py` and `vertex_ids.py`).
 
 /// Number of joints driven by linear blend skinning.
 pub const NUM_JOINTS: usize = 55;
 /// Joints with a pose-corrective blend shape (all but the root).
 pub const NUM_POSE_JOINTS: usize = NUM_JOINTS - 1;
-/// Rotations the network regresses (DESIGN.md): global, 21 body, 15 left hand, 15 right hand, jaw.
+/// Rotations the network regresses (docs/architecture.md, SMPL-X): global, 21 body, 15 left hand,
+/// 15 right hand, jaw.
 pub const NUM_REGRESSED: usize = 53;
 /// Body-model shape and expression components used by mvmp.
 pub const NUM_BETAS: usize = 10;

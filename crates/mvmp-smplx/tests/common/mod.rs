@@ -1,5 +1,5 @@
 //! Shared by the SMPL-X tests: an independent f64 LBS written with plain loops and nalgebra, following
-//! REFERENCE.md 7.2 step by step (no code shared with the tensor layer).
+//! smplx's `lbs.py` step by step (no code shared with the tensor layer).
 #![allow(dead_code)]
 use mvmp_smplx::BodyModel;
 use mvmp_smplx::names::{EXTRA_VERTEX_JOINTS, NUM_JOINTS};
