@@ -1,6 +1,7 @@
 //! Training, prediction and evaluation runs of MVMP-HMR, and the files inference writes.
 pub mod config;
 pub mod curves;
+pub mod diagnostics;
 pub mod error;
 pub mod output;
 pub mod predict;

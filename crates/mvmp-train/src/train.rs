@@ -373,7 +373,9 @@ pub fn train(
                     terms.push((name.to_string(), v));
                 }
                 let total: f32 = terms.iter().map(|t| t.1).sum();
-                let grads = GradientsParams::from_grads(loss.total.backward(), &model);
+                let grads = loss.total.backward();
+                let grad_norms = crate::diagnostics::module_grad_norms(&model, &grads);
+                let grads = GradientsParams::from_grads(grads, &model);
                 let lr = sc.lr_at(epoch * steps_per_epoch + bi, sc.epochs * steps_per_epoch);
                 model = optim.step(lr, model, grads);
                 global += 1;
@@ -398,6 +400,10 @@ pub fn train(
                 for (k, v) in &rec.terms {
                     line[k] = json!(v);
                 }
+                line["grad_norm"] = grad_norms
+                    .iter()
+                    .map(|(k, v)| (k.to_string(), json!(v)))
+                    .collect();
                 run.log(&line)?;
                 mon.step(&rec);
                 let stop = opts.stop.load(Ordering::SeqCst)

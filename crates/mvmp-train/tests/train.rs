@@ -240,6 +240,20 @@ fn an_interrupted_run_resumes_to_the_same_weights_and_log() {
     assert!(max <= 1e-6, "resumed weights differ by up to {max}");
     // Validation ran every epoch of both stages.
     let log = std::fs::read_to_string(run_a.metrics_path()).unwrap();
+    // Gradient norms per module: stage 1's graph holds HRNet and the RootNet only; stage 2's everything.
+    for v in log
+        .lines()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+        .filter(|v| v["kind"] == "step")
+    {
+        let g = |m: &str| v["grad_norm"][m].as_f64().unwrap();
+        assert!(g("hrnet") > 0.0 && g("rootnet") > 0.0, "{v}");
+        if v["stage"] == 1 {
+            assert_eq!((g("vit"), g("decoder")), (0.0, 0.0), "{v}");
+        } else {
+            assert!(g("vit") > 0.0 && g("decoder") > 0.0, "{v}");
+        }
+    }
     assert!(log.contains("\"root_recall\""), "stage 1 validation");
     assert!(log.contains("\"recall_500\""), "stage 2 validation");
     // Only the newest checkpoints are kept; the final weights and resolved configs are there.
