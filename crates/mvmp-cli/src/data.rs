@@ -83,14 +83,17 @@ pub fn stats(dir: &Path, json: bool, sheet: Option<&Path>) -> Result<()> {
     Ok(())
 }
 
-pub fn check(format: &str, dir: &Path) -> Result<()> {
+pub fn check(format: &str, dir: &Path, deep: bool) -> Result<()> {
+    if deep && format != "mvmp" {
+        anyhow::bail!("--deep applies to --format mvmp (not {format})");
+    }
     match format {
         "mvmp" => {}
         "panoptic" => return check_panoptic(dir),
         "h36m" => return check_h36m(dir),
         other => anyhow::bail!("--format {other:?}: expected mvmp, panoptic or h36m"),
     }
-    let r = mvmp_data::check::check_dataset(dir);
+    let r = mvmp_data::check::check_dataset(dir, deep);
     println!(
         "checked {}: {} scenes, {} frames, up to {} views, {} person annotations, {} image files",
         dir.display(),
@@ -100,6 +103,13 @@ pub fn check(format: &str, dir: &Path) -> Result<()> {
         r.people,
         r.images
     );
+    if deep {
+        println!("every image decoded whole; every annotation validated");
+    } else {
+        println!(
+            "image headers only (size, colour type): pass --deep to decode every image; every annotation validated"
+        );
+    }
     report_problems(&r.problems, dir)
 }
 

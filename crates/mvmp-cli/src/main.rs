@@ -18,11 +18,13 @@ mod model;
 mod run;
 mod train;
 
-/// A distance flag in metres: finite and positive.
-fn positive_metres(s: &str) -> Result<f64, String> {
-    match s.parse::<f64>() {
+/// A flag that must be a positive, finite number of `unit` (metres, minutes).
+fn positive(
+    unit: &'static str,
+) -> impl Fn(&str) -> Result<f64, String> + Clone + Send + Sync + 'static {
+    move |s| match s.parse::<f64>() {
         Ok(v) if v.is_finite() && v > 0.0 => Ok(v),
-        Ok(v) => Err(format!("{v}: expected a positive, finite number of metres")),
+        Ok(v) => Err(format!("{v}: expected a positive, finite number of {unit}")),
         Err(e) => Err(format!("{e}")),
     }
 }
@@ -87,7 +89,7 @@ enum Command {
         #[arg(long, default_value_t = 0)]
         frames: usize,
         /// Matching gate on pelvis distance (metres).
-        #[arg(long, default_value_t = mvmp_eval::DEFAULT_GATE, value_parser = positive_metres, allow_negative_numbers = true)]
+        #[arg(long, default_value_t = mvmp_eval::DEFAULT_GATE, value_parser = positive("metres"), allow_negative_numbers = true)]
         gate: f64,
         /// Write the JSON report here (default: RUN_DIR/eval-<split>.json for a run).
         #[arg(long)]
@@ -161,6 +163,10 @@ enum Command {
         /// Stop with a checkpoint once the run has made this many optimizer steps.
         #[arg(long)]
         stop_after_steps: Option<u64>,
+        /// Stop with a checkpoint once this call has trained this many minutes (wall time; the step in
+        /// flight finishes first). `--resume` continues such a run.
+        #[arg(long, value_parser = positive("minutes"), allow_negative_numbers = true)]
+        stop_after_minutes: Option<f64>,
     },
 }
 
@@ -232,6 +238,9 @@ enum DataCommand {
         /// Layout of the dataset.
         #[arg(long, default_value = "mvmp")]
         format: String,
+        /// Decode every image whole (mvmp layout; a plain check reads image headers only).
+        #[arg(long)]
+        deep: bool,
         /// Dataset root.
         dir: PathBuf,
     },
@@ -358,7 +367,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Data(DataCommand::Stats { dir, json, sheet }) => {
             data::stats(&dir, json, sheet.as_deref())
         }
-        Command::Data(DataCommand::Check { format, dir }) => data::check(&format, &dir),
+        Command::Data(DataCommand::Check { format, dir, deep }) => data::check(&format, &dir, deep),
         Command::Model(ModelCommand::Summary { config, views }) => model::summary(&config, views),
         Command::Import(ImportCommand::Dinov2 { variant, from, out }) => {
             import::dinov2(&variant, &from, &out)
@@ -457,6 +466,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             out,
             resume,
             stop_after_steps,
+            stop_after_minutes,
         } => train::train(
             train::TrainArgs {
                 config: config.as_deref(),
@@ -464,6 +474,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 out: out.as_deref(),
                 resume: resume.as_deref(),
                 stop_after_steps,
+                stop_after_minutes,
             },
             &device,
             &mut train::BarMonitor::new(false),

@@ -9,7 +9,7 @@ use serde_json::json;
 use mvmp_data::loader::Split;
 use mvmp_eval::joint_sets::JointSet;
 use mvmp_eval::{AP_THRESHOLDS, Evaluator, Metrics};
-use mvmp_geom::io::write_atomic;
+use mvmp_geom::io::{StagedDir, write_atomic};
 use mvmp_geom::{Camera, Rig};
 use mvmp_smplx::SmplxLayer;
 use mvmp_train::output::{read_people_npz, write_frame};
@@ -134,6 +134,22 @@ pub fn table(rows: &[(String, Metrics)]) -> String {
 
 /// Run an evaluation; returns the overall figures and the report.
 pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, serde_json::Value)> {
+    if let Some(dir) = args.save_predictions {
+        // Refused rather than ignored: only a model's predictions on an mvmp tree are written.
+        if args.format != "mvmp" {
+            bail!(
+                "--save-predictions {}: predictions are saved for --format mvmp only, not {}",
+                dir.display(),
+                args.format
+            );
+        }
+        if !matches!(args.source, Source::Run(_)) {
+            bail!(
+                "--save-predictions {}: needs --run (stored predictions and the mean pose have nothing new to save)",
+                dir.display()
+            );
+        }
+    }
     match args.format {
         "mvmp" => {
             if args.stride.is_some() {
@@ -167,6 +183,8 @@ pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, s
             };
             let mut pb: Option<ProgressBar> = None;
             let faces = pred.layer.faces().to_vec();
+            // Every frame's files go to a staging directory, moved into place once all are scored.
+            let staged = args.save_predictions.map(StagedDir::new).transpose()?;
             let ev = mvmp_train::evaluate(&pred, args.data, &opts, |i, n, fp| {
                 let b = pb.get_or_insert_with(|| {
                     if quiet {
@@ -175,8 +193,8 @@ pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, s
                         bar(n, "eval")
                     }
                 });
-                if let Some(dir) = args.save_predictions {
-                    let d = dir.join(&fp.scene).join(&fp.frame);
+                if let Some(dir) = &staged {
+                    let d = dir.path().join(&fp.scene).join(&fp.frame);
                     write_frame(&d, &fp.people, &faces, &fp.cameras, None, &pred.cfg.grid)?;
                 }
                 b.set_position(i as u64 + 1);
@@ -184,6 +202,9 @@ pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, s
             })?;
             if let Some(b) = pb {
                 b.finish_and_clear();
+            }
+            if let Some(s) = staged {
+                s.finish()?;
             }
             (ev, run_source(&run, &weights)?, views)
         }
@@ -353,8 +374,8 @@ fn load_images(paths: &[PathBuf], cams: &[Camera]) -> Result<Vec<image::RgbImage
         .iter()
         .zip(cams)
         .map(|(p, c)| {
-            let img = image::open(p)
-                .with_context(|| format!("reading image {}", p.display()))?
+            let img = mvmp_data::check::open_image(p)
+                .map_err(|e| anyhow::anyhow!("{}: unreadable image: {e}", p.display()))?
                 .to_rgb8();
             if img.dimensions() != (c.width, c.height) {
                 bail!(
@@ -417,13 +438,16 @@ pub fn infer(args: &InferArgs, device: &Device, quiet: bool) -> Result<()> {
             } else {
                 bar(frames.len(), "infer")
             };
+            // All frames are written to a staging directory and moved into place together.
+            let staged = StagedDir::new(args.out)?;
             let mut total = 0;
             for f in &frames {
                 let paths = frame_images(f, rig.len())?;
                 let name = f.file_name().expect("a directory name");
-                total += infer_frame(&pred, &rig, &paths, &args.out.join(name))?;
+                total += infer_frame(&pred, &rig, &paths, &staged.path().join(name))?;
                 b.inc(1);
             }
+            staged.finish()?;
             b.finish_and_clear();
             eprintln!(
                 "{} frames, {total} people in all, weights {}; outputs in {}",
@@ -433,7 +457,9 @@ pub fn infer(args: &InferArgs, device: &Device, quiet: bool) -> Result<()> {
             );
         }
         (None, false) => {
-            let n = infer_frame(&pred, &rig, args.images, args.out)?;
+            let staged = StagedDir::new(args.out)?;
+            let n = infer_frame(&pred, &rig, args.images, staged.path())?;
+            staged.finish()?;
             eprintln!(
                 "{n} people (weights {}); outputs in {}",
                 weights.display(),
@@ -529,6 +555,7 @@ pub fn demo(out: &Path, seed: u64, device: &Device) -> Result<()> {
             out: Some(&run_dir),
             resume: None,
             stop_after_steps: None,
+            stop_after_minutes: None,
         },
         device,
         &mut crate::train::BarMonitor::new(false),

@@ -120,6 +120,8 @@ pub struct TrainArgs<'a> {
     pub out: Option<&'a Path>,
     pub resume: Option<&'a Path>,
     pub stop_after_steps: Option<u64>,
+    /// Stop with a checkpoint once this call has trained this many minutes.
+    pub stop_after_minutes: Option<f64>,
 }
 
 /// Start or resume a run; returns its directory.
@@ -197,6 +199,9 @@ pub fn train(args: TrainArgs, device: &Device, monitor: &mut BarMonitor) -> Resu
         device: device.clone(),
         stop: stop_flag(),
         stop_after_steps: args.stop_after_steps,
+        stop_after_time: args
+            .stop_after_minutes
+            .map(|m| std::time::Duration::from_secs_f64(m * 60.0)),
     };
     let outcome = match mvmp_train::train(&run, &cfg, &model, &opts, monitor) {
         Ok(o) => o,

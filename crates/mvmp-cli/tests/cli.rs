@@ -100,6 +100,12 @@ fn bad_inputs_give_clear_errors() {
     for gate in ["-1", "NaN", "inf", "x"] {
         eval_with("--gate", gate, &["--gate", gate]);
     }
+    for minutes in ["0", "-5", "NaN"] {
+        expect_error(
+            &["train", "--resume", &run, "--stop-after-minutes", minutes],
+            &["--stop-after-minutes", minutes, "minutes"],
+        );
+    }
     expect_error(
         &["bench", "smplx", "--batch", "18446744073709551615"],
         &["--batch", "18446744073709551615"],
@@ -355,19 +361,32 @@ fn data_synth_stats_check_end_to_end() {
         ],
         &["not empty"],
     );
-    std::fs::write(&cfg, "people = [5, 2]\n").unwrap();
-    expect_error(
-        &[
-            "data",
-            "synth",
-            "--config",
-            cfg.to_str().unwrap(),
-            "--out",
-            &dir.path().join("x").to_string_lossy(),
-        ],
-        &["people", "[5, 2]"],
-    );
-    assert!(!dir.path().join("x").exists());
+    for (text, needles) in [
+        ("people = [5, 2]\n", ["people", "[5, 2]"]),
+        (
+            "[cameras]\nlook_at_height = nan\n",
+            ["cameras.look_at_height", "NaN"],
+        ),
+        ("[cameras]\nk1 = [nan, 0.0]\n", ["cameras.k1", "NaN"]),
+        (
+            "[cameras]\nlisted = [{ position = [5.0, 0.0, 2.0], look_at = [0.0, 0.0, 1.0], fov_deg = 60.0, k1 = nan }]\n",
+            ["cameras.listed[0]", "k1"],
+        ),
+    ] {
+        std::fs::write(&cfg, text).unwrap();
+        expect_error(
+            &[
+                "data",
+                "synth",
+                "--config",
+                cfg.to_str().unwrap(),
+                "--out",
+                &dir.path().join("x").to_string_lossy(),
+            ],
+            &needles,
+        );
+        assert!(!dir.path().join("x").exists());
+    }
 }
 
 #[test]
@@ -746,6 +765,79 @@ fn train_eval_infer_end_to_end() {
     ] {
         assert!(f.join(name).exists(), "{name}");
     }
+    // A sequence whose second frame has a truncated image fails naming it and leaves no output behind:
+    // neither the first frame's files nor the staging directory.
+    let bad_seq = dir.path().join("bad_seq");
+    for (i, name) in ["frame_000000", "frame_000001"].iter().enumerate() {
+        let d = bad_seq.join(name);
+        std::fs::create_dir_all(&d).unwrap();
+        for v in ["view_00.png", "view_01.png"] {
+            let src = scene.dir.join("frame_000000").join(v);
+            let bytes = std::fs::read(src).unwrap();
+            let keep = if i == 1 && v == "view_01.png" {
+                bytes.len() / 2
+            } else {
+                bytes.len()
+            };
+            std::fs::write(d.join(v), &bytes[..keep]).unwrap();
+        }
+    }
+    let listing = || {
+        let mut v: Vec<_> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
+        v.sort();
+        v
+    };
+    let outputs_before = listing();
+    expect_error(
+        &[
+            "infer",
+            "--run",
+            &p("run"),
+            "--rig",
+            rig.to_str().unwrap(),
+            "--frames",
+            bad_seq.to_str().unwrap(),
+            "--out",
+            &p("bad_out"),
+        ],
+        &["frame_000001", "view_01.png"],
+    );
+    assert_eq!(
+        outputs_before,
+        listing(),
+        "a failed inference left files behind"
+    );
+    // Predictions are saved only where a model's predictions on an mvmp tree are scored.
+    expect_error(
+        &[
+            "eval",
+            "--run",
+            &p("run"),
+            "--data",
+            &p("ds"),
+            "--format",
+            "panoptic",
+            "--save-predictions",
+            &p("x"),
+        ],
+        &["--save-predictions", "panoptic"],
+    );
+    expect_error(
+        &[
+            "eval",
+            "--baseline",
+            "mean-pose",
+            "--data",
+            &p("ds"),
+            "--save-predictions",
+            &p("x"),
+        ],
+        &["--save-predictions", "--run"],
+    );
+
     // Wrong image count and wrong image size are named.
     let img = scene.dir.join("frame_000000/view_00.png");
     expect_error(

@@ -1,4 +1,6 @@
 //! `mvmp data check --format mvmp`: validate a whole dataset tree and list every problem with its file.
+//! A plain check reads image headers (presence, size, colour type) and validates every annotation; a deep
+//! check also decodes every image to its last pixel, which finds files cut short after their header.
 use std::path::{Path, PathBuf};
 
 use crate::layout::{Annotation, DatasetIndex, SceneIndex};
@@ -29,8 +31,27 @@ fn problem(r: &mut CheckReport, path: &Path, what: impl Into<String>) {
     });
 }
 
-/// Check an image file: present, a readable image header, the expected size and colour type.
-fn check_image(r: &mut CheckReport, path: &Path, size: (u32, u32), kind: &str) {
+/// Decode a whole image; a JPEG must also end with its end-of-image marker (a JPEG cut short decodes
+/// without complaint, its missing rows grey). The loaders read images through this.
+pub fn open_image(path: &Path) -> Result<image::DynamicImage, String> {
+    let img = image::open(path).map_err(|e| format!("does not decode: {e}"))?;
+    let jpeg = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| e.eq_ignore_ascii_case("jpg") || e.eq_ignore_ascii_case("jpeg"));
+    if jpeg {
+        let bytes = std::fs::read(path).map_err(|e| e.to_string())?;
+        let end = bytes.iter().rposition(|&b| b != 0).map_or(0, |i| i + 1);
+        if !bytes[..end].ends_with(&[0xFF, 0xD9]) {
+            return Err("the JPEG ends before its end-of-image marker (cut short)".into());
+        }
+    }
+    Ok(img)
+}
+
+/// Check an image file: present, a readable image header, the expected size and colour type; with
+/// `deep`, decoded whole.
+fn check_image(r: &mut CheckReport, path: &Path, size: (u32, u32), kind: &str, deep: bool) {
     let reader = match image::ImageReader::open(path).and_then(|r| r.with_guessed_format()) {
         Ok(rd) => rd,
         Err(e) => return problem(r, path, format!("{kind} is missing or unreadable: {e}")),
@@ -59,13 +80,16 @@ fn check_image(r: &mut CheckReport, path: &Path, size: (u32, u32), kind: &str) {
             if !ok {
                 problem(r, path, format!("{kind} has colour type {ct:?}"));
             }
+            if deep && let Err(e) = open_image(path) {
+                problem(r, path, format!("{kind} {e}"));
+            }
         }
     }
     r.images += 1;
 }
 
-/// Validate the dataset at `root`.
-pub fn check_dataset(root: &Path) -> CheckReport {
+/// Validate the dataset at `root`; `deep` also decodes every image.
+pub fn check_dataset(root: &Path, deep: bool) -> CheckReport {
     let mut r = CheckReport::default();
     let index = match DatasetIndex::read(root) {
         Ok(i) => i,
@@ -119,13 +143,13 @@ pub fn check_dataset(root: &Path) -> CheckReport {
             r.people += ann.people.len();
             for (v, cam) in rig.cameras.iter().enumerate() {
                 let size = (cam.width, cam.height);
-                check_image(&mut r, &fdir.join(&ann.images[v]), size, "image");
+                check_image(&mut r, &fdir.join(&ann.images[v]), size, "image", deep);
                 if let Some(d) = &ann.depth {
-                    check_image(&mut r, &fdir.join(&d[v]), size, "depth map");
+                    check_image(&mut r, &fdir.join(&d[v]), size, "depth map", deep);
                 }
                 if let Some(m) = &ann.masks {
                     let mpath = fdir.join(&m[v]);
-                    check_image(&mut r, &mpath, size, "mask");
+                    check_image(&mut r, &mpath, size, "mask", deep);
                     if let Ok(img) = image::open(&mpath) {
                         let max = img.to_luma8().pixels().map(|p| p.0[0]).max().unwrap_or(0);
                         if max as usize > ann.people.len() {

@@ -176,7 +176,26 @@ impl Annotation {
                 )));
             }
         }
+        use mvmp_smplx::names::{EXTRA_VERTEX_JOINTS, NUM_JOINTS, NUM_JOINTS_WITH_LANDMARKS};
+        let without_landmarks = NUM_JOINTS + EXTRA_VERTEX_JOINTS.len();
         for (i, p) in self.people.iter().enumerate() {
+            // The joint counts a body layer outputs; downstream code indexes joints by these layouts.
+            let n = p.joints_3d.len();
+            if ![NUM_JOINTS_WITH_LANDMARKS, without_landmarks, NUM_JOINTS].contains(&n) {
+                return Err(err(format!(
+                    "people[{i}].joints_3d has {n} joints: the layout holds {NUM_JOINTS_WITH_LANDMARKS} \
+                     ({without_landmarks} for a body model without face landmarks, {NUM_JOINTS} for one \
+                     with fewer vertices than SMPL-X)"
+                )));
+            }
+            if let Some(first) = self.people.first()
+                && first.joints_3d.len() != n
+            {
+                return Err(err(format!(
+                    "people[{i}].joints_3d has {n} joints, people[0].joints_3d has {}",
+                    first.joints_3d.len()
+                )));
+            }
             p.smplx
                 .validate(&format!("people[{i}].smplx"))
                 .map_err(|e| err(e.to_string().trim_start_matches("parameters: ").into()))?;

@@ -205,7 +205,7 @@ impl FrameDataset {
         for (vi, &v) in views.iter().enumerate() {
             let cam = scene.rig.cameras[v].clone();
             let path = f.dir.join(&ann.images[v]);
-            let img = image::open(&path)
+            let img = crate::check::open_image(&path)
                 .map_err(|e| DataError::file(&path, format!("unreadable image: {e}")))?
                 .to_rgb8();
             if img.dimensions() != (cam.width, cam.height) {

@@ -121,7 +121,7 @@ pub fn read_frame_images(
 ) -> Result<Vec<image::RgbImage>, DataError> {
     let mut out = Vec::with_capacity(paths.len());
     for (path, cam) in paths.iter().zip(cameras) {
-        let img = image::open(path)
+        let img = crate::check::open_image(path)
             .map_err(|e| DataError::file(path, format!("unreadable image: {e}")))?
             .to_rgb8();
         if img.dimensions() != (cam.width, cam.height) {

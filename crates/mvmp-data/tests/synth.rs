@@ -330,7 +330,7 @@ fn copy_tree(from: &Path, to: &Path) {
 
 #[test]
 fn broken_datasets_give_errors_that_name_the_file() {
-    let good = check_dataset(dataset());
+    let good = check_dataset(dataset(), true);
     assert!(good.problems.is_empty(), "{:?}", good.problems);
     assert_eq!((good.scenes, good.frames, good.views), (3, 6, 3));
 
@@ -367,7 +367,7 @@ fn broken_datasets_give_errors_that_name_the_file() {
     )
     .unwrap();
 
-    let r = check_dataset(&root);
+    let r = check_dataset(&root, false);
     let msgs: Vec<String> = r
         .problems
         .iter()
@@ -399,6 +399,66 @@ fn broken_datasets_give_errors_that_name_the_file() {
         .map(|e| e.to_string())
         .collect();
     assert!(errs.iter().any(|e| e.contains("view_01.png")), "{errs:#?}");
+}
+
+/// A PNG cut short after its header passes the plain check (headers only) and fails the deep one and the
+/// loader; an annotation with fewer joints than the layout holds fails both checks, naming the key.
+#[test]
+fn deep_checks_decode_images_and_joint_counts_are_checked() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().join("ds");
+    copy_tree(dataset(), &root);
+    let png = root.join("scene_001/frame_000000/view_00.png");
+    let bytes = std::fs::read(&png).unwrap();
+    std::fs::write(&png, &bytes[..200]).unwrap();
+    let ann = root.join("scene_002/frame_000001/annotation.json");
+    let mut a: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&ann).unwrap()).unwrap();
+    a["people"][0]["joints_3d"]
+        .as_array_mut()
+        .unwrap()
+        .truncate(10);
+    std::fs::write(&ann, serde_json::to_string(&a).unwrap()).unwrap();
+
+    let msgs = |deep: bool| -> Vec<String> {
+        check_dataset(&root, deep)
+            .problems
+            .iter()
+            .map(|p| format!("{}: {}", p.path.display(), p.what))
+            .collect()
+    };
+    let (plain, deep) = (msgs(false), msgs(true));
+    let joints = |m: &Vec<String>| {
+        m.iter().any(|s| {
+            s.contains("scene_002/frame_000001/annotation.json")
+                && s.contains("people[0].joints_3d has 10 joints")
+        })
+    };
+    assert!(joints(&plain) && joints(&deep), "{plain:#?} {deep:#?}");
+    let cut = |m: &Vec<String>| {
+        m.iter()
+            .any(|s| s.contains("scene_001/frame_000000/view_00.png"))
+    };
+    assert!(!cut(&plain), "{plain:#?}");
+    assert!(cut(&deep), "{deep:#?}");
+    assert_eq!(deep.len(), 2, "{deep:#?}");
+    // The loader refuses both, naming each file.
+    let ds = FrameDataset::open(&root, Split::All, ViewChoice::Fixed(vec![0]), 56).unwrap();
+    let errs: Vec<String> = (0..ds.len())
+        .filter_map(|i| ds.load(i).err())
+        .map(|e| e.to_string())
+        .collect();
+    assert_eq!(errs.len(), 2, "{errs:#?}");
+    assert!(
+        errs.iter()
+            .any(|e| e.contains("view_00.png") && e.contains("unreadable")),
+        "{errs:#?}"
+    );
+    assert!(
+        errs.iter()
+            .any(|e| e.contains("annotation.json") && e.contains("joints_3d has 10 joints")),
+        "{errs:#?}"
+    );
 }
 
 #[test]

@@ -145,7 +145,11 @@ impl ModelConfig {
             path: path.into(),
             what: e.to_string(),
         })?;
-        cfg.validate()?;
+        // The key alone does not say which file: the run's, the demo's, or one a training config names.
+        cfg.validate().map_err(|e| ModelConfigError::Parse {
+            path: path.into(),
+            what: e.to_string(),
+        })?;
         Ok(cfg)
     }
 

@@ -224,6 +224,13 @@ impl BodyModel {
         let mut r = Reader { npz, path };
         let vt = r.required("v_template", &[None, Some(3)])?;
         let v = vt.shape[0];
+        if v == 0 {
+            return Err(SmplxError::Value {
+                path: path.into(),
+                key: "v_template".into(),
+                what: "has 0 vertices".into(),
+            });
+        }
         let f = r.required("f", &[None, Some(3)])?;
         let sd = r.required("shapedirs", &[Some(v), Some(3), None])?;
         let l = sd.shape[2];

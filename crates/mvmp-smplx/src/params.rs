@@ -7,6 +7,10 @@ use serde::{Deserialize, Serialize};
 use crate::SmplxError;
 use crate::names::{NUM_BETAS, NUM_EXPRESSION, NUM_JOINTS, POSE_KEYS};
 
+/// The largest magnitude a shape or expression coefficient may have (in standard deviations; fitted
+/// bodies stay within a few).
+pub const MAX_COEFFICIENT: f64 = 100.0;
+
 /// One body's parameters. Missing keys are zero. Lengths: `global_orient`, `jaw_pose`, `leye_pose`,
 /// `reye_pose`, `transl` 3; `body_pose` 63; hand poses 45 each; `betas` and `expression` up to 10.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
@@ -67,7 +71,8 @@ impl SmplxParams {
         }
     }
 
-    /// Check lengths and values; `which` names the body in messages (for example "bodies[2]").
+    /// Check lengths (pose keys exact or absent, betas and expression at most their count), finite values
+    /// and coefficient magnitudes; `which` names the body in messages (for example "bodies[2]").
     pub fn validate(&self, which: &str) -> Result<(), SmplxError> {
         let mut keys: Vec<(&str, usize, bool)> = POSE_KEYS
             .iter()
@@ -99,6 +104,14 @@ impl SmplxParams {
             if let Some(i) = v.iter().position(|x| !x.is_finite()) {
                 return Err(SmplxError::Params(format!(
                     "{which}: key `{key}`[{i}] = {} is not finite",
+                    v[i]
+                )));
+            }
+            // Shape and expression coefficients are in standard deviations of the model's
+            // directions: far outside the cap they pose no body, only meshes kilometres wide.
+            if !exact && let Some(i) = v.iter().position(|x| x.abs() > MAX_COEFFICIENT) {
+                return Err(SmplxError::Params(format!(
+                    "{which}: key `{key}`[{i}] = {} is outside +-{MAX_COEFFICIENT} (standard deviations)",
                     v[i]
                 )));
             }
@@ -156,17 +169,18 @@ impl SmplxParams {
             path: path.into(),
             what,
         };
-        // Parse each body separately so a message can say which one is wrong.
+        // Typed parses of the text itself, so that a wrong value's message gives its line and column;
+        // for a list, also which body.
         let bodies: Vec<SmplxParams> = match parsed {
-            serde_json::Value::Array(items) => items
-                .into_iter()
-                .enumerate()
-                .map(|(i, it)| {
-                    serde_json::from_value(it).map_err(|e| err(format!("bodies[{i}]: {e}")))
-                })
-                .collect::<Result<_, _>>()?,
-            obj @ serde_json::Value::Object(_) => {
-                vec![serde_json::from_value(obj).map_err(|e| err(e.to_string()))?]
+            serde_json::Value::Array(items) => serde_json::from_str(&text).map_err(|e| {
+                let i = items
+                    .into_iter()
+                    .position(|it| serde_json::from_value::<SmplxParams>(it).is_err())
+                    .unwrap_or(0);
+                err(format!("bodies[{i}]: {e}"))
+            })?,
+            serde_json::Value::Object(_) => {
+                vec![serde_json::from_str(&text).map_err(|e| err(e.to_string()))?]
             }
             _ => {
                 return Err(err(

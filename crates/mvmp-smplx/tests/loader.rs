@@ -92,6 +92,23 @@ fn wrong_shape_names_key_expected_and_actual() {
 }
 
 #[test]
+fn a_model_without_vertices_is_refused() {
+    let (dir, p) = written();
+    let q = dir.path().join("empty.npz");
+    rewrite(
+        &p,
+        &q,
+        &["v_template"],
+        &[("v_template", npy_f64(&[0, 3], &[], false))],
+    );
+    let msg = BodyModel::load(&q).unwrap_err().to_string();
+    assert!(
+        msg.contains("empty.npz") && msg.contains("v_template") && msg.contains("0 vertices"),
+        "{msg}"
+    );
+}
+
+#[test]
 fn truncated_file_is_an_error_not_a_panic() {
     let (dir, p) = written();
     let mut bytes = Vec::new();

@@ -79,6 +79,10 @@ impl StageConfig {
     }
 }
 
+/// The most views per frame a config may ask for (every index is allocated per frame; CMU Panoptic, the
+/// largest rig read here, has 31 HD and 480 VGA cameras).
+pub const MAX_VIEWS: usize = 1000;
+
 /// A training run's configuration.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -175,11 +179,13 @@ impl TrainConfig {
         if self.batch_size == 0 {
             return Err(bad("batch_size", "0: must be at least 1".into()));
         }
-        if self.train_views == 0 {
-            return Err(bad("train_views", "0: must be at least 1".into()));
-        }
-        if self.test_views == 0 {
-            return Err(bad("test_views", "0: must be at least 1".into()));
+        for (key, n) in [
+            ("train_views", self.train_views),
+            ("test_views", self.test_views),
+        ] {
+            if !(1..=MAX_VIEWS).contains(&n) {
+                return Err(bad(key, format!("{n}: expected 1 to {MAX_VIEWS} views")));
+            }
         }
         if !(self.match_gate.is_finite() && self.match_gate > 0.0) {
             return Err(bad(

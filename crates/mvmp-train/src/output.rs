@@ -203,6 +203,12 @@ pub fn read_people_npz(path: &Path) -> Result<Vec<StoredPerson>, TrainError> {
                 format!("key `scores` has shape {shape:?}; expected [{n}]"),
             ));
         }
+        if let Some(i) = data.iter().position(|s| !s.is_finite()) {
+            return Err(npz_err(
+                path,
+                format!("key `scores`[{i}] = {} is not finite", data[i]),
+            ));
+        }
         for (p, s) in people.iter_mut().zip(data) {
             p.score = s;
         }

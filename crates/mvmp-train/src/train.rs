@@ -76,6 +76,9 @@ pub struct TrainOptions {
     pub stop: Arc<AtomicBool>,
     /// Stop as if interrupted once the run has made this many optimizer steps.
     pub stop_after_steps: Option<u64>,
+    /// Stop as if interrupted once this call has trained this long (wall time from the call; the step in
+    /// flight finishes first). Comparisons of configurations at equal wall time use it.
+    pub stop_after_time: Option<std::time::Duration>,
 }
 
 /// How training ended.
@@ -193,6 +196,17 @@ pub fn check_validation_source(cfg: &TrainConfig) -> Result<(), TrainError> {
             .unwrap_or("test")
             .parse()
             .map_err(|e: String| TrainError::file(&src.root, e))?;
+        let layout = mvmp_data::DatasetLayout::open(Path::new(&src.root))?;
+        let cameras = layout.scenes.iter().map(|s| s.rig.len()).min().unwrap_or(0);
+        if cfg.test_views > cameras {
+            return Err(TrainError::file(
+                &src.root,
+                format!(
+                    "test_views = {}: the validation scenes have {cameras} cameras",
+                    cfg.test_views
+                ),
+            ));
+        }
         FrameDataset::open(
             Path::new(&src.root),
             split,
@@ -264,6 +278,7 @@ pub fn train(
     opts: &TrainOptions,
     mon: &mut dyn Monitor,
 ) -> Result<Outcome, TrainError> {
+    let started = Instant::now();
     let plain = opts.device.clone();
     let ad = plain.clone().autodiff();
     let config_path = run.root.join("train.toml");
@@ -407,7 +422,8 @@ pub fn train(
                 run.log(&line)?;
                 mon.step(&rec);
                 let stop = opts.stop.load(Ordering::SeqCst)
-                    || opts.stop_after_steps.is_some_and(|s| global >= s);
+                    || opts.stop_after_steps.is_some_and(|s| global >= s)
+                    || opts.stop_after_time.is_some_and(|d| started.elapsed() >= d);
                 if stop {
                     let name = format!("step{global:07}-stage{stage}-epoch{:03}-part", epoch + 1);
                     let path = save(

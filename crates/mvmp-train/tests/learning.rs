@@ -106,6 +106,7 @@ fn two_frames_are_overfitted_and_every_person_is_found() {
         device: Device::flex(),
         stop: Arc::new(AtomicBool::new(false)),
         stop_after_steps: None,
+        stop_after_time: None,
     };
     let out = mvmp_train::train(&run, &cfg, &model_cfg, &opts, &mut Quiet).unwrap();
     assert_eq!(out, Outcome::Finished);

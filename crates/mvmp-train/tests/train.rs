@@ -91,6 +91,7 @@ fn options(stop_after: Option<u64>) -> TrainOptions {
         device: Device::flex(),
         stop: Arc::new(AtomicBool::new(false)),
         stop_after_steps: stop_after,
+        stop_after_time: None,
     }
 }
 
@@ -288,6 +289,26 @@ fn an_interrupted_run_resumes_to_the_same_weights_and_log() {
 }
 
 #[test]
+fn a_wall_time_limit_stops_after_the_step_in_flight_with_a_checkpoint() {
+    let dir = tempfile::tempdir().unwrap();
+    let (run, cfg, model) = new_run(dir.path(), "timed", &|s| s);
+    let opts = TrainOptions {
+        stop_after_time: Some(std::time::Duration::ZERO),
+        ..options(None)
+    };
+    match mvmp_train::train(&run, &cfg, &model, &opts, &mut Quiet).unwrap() {
+        Outcome::Interrupted {
+            global_step,
+            checkpoint,
+        } => {
+            assert_eq!(global_step, 1);
+            assert!(checkpoint.exists());
+        }
+        o => panic!("expected an interruption, got {o:?}"),
+    }
+}
+
+#[test]
 fn a_diverging_run_stops_naming_the_term_and_the_step() {
     let dir = tempfile::tempdir().unwrap();
     let (run, cfg, model) = new_run(dir.path(), "nan", &|s| {
@@ -335,11 +356,22 @@ fn bad_configs_name_the_key() {
             ("lr = 1e-3", "lr = 1e-3\nschedule = \"linear\""),
             "schedule",
         ),
+        (("test_views = 3", "test_views = 1000000"), "test_views"),
+        (("train_views = 2", "train_views = 0"), "train_views"),
     ] {
         let path = write_configs(dir.path(), &|s| s.replacen(edit.0, edit.1, 1));
         let e = TrainConfig::read(&path).unwrap_err().to_string();
         assert!(e.contains(key) && e.contains("train.toml"), "{key}: {e}");
     }
+    // More test views than the validation scenes have cameras: named when the source is checked.
+    let path = write_configs(dir.path(), &|s| {
+        s.replacen("test_views = 3", "test_views = 9", 1)
+    });
+    let (cfg, _) = TrainConfig::read(&path).unwrap();
+    let e = mvmp_train::check_validation_source(&cfg)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("test_views = 9"), "{e}");
     // A run directory that holds files is not overwritten.
     let (cfg, model) = TrainConfig::read(&write_configs(dir.path(), &|s| s)).unwrap();
     let e = RunDir::create(dir.path(), &cfg, &model, Some(dataset()))
@@ -403,6 +435,21 @@ fn inference_outputs_load_back_and_reproject_into_the_overlays() {
         assert_eq!(a.shape(), &[3, width], "{key}");
     }
     let stored = read_people_npz(&out.join("people.npz")).unwrap();
+    // A NaN score and a shape coefficient of 1e30 are refused, naming the file, key and index.
+    let bad = dir.path().join("bad.npz");
+    let mut nan = people.clone();
+    nan[1].score = f32::NAN;
+    mvmp_train::output::write_people_npz(&bad, &nan).unwrap();
+    let e = read_people_npz(&bad).unwrap_err().to_string();
+    assert!(
+        e.contains("bad.npz") && e.contains("`scores`[1] = NaN"),
+        "{e}"
+    );
+    let mut huge = people.clone();
+    huge[2].betas[4] = 1e30;
+    mvmp_train::output::write_people_npz(&bad, &huge).unwrap();
+    let e = read_people_npz(&bad).unwrap_err().to_string();
+    assert!(e.contains("person 2") && e.contains("`betas`[4]"), "{e}");
     let posed = pose_params(
         &pred.layer,
         &stored

@@ -217,9 +217,19 @@ impl SynthConfig {
                 format!("{:?}: expected |k1| <= 0.5, min <= max", c.k1),
             ));
         }
+        if !(c.look_at_height.is_finite() && c.look_at_height.abs() <= 100.0) {
+            return Err(bad(
+                "cameras.look_at_height",
+                format!(
+                    "{}: expected a finite height within 100 m",
+                    c.look_at_height
+                ),
+            ));
+        }
         for (i, l) in c.listed.iter().enumerate() {
             let finite = l.position.iter().chain(&l.look_at).all(|v| v.is_finite());
-            if !finite || !fov_ok(l.fov_deg) || l.k1.abs() > 0.5 || l.position == l.look_at {
+            let k1_ok = l.k1.is_finite() && l.k1.abs() <= 0.5;
+            if !finite || !fov_ok(l.fov_deg) || !k1_ok || l.position == l.look_at {
                 return Err(bad(
                     &format!("cameras.listed[{i}]"),
                     "position and look_at must be finite and distinct, fov_deg 10 to 150, |k1| <= 0.5".into(),

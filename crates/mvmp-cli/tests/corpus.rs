@@ -1,0 +1,434 @@
+//! The malformed-input corpus: every number in every kind of file mvmp reads (model, training and
+//! synthesis configs; rigs, annotations and the scene index of a dataset; SMPL-X parameter files) is
+//! replaced in turn by values no reader may accept, and the file goes through the command that reads it.
+//! Every case must exit non-zero without a panic, name the file and the key (or the line), and leave no
+//! output behind. Values that once got through are in the lists below; add every new one found.
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn mvmp(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_mvmp"))
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+/// One malformed input: which file, which key (its path), the value put there, the command, and the
+/// output the command would have made.
+struct Case {
+    file: PathBuf,
+    key: String,
+    value: String,
+    args: Vec<String>,
+    out: Option<PathBuf>,
+}
+
+/// Run a case; a description of what went wrong, if anything.
+fn failure(c: &Case) -> Option<String> {
+    let args: Vec<&str> = c.args.iter().map(String::as_str).collect();
+    let o = mvmp(&args);
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stderr),
+        String::from_utf8_lossy(&o.stdout)
+    );
+    let name = c.file.file_name().unwrap().to_string_lossy().into_owned();
+    // The key's last name (`stage1.lr` -> `lr`, `grid.shape[2]` -> `shape`).
+    let leaf = c.key.rsplit('.').next().unwrap().split('[').next().unwrap();
+    let what = format!("{} = {} in {name}", c.key, c.value);
+    if o.status.success() {
+        return Some(format!("{what}: accepted"));
+    }
+    if text.contains("panicked") || o.status.code().is_none() {
+        return Some(format!("{what}: crashed: {text}"));
+    }
+    if !text.contains(&name) || !(text.contains(leaf) || text.contains("line")) {
+        return Some(format!(
+            "{what}: the message names neither file and key nor line: {text}"
+        ));
+    }
+    if let Some(out) = &c.out
+        && out.exists()
+    {
+        return Some(format!("{what}: left {}", out.display()));
+    }
+    None
+}
+
+/// Paths of the numeric leaves of a TOML document (`a.b`, `a.c[1]`).
+fn toml_leaves(v: &toml::Value, path: &str, out: &mut Vec<String>) {
+    match v {
+        toml::Value::Integer(_) | toml::Value::Float(_) => out.push(path.to_string()),
+        toml::Value::Table(t) => {
+            for (k, x) in t {
+                let p = if path.is_empty() {
+                    k.clone()
+                } else {
+                    format!("{path}.{k}")
+                };
+                toml_leaves(x, &p, out);
+            }
+        }
+        toml::Value::Array(a) => {
+            for (i, x) in a.iter().enumerate() {
+                toml_leaves(x, &format!("{path}[{i}]"), out);
+            }
+        }
+        _ => {}
+    }
+}
+
+/// The value at a leaf path, mutably (`a.b[1].c`).
+fn toml_at<'a>(v: &'a mut toml::Value, path: &str) -> &'a mut toml::Value {
+    path.split('.').fold(v, |v, part| {
+        let mut pieces = part.split('[');
+        let mut v = &mut v[pieces.next().unwrap()];
+        for idx in pieces {
+            v = &mut v[idx.trim_end_matches(']').parse::<usize>().unwrap()];
+        }
+        v
+    })
+}
+
+/// Paths of the numeric leaves of a JSON document, through the first element of every array only (a
+/// dataset file holds thousands of numbers of a few kinds).
+fn json_leaves(v: &serde_json::Value, path: &str, out: &mut Vec<String>) {
+    match v {
+        serde_json::Value::Number(_) => out.push(path.to_string()),
+        serde_json::Value::Object(m) => {
+            for (k, x) in m {
+                json_leaves(x, &format!("{path}/{k}"), out);
+            }
+        }
+        serde_json::Value::Array(a) => {
+            if let Some(x) = a.first() {
+                json_leaves(x, &format!("{path}/0"), out);
+            }
+        }
+        _ => {}
+    }
+}
+
+/// Cases for every numeric leaf of a TOML file: `write` puts the mutated text in place and returns the
+/// command and its output.
+fn toml_cases(
+    base: &str,
+    file: &Path,
+    values: &[toml::Value],
+    command: &dyn Fn() -> (Vec<String>, Option<PathBuf>),
+) -> Vec<(Case, String)> {
+    let doc: toml::Value = toml::from_str(base).unwrap();
+    let mut leaves = Vec::new();
+    toml_leaves(&doc, "", &mut leaves);
+    let mut cases = Vec::new();
+    for key in leaves {
+        for value in values {
+            let mut d = doc.clone();
+            *toml_at(&mut d, &key) = value.clone();
+            let (args, out) = command();
+            let case = Case {
+                file: file.to_path_buf(),
+                key: key.clone(),
+                value: value.to_string(),
+                args,
+                out,
+            };
+            cases.push((case, toml::to_string(&d).unwrap()));
+        }
+    }
+    cases
+}
+
+/// A JSON pointer as a key path: `/people/0/smplx/betas/0` -> `people[0].smplx.betas[0]`.
+fn dotted(pointer: &str) -> String {
+    let mut out = String::new();
+    for seg in pointer.split('/').skip(1) {
+        if seg.parse::<usize>().is_ok() {
+            out += &format!("[{seg}]");
+        } else {
+            if !out.is_empty() {
+                out.push('.');
+            }
+            out += seg;
+        }
+    }
+    out
+}
+
+fn json_cases(
+    file: &Path,
+    values: &[serde_json::Value],
+    command: &[String],
+) -> Vec<(Case, String)> {
+    let doc: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(file).unwrap()).unwrap();
+    let mut leaves = Vec::new();
+    json_leaves(&doc, "", &mut leaves);
+    let mut cases = Vec::new();
+    for key in leaves {
+        for value in values {
+            let mut d = doc.clone();
+            *d.pointer_mut(&key).unwrap() = value.clone();
+            let case = Case {
+                file: file.to_path_buf(),
+                key: dotted(&key),
+                value: value.to_string(),
+                args: command.to_vec(),
+                out: None,
+            };
+            cases.push((case, serde_json::to_string_pretty(&d).unwrap()));
+        }
+    }
+    cases
+}
+
+/// Write each case's text, run it, restore the file; every failure is collected.
+fn run_all(cases: Vec<(Case, String)>, failures: &mut Vec<String>) -> usize {
+    let n = cases.len();
+    for (case, text) in cases {
+        let original = std::fs::read(&case.file).ok();
+        std::fs::write(&case.file, text).unwrap();
+        failures.extend(failure(&case));
+        // An accepted case's output would make the next one fail for the wrong reason.
+        if let Some(out) = case.out.as_ref().filter(|o| o.exists()) {
+            std::fs::remove_dir_all(out).unwrap();
+        }
+        match original {
+            Some(b) => std::fs::write(&case.file, b).unwrap(),
+            None => std::fs::remove_file(&case.file).unwrap(),
+        }
+    }
+    n
+}
+
+fn s(p: &Path) -> String {
+    p.to_string_lossy().into_owned()
+}
+
+const SYNTH: &str = r#"name = "corpus"
+seed = 1
+scenes = 2
+frames_per_scene = 1
+people = [1, 2]
+area = [3.0, 3.0]
+image_size = [48, 32]
+[cameras]
+count = 2
+rings = [{ height = 2.5, radius = 5.0 }]
+fov_deg = [55.0, 65.0]
+k1 = [-0.05, 0.02]
+look_at_height = 0.9
+[lighting]
+night_fraction = 0.5
+"#;
+
+const TRAIN: &str = r#"model = "model.toml"
+seed = 3
+batch_size = 1
+train_views = 2
+test_views = 2
+match_gate = 0.5
+keep_checkpoints = 2
+val_frames = 1
+[stage1]
+epochs = 1
+lr = 1e-3
+warmup_steps = 2
+final_lr_factor = 0.1
+grad_clip = 1.0
+[stage2]
+epochs = 1
+lr = 1e-3
+warmup_steps = 2
+final_lr_factor = 0.1
+grad_clip = 1.0
+[loss]
+detection = 1.0
+parameters = 10.0
+mesh_3d = 100.0
+mesh_2d = 1.0
+orientation = 5.0
+density = 1.0
+density_sigma = 0.1
+density_grid = 8
+density_extent = 2.2
+detection_offset = 1.0
+detection_positive = 0.5
+detection_sigma = 0.2
+heatmap_2d = 1.0
+heatmap_sigma = 2.0
+"#;
+
+const PARAMS: &str = r#"{"betas": [0.5, -0.2], "expression": [0.1], "global_orient": [0.1, 0.2, 0.3],
+"body_pose": [0.0, 0.1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+0.0, 0.0, 0.0], "transl": [1.0, 2.0, 0.9]}"#;
+
+#[test]
+fn no_malformed_input_gets_through() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = |n: &str| dir.path().join(n);
+    // The valid starting points: a small dataset, the tiny model at a small size, a training config.
+    std::fs::write(p("synth.toml"), SYNTH).unwrap();
+    let o = mvmp(&[
+        "data",
+        "synth",
+        "--config",
+        &s(&p("synth.toml")),
+        "--out",
+        &s(&p("ds")),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let model = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/model/tiny.toml"),
+    )
+    .unwrap()
+    .replace("image_size = 224", "image_size = 56")
+    .replace("size = [8.0, 8.0, 2.0]", "size = [4.0, 4.0, 2.0]")
+    .replace("shape = [32, 32, 8]", "shape = [8, 8, 4]")
+    .replace("dim = 128", "dim = 16");
+    std::fs::write(p("model.toml"), &model).unwrap();
+    std::fs::write(
+        p("train.toml"),
+        TRAIN.to_string() + &format!("data = {:?}\n", s(&p("ds"))),
+    )
+    .unwrap();
+    std::fs::write(p("params.json"), PARAMS).unwrap();
+    for (args, what) in [
+        (
+            vec!["model", "summary", "--config", &s(&p("model.toml"))],
+            "model config",
+        ),
+        (vec!["data", "check", &s(&p("ds"))], "dataset"),
+        (
+            vec![
+                "body",
+                "forward",
+                "--params",
+                &s(&p("params.json")),
+                "--out",
+                &s(&p("body")),
+            ],
+            "params",
+        ),
+    ] {
+        let o = mvmp(&args);
+        assert!(
+            o.status.success(),
+            "the valid {what}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+    }
+    std::fs::remove_dir_all(p("body")).unwrap();
+
+    let floats = [
+        toml::Value::Float(f64::NAN),
+        toml::Value::Float(f64::INFINITY),
+        toml::Value::String("x".into()),
+        toml::Value::Array(vec![]),
+    ];
+    let mut failures = Vec::new();
+    let mut n = 0;
+    let model_cmd = || {
+        (
+            vec![
+                "model".into(),
+                "summary".into(),
+                "--config".into(),
+                s(&p("model.toml")),
+            ],
+            None,
+        )
+    };
+    n += run_all(
+        toml_cases(&model, &p("model.toml"), &floats, &model_cmd),
+        &mut failures,
+    );
+    let train_text = std::fs::read_to_string(p("train.toml")).unwrap();
+    let train_cmd = || {
+        let args = [
+            "train",
+            "--config",
+            &s(&p("train.toml")),
+            "--out",
+            &s(&p("run")),
+            "--stop-after-steps",
+            "1",
+        ];
+        (args.map(String::from).to_vec(), Some(p("run")))
+    };
+    n += run_all(
+        toml_cases(&train_text, &p("train.toml"), &floats, &train_cmd),
+        &mut failures,
+    );
+    let synth_cmd = || {
+        let args = [
+            "data",
+            "synth",
+            "--config",
+            &s(&p("synth.toml")),
+            "--out",
+            &s(&p("ds2")),
+        ];
+        (args.map(String::from).to_vec(), Some(p("ds2")))
+    };
+    n += run_all(
+        toml_cases(SYNTH, &p("synth.toml"), &floats, &synth_cmd),
+        &mut failures,
+    );
+
+    // Dataset files through `data check`, parameter files through `body forward`.
+    let json_values = [
+        serde_json::Value::Null,
+        serde_json::json!("x"),
+        serde_json::json!([]),
+    ];
+    let check = ["data", "check", &s(&p("ds"))].map(String::from).to_vec();
+    for f in [
+        "dataset.json",
+        "scene_000/cameras.json",
+        "scene_000/scene.json",
+        "scene_000/frame_000000/annotation.json",
+    ] {
+        n += run_all(
+            json_cases(&p("ds").join(f), &json_values, &check),
+            &mut failures,
+        );
+    }
+    let body = [
+        "body",
+        "forward",
+        "--params",
+        &s(&p("params.json")),
+        "--out",
+        &s(&p("body")),
+    ]
+    .map(String::from)
+    .to_vec();
+    // A shape coefficient of 1e30 once posed meshes 1e28 m wide.
+    let mut cases = json_cases(&p("params.json"), &json_values, &body);
+    let mut huge: serde_json::Value = serde_json::from_str(PARAMS).unwrap();
+    huge["betas"][0] = serde_json::json!(1e30);
+    cases.push((
+        Case {
+            file: p("params.json"),
+            key: "betas[0]".into(),
+            value: "1e30".into(),
+            args: body.clone(),
+            out: None,
+        },
+        huge.to_string(),
+    ));
+    for (c, _) in &mut cases {
+        c.out = Some(p("body"));
+    }
+    n += run_all(cases, &mut failures);
+    assert!(n > 300, "{n} cases");
+    assert!(
+        failures.is_empty(),
+        "{} of {n} cases failed:\n{}",
+        failures.len(),
+        failures.join("\n")
+    );
+}

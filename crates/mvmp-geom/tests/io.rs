@@ -1,0 +1,56 @@
+//! Staged output directories: nothing appears at the destination until `finish`, a dropped stage leaves
+//! nothing behind, and finishing into an existing directory replaces namesakes and keeps the rest.
+use mvmp_geom::io::StagedDir;
+
+fn names(dir: &std::path::Path) -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    v.sort();
+    v
+}
+
+#[test]
+fn a_staged_directory_appears_whole_or_not_at_all() {
+    let root = tempfile::tempdir().unwrap();
+    let dest = root.path().join("out");
+
+    // Dropped before finishing: the destination never appears and the stage is gone.
+    {
+        let s = StagedDir::new(&dest).unwrap();
+        std::fs::create_dir_all(s.path().join("a")).unwrap();
+        std::fs::write(s.path().join("a/x.txt"), "1").unwrap();
+        assert!(!dest.exists());
+    }
+    assert!(names(root.path()).is_empty(), "{:?}", names(root.path()));
+
+    // Finished into a missing destination: moved whole.
+    let s = StagedDir::new(&dest).unwrap();
+    std::fs::create_dir_all(s.path().join("a")).unwrap();
+    std::fs::write(s.path().join("a/x.txt"), "1").unwrap();
+    std::fs::write(s.path().join("keep.txt"), "k").unwrap();
+    s.finish().unwrap();
+    assert_eq!(names(&dest), ["a", "keep.txt"]);
+    assert_eq!(names(root.path()), ["out"]);
+
+    // Finished into an existing destination: namesakes replaced, other files kept, subtrees merged.
+    let s = StagedDir::new(&dest).unwrap();
+    std::fs::create_dir_all(s.path().join("a")).unwrap();
+    std::fs::write(s.path().join("a/x.txt"), "2").unwrap();
+    std::fs::write(s.path().join("a/y.txt"), "3").unwrap();
+    s.finish().unwrap();
+    assert_eq!(names(&dest), ["a", "keep.txt"]);
+    assert_eq!(names(&dest.join("a")), ["x.txt", "y.txt"]);
+    assert_eq!(std::fs::read_to_string(dest.join("a/x.txt")).unwrap(), "2");
+    assert_eq!(names(root.path()), ["out"]);
+
+    // A destination that is a file is an error naming it.
+    let file = root.path().join("file");
+    std::fs::write(&file, "f").unwrap();
+    let s = StagedDir::new(&file).unwrap();
+    std::fs::write(s.path().join("z.txt"), "z").unwrap();
+    let e = s.finish().unwrap_err().to_string();
+    assert!(e.contains("file") && e.contains("not a directory"), "{e}");
+    assert_eq!(names(root.path()), ["file", "out"]);
+}
