@@ -1,0 +1,225 @@
+//! Property tests of the file readers: a valid model, training or synthesis config, camera rig,
+//! annotation or SMPL-X parameter file with one number replaced by an arbitrary value (any float,
+//! infinities and NaN included, huge integers, another type) is either refused with an error or read into
+//! values that are all finite and pass validation. No input panics.
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+
+use mvmp::data::Annotation;
+use mvmp::data::synth::{SynthConfig, generate};
+use mvmp::geom::Rig;
+use mvmp::model::ModelConfig;
+use mvmp::smplx::SmplxParams;
+use mvmp::train::TrainConfig;
+use proptest::prelude::*;
+use proptest::sample::Index;
+
+/// A small synthetic dataset: its rig and annotation are the valid JSON documents mutated below.
+fn dataset() -> &'static Path {
+    static DIR: OnceLock<(tempfile::TempDir, PathBuf)> = OnceLock::new();
+    let (_, p) = DIR.get_or_init(|| {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("ds");
+        let mut c = SynthConfig {
+            name: "readers".into(),
+            scenes: 1,
+            frames_per_scene: 1,
+            people: [1, 2],
+            area: [3.0, 3.0],
+            image_size: [48, 32],
+            ..Default::default()
+        };
+        c.cameras.count = 2;
+        generate(&c, &out, Path::new("."), &|| {}).unwrap();
+        (dir, out)
+    });
+    p
+}
+
+fn repo(rel: &str) -> String {
+    std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join(rel)).unwrap()
+}
+
+/// Any float (NaN, infinities, subnormals and extremes included).
+fn float() -> impl Strategy<Value = f64> {
+    prop_oneof![
+        any::<f64>(),
+        Just(f64::NAN),
+        Just(f64::INFINITY),
+        Just(f64::NEG_INFINITY),
+        -1e3..1e3f64,
+    ]
+}
+
+fn toml_value() -> impl Strategy<Value = toml::Value> {
+    prop_oneof![
+        float().prop_map(toml::Value::Float),
+        any::<i64>().prop_map(toml::Value::Integer),
+        (-5i64..50).prop_map(toml::Value::Integer),
+        Just(toml::Value::String("x".into())),
+        Just(toml::Value::Array(vec![])),
+    ]
+}
+
+fn json_value() -> impl Strategy<Value = serde_json::Value> {
+    prop_oneof![
+        float()
+            .prop_filter("JSON numbers are finite", |x| x.is_finite())
+            .prop_map(|x| serde_json::json!(x)),
+        any::<i64>().prop_map(|x| serde_json::json!(x)),
+        (-5i64..50).prop_map(|x| serde_json::json!(x)),
+        Just(serde_json::Value::Null),
+        Just(serde_json::json!("x")),
+        Just(serde_json::json!([])),
+    ]
+}
+
+/// Replace the `k`-th number (in walk order) of a TOML tree; true once replaced.
+fn toml_set(v: &mut toml::Value, k: &mut usize, value: &toml::Value) -> bool {
+    match v {
+        toml::Value::Integer(_) | toml::Value::Float(_) => {
+            if *k == 0 {
+                *v = value.clone();
+                return true;
+            }
+            *k -= 1;
+            false
+        }
+        toml::Value::Table(t) => t.iter_mut().any(|(_, x)| toml_set(x, k, value)),
+        toml::Value::Array(a) => a.iter_mut().any(|x| toml_set(x, k, value)),
+        _ => false,
+    }
+}
+
+/// `doc` with one of its numbers (chosen by `at`) replaced by `value`.
+fn mutate_toml(doc: &str, at: Index, value: toml::Value) -> String {
+    let mut d: toml::Value = toml::from_str(doc).unwrap();
+    // A walk from usize::MAX never reaches 0: it only counts the numbers.
+    let mut count = usize::MAX;
+    toml_set(&mut d.clone(), &mut count, &value);
+    let mut k = at.index(usize::MAX - count);
+    assert!(toml_set(&mut d, &mut k, &value));
+    toml::to_string(&d).unwrap()
+}
+
+fn json_set(v: &mut serde_json::Value, k: &mut usize, value: &serde_json::Value) -> bool {
+    match v {
+        serde_json::Value::Number(_) => {
+            if *k == 0 {
+                *v = value.clone();
+                return true;
+            }
+            *k -= 1;
+            false
+        }
+        serde_json::Value::Object(m) => m.values_mut().any(|x| json_set(x, k, value)),
+        serde_json::Value::Array(a) => a.iter_mut().any(|x| json_set(x, k, value)),
+        _ => false,
+    }
+}
+
+fn mutate_json(doc: &str, at: Index, value: serde_json::Value) -> String {
+    let mut d: serde_json::Value = serde_json::from_str(doc).unwrap();
+    // A walk from usize::MAX never reaches 0: it only counts the numbers.
+    let mut count = usize::MAX;
+    json_set(&mut d.clone(), &mut count, &value);
+    let mut k = at.index(usize::MAX - count);
+    assert!(json_set(&mut d, &mut k, &value));
+    d.to_string()
+}
+
+/// Every number in a serialisable value is finite (through TOML, which keeps NaN and infinities as
+/// such where JSON would write null).
+fn all_finite(v: &impl serde::Serialize) -> bool {
+    fn walk(v: &toml::Value) -> bool {
+        match v {
+            toml::Value::Float(x) => x.is_finite(),
+            toml::Value::Array(a) => a.iter().all(walk),
+            toml::Value::Table(t) => t.iter().all(|(_, x)| walk(x)),
+            _ => true,
+        }
+    }
+    walk(&toml::Value::try_from(v).expect("serialisable as TOML"))
+}
+
+fn write(dir: &Path, name: &str, text: &str) -> PathBuf {
+    let p = dir.join(name);
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(192))]
+
+    #[test]
+    fn model_configs(at in any::<Index>(), value in toml_value()) {
+        let dir = tempfile::tempdir().unwrap();
+        let text = mutate_toml(&repo("configs/model/tiny.toml"), at, value);
+        if let Ok(cfg) = ModelConfig::read(&write(dir.path(), "model.toml", &text)) {
+            prop_assert!(cfg.validate().is_ok());
+            prop_assert!(all_finite(&cfg), "{text}");
+        }
+    }
+
+    #[test]
+    fn training_configs(at in any::<Index>(), value in toml_value()) {
+        let dir = tempfile::tempdir().unwrap();
+        write(dir.path(), "model.toml", &repo("configs/model/tiny.toml"));
+        let base = repo("configs/train/tiny.toml").replace("../model/tiny.toml", "model.toml");
+        let text = mutate_toml(&base, at, value);
+        if let Ok((cfg, _)) = TrainConfig::read(&write(dir.path(), "train.toml", &text)) {
+            prop_assert!(all_finite(&cfg), "{text}");
+            prop_assert!(cfg.stage1.lr > 0.0 && cfg.stage2.lr > 0.0);
+        }
+    }
+
+    #[test]
+    fn synthesis_configs(at in any::<Index>(), value in toml_value()) {
+        let dir = tempfile::tempdir().unwrap();
+        let text = mutate_toml(&repo("configs/synth/tiny.toml"), at, value);
+        if let Ok(cfg) = SynthConfig::read(&write(dir.path(), "synth.toml", &text)) {
+            prop_assert!(all_finite(&cfg), "{text}");
+        }
+    }
+
+    #[test]
+    fn rigs(at in any::<Index>(), value in json_value()) {
+        let dir = tempfile::tempdir().unwrap();
+        let base = std::fs::read_to_string(dataset().join("scene_000/cameras.json")).unwrap();
+        let text = mutate_json(&base, at, value);
+        if let Ok(rig) = Rig::read(&write(dir.path(), "cameras.json", &text)) {
+            for c in &rig.cameras {
+                prop_assert!(c.k.iter().chain(c.r.iter()).chain(c.t.iter()).all(|x| x.is_finite()));
+                prop_assert!(c.width > 0 && c.height > 0);
+            }
+        }
+    }
+
+    #[test]
+    fn annotations(at in any::<Index>(), value in json_value()) {
+        let dir = tempfile::tempdir().unwrap();
+        let base =
+            std::fs::read_to_string(dataset().join("scene_000/frame_000000/annotation.json")).unwrap();
+        let text = mutate_json(&base, at, value);
+        if let Ok(a) = Annotation::read(&write(dir.path(), "annotation.json", &text), 2) {
+            prop_assert!(all_finite(&a), "{text}");
+            for p in &a.people {
+                prop_assert!(p.smplx.validate("person").is_ok());
+            }
+        }
+    }
+
+    #[test]
+    fn parameter_files(at in any::<Index>(), value in json_value()) {
+        let dir = tempfile::tempdir().unwrap();
+        let base = r#"{"betas": [0.5, -0.2], "expression": [0.1], "global_orient": [0.1, 0.2, 0.3],
+            "jaw_pose": [0.1, 0.0, 0.0], "transl": [1.0, 2.0, 0.9]}"#;
+        let text = mutate_json(base, at, value);
+        if let Ok(bodies) = SmplxParams::read_json(&write(dir.path(), "params.json", &text)) {
+            for b in &bodies {
+                prop_assert!(b.validate("body").is_ok());
+                prop_assert!(all_finite(b), "{text}");
+            }
+        }
+    }
+}
