@@ -14,6 +14,7 @@ mod body;
 mod data;
 mod device;
 mod import;
+mod learn;
 mod model;
 mod run;
 mod train;
@@ -309,6 +310,24 @@ enum BenchCommand {
         #[arg(long, default_value_t = 5)]
         iters: usize,
     },
+    /// The learning benchmark: the full tiny model and the paper's comparisons (VoxelSMPLX, max and
+    /// deformable fusion, without the orientation or density loss, head and spine roots), each trained on
+    /// one synthetic set for the same wall time and scored on its held-out scenes; writes OUT/learning.md
+    /// (table, the paper's directions) and OUT/curves.png.
+    Learn {
+        /// Wall time of each variant's training, minutes (the schedule is sized to it).
+        #[arg(long, default_value_t = 40.0, value_parser = positive("minutes"))]
+        minutes: f64,
+        /// One-frame scenes of the synthetic set (two thirds train, one third held out).
+        #[arg(long, default_value_t = 96, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(3..=10000))]
+        scenes: usize,
+        /// Comma-separated variants (default: all): full, voxelsmplx, fusion_max, fusion_deformable,
+        /// no_orientation, no_density, root_head, root_spine.
+        #[arg(long)]
+        variants: Option<String>,
+        #[arg(long, default_value = "out/learn")]
+        out: PathBuf,
+    },
     /// Per-stage forward times of a model config (batch 1) and the fraction of GEMM speed each reaches.
     Model {
         #[arg(long)]
@@ -485,6 +504,20 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             views,
             iters,
         }) => model::bench(&config, views, iters, &device),
+        Command::Bench(BenchCommand::Learn {
+            minutes,
+            scenes,
+            variants,
+            out,
+        }) => learn::bench_learn(
+            &learn::LearnArgs {
+                out: &out,
+                minutes,
+                scenes,
+                variants: variants.as_deref(),
+            },
+            &device,
+        ),
         Command::Bench(BenchCommand::Fusion {
             config,
             views,

@@ -106,6 +106,29 @@ pub struct EvalArgs<'a> {
     pub pseudo_gt: Option<&'a Path>,
 }
 
+impl<'a> EvalArgs<'a> {
+    /// The held-out scenes of an mvmp tree under the default protocol (every test frame, the run's test
+    /// views, the default gate, SMPL-X joints), the report written to `out`.
+    pub fn held_out(source: Source<'a>, data: &'a Path, out: &'a Path) -> Self {
+        EvalArgs {
+            source,
+            data,
+            split: Split::Test,
+            views: None,
+            frames: 0,
+            gate: mvmp_eval::DEFAULT_GATE,
+            out: Some(out),
+            save_predictions: None,
+            body_model: None,
+            joints: JointSet::Smplx127,
+            format: "mvmp",
+            split_name: "test",
+            stride: None,
+            pseudo_gt: None,
+        }
+    }
+}
+
 fn fmt(x: Option<f64>) -> String {
     x.map_or("-".into(), |v| format!("{v:.1}"))
 }
@@ -473,9 +496,9 @@ pub fn infer(args: &InferArgs, device: &Device, quiet: bool) -> Result<()> {
 }
 
 /// The demo's embedded configs (the repository's tiny configs), so `mvmp demo` runs from anywhere.
-const DEMO_SYNTH: &str = include_str!("../../../configs/synth/tiny.toml");
-const DEMO_MODEL: &str = include_str!("../../../configs/model/tiny.toml");
-const DEMO_TRAIN: &str = include_str!("../../../configs/train/tiny.toml");
+pub const DEMO_SYNTH: &str = include_str!("../../../configs/synth/tiny.toml");
+pub const DEMO_MODEL: &str = include_str!("../../../configs/model/tiny.toml");
+pub const DEMO_TRAIN: &str = include_str!("../../../configs/train/tiny.toml");
 
 /// `mvmp demo`: synthesise, train both stages, evaluate on held-out scenes beside two references, infer.
 pub fn demo(out: &Path, seed: u64, device: &Device) -> Result<()> {
@@ -529,22 +552,8 @@ pub fn demo(out: &Path, seed: u64, device: &Device) -> Result<()> {
     };
     let m_untrained = mvmp_train::evaluate(&untrained, &data, &opts, |_, _, _| Ok(()))?.overall();
     drop(untrained);
-    let base = EvalArgs {
-        source: Source::MeanPose,
-        data: &data,
-        split: Split::Test,
-        views: None,
-        frames: 0,
-        gate: mvmp_eval::DEFAULT_GATE,
-        out: Some(&out.join("eval-mean-pose.json")),
-        save_predictions: None,
-        body_model: None,
-        joints: JointSet::Smplx127,
-        format: "mvmp",
-        split_name: "test",
-        stride: None,
-        pseudo_gt: None,
-    };
+    let mean_path = out.join("eval-mean-pose.json");
+    let base = EvalArgs::held_out(Source::MeanPose, &data, &mean_path);
     let (m_mean, _) = eval(&base, device, true)?;
 
     eprintln!("[3/5] training -> {}", run_dir.display());
@@ -569,21 +578,10 @@ pub fn demo(out: &Path, seed: u64, device: &Device) -> Result<()> {
 
     eprintln!("[4/5] evaluation on the held-out scenes");
     let eval_path = out.join("eval.json");
+    let pred_dir = out.join("predictions");
     let args = EvalArgs {
-        source: Source::Run(&run_dir),
-        data: &data,
-        split: Split::Test,
-        views: None,
-        frames: 0,
-        gate: mvmp_eval::DEFAULT_GATE,
-        out: Some(&eval_path),
-        save_predictions: Some(&out.join("predictions")),
-        body_model: None,
-        joints: JointSet::Smplx127,
-        format: "mvmp",
-        split_name: "test",
-        stride: None,
-        pseudo_gt: None,
+        save_predictions: Some(&pred_dir),
+        ..EvalArgs::held_out(Source::Run(&run_dir), &data, &eval_path)
     };
     let (m_trained, _) = eval(&args, device, false)?;
 

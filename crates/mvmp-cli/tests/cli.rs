@@ -1084,3 +1084,46 @@ fn data_check_h36m_lists_subjects_and_names_missing_images() {
         &["h36m", "--run"],
     );
 }
+
+/// The learning benchmark end to end at a tiny scale: two variants trained for a few seconds each, the
+/// report with its table and directions, the comparison picture; an unknown variant is named.
+#[test]
+fn the_learning_benchmark_compares_variants() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("learn");
+    let o = mvmp(&[
+        "bench",
+        "learn",
+        "--minutes",
+        "0.02",
+        "--scenes",
+        "3",
+        "--variants",
+        "full,no_density",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let report = std::fs::read_to_string(out.join("learning.md")).unwrap();
+    for needle in [
+        "| full |",
+        "| no_density |",
+        "the density loss lowers MPJPE",
+        "curves.png",
+    ] {
+        assert!(report.contains(needle), "{needle:?} not in {report}");
+    }
+    assert!(out.join("curves.png").metadata().unwrap().len() > 1000);
+    assert!(out.join("runs/no_density/eval-test.json").exists());
+    expect_error(
+        &[
+            "bench",
+            "learn",
+            "--variants",
+            "full,huge",
+            "--out",
+            dir.path().join("x").to_str().unwrap(),
+        ],
+        &["--variants", "huge", "voxelsmplx"],
+    );
+}

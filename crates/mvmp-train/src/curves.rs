@@ -264,10 +264,36 @@ pub fn render(c: &Curves) -> Result<Vec<u8>, String> {
     Ok(buf)
 }
 
+impl Curves {
+    /// Several runs in one picture: each run's series named `loss`, `error` and `recall` (as
+    /// [`Curves::from_log`] names them, e.g. "stage 2 total"), labelled by the run's name.
+    pub fn compare(runs: &[(String, Curves)], loss: &str, error: &str, recall: &str) -> Curves {
+        let pick = |list: &[Series], name: &str, run: &str| {
+            list.iter().find(|s| s.name == name).map(|s| Series {
+                name: run.to_string(),
+                points: s.points.clone(),
+            })
+        };
+        let mut c = Curves::default();
+        for (run, curves) in runs {
+            c.losses.extend(pick(&curves.losses, loss, run));
+            c.errors.extend(pick(&curves.errors, error, run));
+            c.recalls
+                .extend(pick(&curves.recalls, recall, &format!("{run} (recall)")));
+        }
+        c
+    }
+}
+
 /// Redraw `out` (a PNG) from the metrics log at `log`, atomically.
 pub fn write_curves(log: &Path, out: &Path) -> Result<(), TrainError> {
     let text = std::fs::read_to_string(log).map_err(|e| TrainError::io(log, e))?;
-    let pixels = render(&Curves::from_log(&text)).map_err(|e| TrainError::file(out, e))?;
+    write_png(&Curves::from_log(&text), out)
+}
+
+/// Draw `c` into the PNG `out`, atomically.
+pub fn write_png(c: &Curves, out: &Path) -> Result<(), TrainError> {
+    let pixels = render(c).map_err(|e| TrainError::file(out, e))?;
     let img = image::RgbImage::from_raw(WIDTH, HEIGHT, pixels)
         .ok_or_else(|| TrainError::file(out, "curve buffer of the wrong size"))?;
     write_atomic_with(out, |w| {
@@ -306,5 +332,30 @@ mod tests {
         assert_eq!(px.len(), (WIDTH * HEIGHT * 3) as usize);
         // Something other than the white background was drawn.
         assert!(px.iter().filter(|&&b| b < 128).count() > 1000);
+    }
+
+    #[test]
+    fn a_comparison_takes_one_series_of_each_kind_per_run() {
+        let log = |mm: f64| {
+            format!(
+                "{{\"kind\":\"step\",\"stage\":2,\"global_step\":1,\"total\":3.0,\"mesh\":2.0}}\n\
+                 {{\"kind\":\"val\",\"stage\":2,\"global_step\":1,\"mpjpe_mm\":{mm},\"pve_mm\":1.0,\"recall_500\":0.5}}\n"
+            )
+        };
+        let runs = vec![
+            ("full".to_string(), Curves::from_log(&log(100.0))),
+            ("max".to_string(), Curves::from_log(&log(120.0))),
+        ];
+        let c = Curves::compare(
+            &runs,
+            "stage 2 total",
+            "stage 2 mpjpe_mm",
+            "stage 2 recall_500",
+        );
+        let names = |l: &[Series]| l.iter().map(|s| s.name.clone()).collect::<Vec<_>>();
+        assert_eq!(names(&c.losses), ["full", "max"]);
+        assert_eq!(names(&c.errors), ["full", "max"]);
+        assert_eq!(names(&c.recalls), ["full (recall)", "max (recall)"]);
+        assert_eq!(c.errors[1].points, vec![(1.0, 120.0)]);
     }
 }

@@ -1,0 +1,293 @@
+//! `mvmp bench learn`: the full model and the paper's comparisons (the VoxelSMPLX baseline, max and
+//! deformable fusion, without the orientation loss, without the density loss, the head and spine root
+//! variants) trained on one synthetic set for the same wall time each, scored on its held-out scenes.
+//! Writes a table and the validation curves of every variant (`learning.md`, `curves.png`) and says
+//! whether each of the paper's directions reproduces. A benchmark, not a test: its figures depend on the
+//! machine and the time given.
+use std::path::Path;
+
+use anyhow::{Context, Result, bail};
+use burn::tensor::Device;
+
+use mvmp_data::loader::Split;
+use mvmp_eval::Metrics;
+use mvmp_fusion::FusionMode;
+use mvmp_geom::io::write_atomic;
+use mvmp_model::ModelConfig;
+use mvmp_model::config::PrimaryJoint;
+use mvmp_train::TrainConfig;
+use mvmp_train::curves::{Curves, write_png};
+
+use crate::run::{DEMO_MODEL, DEMO_SYNTH, DEMO_TRAIN, EvalArgs, Source, eval, table};
+
+/// One configuration of the comparison: a name and its change to the demo's tiny configs.
+struct Variant {
+    name: &'static str,
+    edit: fn(&mut TrainConfig, &mut ModelConfig),
+}
+
+const VARIANTS: [Variant; 8] = [
+    Variant {
+        name: "full",
+        edit: |_, _| {},
+    },
+    Variant {
+        name: "voxelsmplx",
+        edit: |_, m| m.decoder.use_htb = false,
+    },
+    Variant {
+        name: "fusion_max",
+        edit: |_, m| m.fusion = FusionMode::Max,
+    },
+    Variant {
+        name: "fusion_deformable",
+        edit: |_, m| m.fusion = FusionMode::Deformable,
+    },
+    Variant {
+        name: "no_orientation",
+        edit: |t, _| t.loss.orientation = 0.0,
+    },
+    Variant {
+        name: "no_density",
+        edit: |t, _| t.loss.density = 0.0,
+    },
+    Variant {
+        name: "root_head",
+        edit: |_, m| m.primary_joint = PrimaryJoint::Head,
+    },
+    Variant {
+        name: "root_spine",
+        edit: |_, m| m.primary_joint = PrimaryJoint::Spine,
+    },
+];
+
+/// Seconds per step of the tiny config on 2 cores (the demo's logs: stage 1 1.3-1.7 s, stage 2 about
+/// 2 s), plus validation: what sizes the schedule to the time given.
+const STAGE1_STEP_S: f64 = 1.6;
+const STAGE2_STEP_S: f64 = 2.2;
+const VALIDATION_SHARE: f64 = 0.15;
+
+pub struct LearnArgs<'a> {
+    pub out: &'a Path,
+    pub minutes: f64,
+    pub scenes: usize,
+    /// Comma-separated variant names (default: all).
+    pub variants: Option<&'a str>,
+}
+
+fn select(list: Option<&str>) -> Result<Vec<&'static Variant>> {
+    let Some(list) = list else {
+        return Ok(VARIANTS.iter().collect());
+    };
+    list.split(',')
+        .map(|name| {
+            VARIANTS
+                .iter()
+                .find(|v| v.name == name.trim())
+                .with_context(|| {
+                    let names: Vec<&str> = VARIANTS.iter().map(|v| v.name).collect();
+                    format!(
+                        "--variants: unknown variant {name:?}; expected some of {}",
+                        names.join(", ")
+                    )
+                })
+        })
+        .collect()
+}
+
+/// Epochs of each stage that fill `minutes` at the nominal step times: 40% stage 1, 60% stage 2.
+fn epochs(minutes: f64, train_frames: usize) -> (usize, usize) {
+    let seconds = minutes * 60.0 * (1.0 - VALIDATION_SHARE);
+    let e = |share: f64, step: f64| {
+        ((seconds * share / step) / train_frames as f64)
+            .round()
+            .max(1.0)
+    };
+    (
+        e(0.4, STAGE1_STEP_S) as usize,
+        e(0.6, STAGE2_STEP_S) as usize,
+    )
+}
+
+/// The figures of one trained variant.
+struct Row {
+    name: &'static str,
+    metrics: Metrics,
+    steps: u64,
+    minutes: f64,
+}
+
+pub fn bench_learn(args: &LearnArgs, device: &Device) -> Result<()> {
+    let out = args.out;
+    if out.exists() && std::fs::read_dir(out)?.next().is_some() {
+        bail!(
+            "{} exists and is not empty: pass --out to a new directory",
+            out.display()
+        );
+    }
+    let variants = select(args.variants)?;
+    let cfg_dir = out.join("configs");
+    std::fs::create_dir_all(&cfg_dir).with_context(|| format!("creating {}", cfg_dir.display()))?;
+    let synth = DEMO_SYNTH.replace("\nscenes = 48\n", &format!("\nscenes = {}\n", args.scenes));
+    anyhow::ensure!(
+        synth.contains(&format!("\nscenes = {}\n", args.scenes)),
+        "the embedded synthesis config has no `scenes = 48` line"
+    );
+    write_atomic(&cfg_dir.join("synth.toml"), synth.as_bytes())?;
+    write_atomic(&cfg_dir.join("model.toml"), DEMO_MODEL.as_bytes())?;
+    let train = DEMO_TRAIN.replace("\"../model/tiny.toml\"", "\"model.toml\"");
+    write_atomic(&cfg_dir.join("train.toml"), train.as_bytes())?;
+    let data = out.join("data");
+    eprintln!(
+        "synthetic dataset ({} scenes) -> {}",
+        args.scenes,
+        data.display()
+    );
+    crate::data::synth(&cfg_dir.join("synth.toml"), &data)?;
+    let layout = mvmp_data::DatasetLayout::open(&data)?;
+    let train_frames = mvmp_data::loader::split_scenes(&layout, Split::Train)?
+        .iter()
+        .map(|&s| layout.scenes[s].index.frames.len())
+        .sum::<usize>();
+    let (e1, e2) = epochs(args.minutes, train_frames);
+    eprintln!(
+        "each variant: {e1} + {e2} epochs of {train_frames} frames, stopped at {} min",
+        args.minutes
+    );
+
+    let (base_train, base_model) = TrainConfig::read(&cfg_dir.join("train.toml"))?;
+    let mut rows = Vec::new();
+    let mut curves = Vec::new();
+    for v in variants {
+        let (mut t, mut m) = (base_train.clone(), base_model.clone());
+        t.stage1.epochs = e1;
+        t.stage2.epochs = e2;
+        (v.edit)(&mut t, &mut m);
+        let dir = cfg_dir.join(v.name);
+        std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+        write_atomic(&dir.join("model.toml"), toml::to_string(&m)?.as_bytes())?;
+        t.model = "model.toml".into();
+        write_atomic(&dir.join("train.toml"), toml::to_string(&t)?.as_bytes())?;
+        rows.push(train_and_score(
+            v.name,
+            &dir,
+            &data,
+            out,
+            args.minutes,
+            device,
+        )?);
+        let log = std::fs::read_to_string(out.join("runs").join(v.name).join("metrics.jsonl"))?;
+        curves.push((v.name.to_string(), Curves::from_log(&log)));
+    }
+    let picture = Curves::compare(
+        &curves,
+        "stage 2 total",
+        "stage 2 mpjpe_mm",
+        "stage 2 recall_500",
+    );
+    write_png(&picture, &out.join("curves.png"))?;
+    let report = report(&rows, args, train_frames, (e1, e2));
+    write_atomic(&out.join("learning.md"), report.as_bytes())?;
+    print!("{report}");
+    eprintln!(
+        "written: {}, {}",
+        out.join("learning.md").display(),
+        out.join("curves.png").display()
+    );
+    Ok(())
+}
+
+/// Train one variant for the wall time given, then score it on the held-out scenes.
+fn train_and_score(
+    name: &'static str,
+    cfg_dir: &Path,
+    data: &Path,
+    out: &Path,
+    minutes: f64,
+    device: &Device,
+) -> Result<Row> {
+    let run_dir = out.join("runs").join(name);
+    eprintln!("[{name}] training -> {}", run_dir.display());
+    let t0 = std::time::Instant::now();
+    crate::train::train(
+        crate::train::TrainArgs {
+            config: Some(&cfg_dir.join("train.toml")),
+            data: Some(data),
+            out: Some(&run_dir),
+            resume: None,
+            stop_after_steps: None,
+            stop_after_minutes: Some(minutes),
+        },
+        device,
+        &mut crate::train::BarMonitor::new(true),
+    )?;
+    let trained = t0.elapsed().as_secs_f64() / 60.0;
+    let (run, _, _) = mvmp_train::RunDir::open(&run_dir)?;
+    let steps = run.state()?.map_or(0, |s| s.global_step);
+    let report = run_dir.join("eval-test.json");
+    let args = EvalArgs::held_out(Source::Run(&run_dir), data, &report);
+    let (metrics, _) = eval(&args, device, true)?;
+    Ok(Row {
+        name,
+        metrics,
+        steps,
+        minutes: trained,
+    })
+}
+
+/// Does `a` have a lower MPJPE than `b` (both present and scored)?
+fn lower(rows: &[Row], a: &str, b: &str) -> Option<bool> {
+    let mpjpe = |n: &str| rows.iter().find(|r| r.name == n)?.metrics.mpjpe_mm;
+    Some(mpjpe(a)? < mpjpe(b)?)
+}
+
+fn report(rows: &[Row], args: &LearnArgs, frames: usize, (e1, e2): (usize, usize)) -> String {
+    let mut s = format!(
+        "# Learning benchmark\n\n`mvmp bench learn --minutes {} --scenes {}`: the tiny model on a synthetic set of {} \
+         one-frame scenes ({frames} for training, the rest held out), each variant trained for at most {} \
+         minutes ({e1} + {e2} epochs scheduled), then scored on the held-out scenes. Errors in mm.\n\n```text\n",
+        args.minutes, args.scenes, args.scenes, args.minutes
+    );
+    let named: Vec<(String, Metrics)> = rows
+        .iter()
+        .map(|r| (r.name.to_string(), r.metrics.clone()))
+        .collect();
+    s += &table(&named);
+    s += "```\n\n| variant | steps | minutes |\n|---|---|---|\n";
+    for r in rows {
+        s += &format!("| {} | {} | {:.1} |\n", r.name, r.steps, r.minutes);
+    }
+    s += "\nThe paper's directions (MPJPE):\n\n";
+    for (what, pairs) in [
+        (
+            "mean fusion beats max and deformable",
+            vec![("full", "fusion_max"), ("full", "fusion_deformable")],
+        ),
+        (
+            "the orientation loss lowers MPJPE",
+            vec![("full", "no_orientation")],
+        ),
+        (
+            "the density loss lowers MPJPE",
+            vec![("full", "no_density")],
+        ),
+        (
+            "the full model beats VoxelSMPLX",
+            vec![("full", "voxelsmplx")],
+        ),
+    ] {
+        let verdict: Option<bool> = pairs
+            .iter()
+            .map(|(a, b)| lower(rows, a, b))
+            .collect::<Option<Vec<bool>>>()
+            .map(|v| v.iter().all(|&x| x));
+        let word = match verdict {
+            Some(true) => "reproduces",
+            Some(false) => "does not reproduce",
+            None => "not measured (a variant missing or unscored)",
+        };
+        s += &format!("- {what}: {word}\n");
+    }
+    s += "\n![validation curves of every variant](curves.png)\n";
+    s
+}
