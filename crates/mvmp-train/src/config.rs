@@ -115,6 +115,11 @@ pub struct TrainConfig {
     /// Validation frames per epoch (the first N of the test split; 0 = all).
     #[serde(default)]
     pub val_frames: usize,
+    /// Diagnostics: at the first step of every epoch, the gradient norm of each top-level module under
+    /// each loss term alone (a `grad_terms` line in metrics.jsonl). Each term costs one more forward and
+    /// backward of that step.
+    #[serde(default)]
+    pub term_gradients: bool,
     pub stage1: StageConfig,
     pub stage2: StageConfig,
     #[serde(default)]

@@ -1,10 +1,15 @@
 //! What a training step's gradients say about where learning happens: the gradient norm of each of the
-//! model's top-level modules, logged with every step (`grad_norm` in `metrics.jsonl`). A module whose norm
-//! stays orders of magnitude below the others' barely moves under a shared learning rate.
+//! model's top-level modules, logged with every step (`grad_norm` in `metrics.jsonl`), and, on request,
+//! the same under each loss term alone (`grad_terms`). A module whose norm stays orders of magnitude below
+//! the others' barely moves under a shared learning rate; a term that reaches a module only faintly does
+//! not teach it.
 use burn::module::{Module, ModuleVisitor, Param};
 use burn::tensor::{Gradients, Tensor};
 
 use mvmp_model::MvmpHmr;
+use serde_json::{Value, json};
+
+use crate::step::StepLoss;
 
 /// Sum of squared gradients over every parameter a visitor meets (`None` until one has a gradient).
 struct SquaredNorm<'a> {
@@ -44,4 +49,32 @@ pub fn module_grad_norms(model: &MvmpHmr, grads: &Gradients) -> Vec<(&'static st
         out.push(("deformable", norm(d, grads)));
     }
     out
+}
+
+/// For each loss term of a step, the module gradient norms of that term alone, as a JSON object
+/// `{term: {module: norm}}`. `loss_of` recomputes the step's loss (a backward consumes its graph), once
+/// per term.
+pub fn term_grad_norms(model: &MvmpHmr, loss_of: impl Fn(&MvmpHmr) -> StepLoss) -> Value {
+    let mut first = Some(loss_of(model));
+    let names: Vec<&'static str> = first
+        .iter()
+        .flat_map(|l| l.terms.iter().map(|t| t.0))
+        .collect();
+    let mut out = serde_json::Map::new();
+    for (i, name) in names.into_iter().enumerate() {
+        let loss = first.take().unwrap_or_else(|| loss_of(model));
+        let term = loss
+            .terms
+            .into_iter()
+            .nth(i)
+            .expect("the same terms every time")
+            .1;
+        let norms = module_grad_norms(model, &term.backward());
+        let obj: serde_json::Map<String, Value> = norms
+            .into_iter()
+            .map(|(k, v)| (k.to_string(), json!(v)))
+            .collect();
+        out.insert(name.to_string(), Value::Object(obj));
+    }
+    Value::Object(out)
 }

@@ -358,20 +358,30 @@ pub fn train(
                     .map(|&i| ds.load(i))
                     .collect::<Result<Vec<_>, _>>()?;
                 let batch = batcher.batch(items, &ad);
-                let loss = if stage == 1 {
-                    stage1_loss(&model, &batch, model_cfg, &cfg.loss, &ad)
-                } else {
-                    stage2_loss(
-                        &model,
-                        &batch,
-                        model_cfg,
-                        &layer,
-                        &cfg.loss,
-                        cfg.queries,
-                        cfg.match_gate,
-                        &ad,
-                    )
+                let loss_of = |model: &MvmpHmr| {
+                    if stage == 1 {
+                        stage1_loss(model, &batch, model_cfg, &cfg.loss, &ad)
+                    } else {
+                        stage2_loss(
+                            model,
+                            &batch,
+                            model_cfg,
+                            &layer,
+                            &cfg.loss,
+                            cfg.queries,
+                            cfg.match_gate,
+                            &ad,
+                        )
+                    }
                 };
+                if cfg.term_gradients && bi == 0 {
+                    let terms = crate::diagnostics::term_grad_norms(&model, loss_of);
+                    run.log(&json!({
+                        "kind": "grad_terms", "stage": stage, "epoch": epoch + 1,
+                        "global_step": global, "terms": terms,
+                    }))?;
+                }
+                let loss = loss_of(&model);
                 let mut terms = Vec::new();
                 for (name, t) in &loss.terms {
                     let v: f32 = t.clone().into_scalar();

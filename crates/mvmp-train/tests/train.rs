@@ -288,6 +288,44 @@ fn an_interrupted_run_resumes_to_the_same_weights_and_log() {
     );
 }
 
+/// With `term_gradients`, each epoch's first step logs every term's module gradient norms: the 2D heatmap
+/// loss reaches HRNet but not the RootNet, the parameter loss the decoder but not the RootNet (roots are
+/// detached), the detection loss the RootNet but not the decoder.
+#[test]
+fn term_gradients_show_which_modules_each_loss_reaches() {
+    let dir = tempfile::tempdir().unwrap();
+    let edit = |s: String| s.replacen("seed = 3", "seed = 3\nterm_gradients = true", 1);
+    let (run, cfg, model) = new_run(dir.path(), "terms", &edit);
+    let out = mvmp_train::train(&run, &cfg, &model, &options(None), &mut Quiet).unwrap();
+    assert_eq!(out, Outcome::Finished);
+    let lines: Vec<serde_json::Value> = std::fs::read_to_string(run.metrics_path())
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .filter(|v: &serde_json::Value| v["kind"] == "grad_terms")
+        .collect();
+    assert_eq!(lines.len(), 2, "one per epoch, 1 + 1 epochs");
+    let g = |v: &serde_json::Value, term: &str, module: &str| {
+        v["terms"][term][module]
+            .as_f64()
+            .unwrap_or_else(|| panic!("{term}.{module} in {v}"))
+    };
+    let (s1, s2) = (&lines[0], &lines[1]);
+    assert!(
+        g(s1, "heatmap_2d", "hrnet") > 0.0 && g(s1, "heatmap_2d", "rootnet") == 0.0,
+        "{s1}"
+    );
+    assert!(g(s1, "detection", "rootnet") > 0.0, "{s1}");
+    assert!(
+        g(s2, "parameters", "decoder") > 0.0 && g(s2, "parameters", "rootnet") == 0.0,
+        "{s2}"
+    );
+    assert!(
+        g(s2, "detection", "rootnet") > 0.0 && g(s2, "detection", "decoder") == 0.0,
+        "{s2}"
+    );
+}
+
 #[test]
 fn a_wall_time_limit_stops_after_the_step_in_flight_with_a_checkpoint() {
     let dir = tempfile::tempdir().unwrap();
