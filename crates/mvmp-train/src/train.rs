@@ -143,6 +143,22 @@ pub fn open_training_set(
                 ),
             });
         }
+        if spec.format == SourceFormat::Mvmp {
+            let layout = mvmp_data::DatasetLayout::open(Path::new(&spec.root))?;
+            let cameras = layout.scenes.iter().map(|s| s.rig.len()).min().unwrap_or(0);
+            if cfg.train_views > cameras {
+                return Err(TrainError::Config {
+                    path: config.into(),
+                    key: "train_views".into(),
+                    what: format!(
+                        "{}: the scenes of {} ({}) have {cameras} cameras",
+                        cfg.train_views,
+                        key(i, "root"),
+                        spec.root
+                    ),
+                });
+            }
+        }
         let part = spec.open_training(
             ViewChoice::Random {
                 count: cfg.train_views,

@@ -410,6 +410,19 @@ fn bad_configs_name_the_key() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("test_views = 9"), "{e}");
+    // More training views than the scenes have cameras: named with the source.
+    let path = write_configs(dir.path(), &|s| {
+        s.replacen("train_views = 2", "train_views = 9", 1)
+    });
+    let (cfg, model) = TrainConfig::read(&path).unwrap();
+    let e = mvmp_train::open_training_set(&cfg, &model, &path)
+        .err()
+        .expect("9 views of 3 cameras")
+        .to_string();
+    assert!(
+        e.contains("train_views") && e.contains("9: the scenes of data") && e.contains("3 cameras"),
+        "{e}"
+    );
     // A run directory that holds files is not overwritten.
     let (cfg, model) = TrainConfig::read(&write_configs(dir.path(), &|s| s)).unwrap();
     let e = RunDir::create(dir.path(), &cfg, &model, Some(dataset()))
