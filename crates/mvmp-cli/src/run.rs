@@ -17,13 +17,10 @@ use mvmp_train::predict::{evaluate_frames, mean_pose_at, pose_params};
 use mvmp_train::run::file_hash;
 use mvmp_train::{EvalOptions, Predictor, RunDir};
 
+/// `--split` of an mvmp tree, through the data crate's own parser (one list of names).
 pub fn parse_split(s: &str) -> Result<Split> {
-    match s {
-        "train" => Ok(Split::Train),
-        "test" => Ok(Split::Test),
-        "all" => Ok(Split::All),
-        other => bail!("--split {other:?}: expected train, test or all"),
-    }
+    s.parse::<Split>()
+        .map_err(|e| anyhow::anyhow!("--split {e}"))
 }
 
 fn bar(n: usize, what: &str) -> ProgressBar {

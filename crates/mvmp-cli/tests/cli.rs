@@ -596,6 +596,18 @@ fn eval_scores_planted_predictions_exactly() {
         &[
             "eval",
             "--baseline",
+            "mean-pose",
+            "--data",
+            data.to_str().unwrap(),
+            "--split",
+            "valid",
+        ],
+        &["--split", "\"valid\"", "train, test or all"],
+    );
+    expect_error(
+        &[
+            "eval",
+            "--baseline",
             "zero",
             "--data",
             data.to_str().unwrap(),
