@@ -7,15 +7,19 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
 use mvmp_data::loader::Split;
+use mvmp_eval::drivers::{
+    EvalOptions, PseudoGt, PseudoGtCount, evaluate, evaluate_frames, evaluate_joint_sequences,
+    mean_pose_at, pose_params,
+};
 use mvmp_eval::joint_sets::JointSet;
 use mvmp_eval::{AP_THRESHOLDS, Evaluator, Metrics};
 use mvmp_geom::io::{StagedDir, write_atomic};
 use mvmp_geom::{Camera, Rig};
+use mvmp_infer::Predictor;
+use mvmp_infer::output::{read_people_npz, write_frame};
 use mvmp_smplx::SmplxLayer;
-use mvmp_train::output::{read_people_npz, write_frame};
-use mvmp_train::predict::{evaluate_frames, mean_pose_at, pose_params};
+use mvmp_train::RunDir;
 use mvmp_train::run::file_hash;
-use mvmp_train::{EvalOptions, Predictor, RunDir};
 
 /// `--split` of an mvmp tree, through the data crate's own parser (one list of names).
 pub fn parse_split(s: &str) -> Result<Split> {
@@ -178,8 +182,17 @@ pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, s
                 );
             }
         }
-        "panoptic" => return eval_panoptic(args, device, quiet),
-        "h36m" => return eval_h36m(args, device, quiet),
+        "panoptic" => {
+            return eval_joint_dataset(
+                args,
+                JointDataset::panoptic(args.split_name),
+                device,
+                quiet,
+            );
+        }
+        "h36m" => {
+            return eval_joint_dataset(args, JointDataset::h36m(args.split_name), device, quiet);
+        }
         other => bail!("--format {other:?}: expected mvmp, panoptic or h36m"),
     }
     let split_name = match args.split {
@@ -205,7 +218,7 @@ pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, s
             let faces = pred.layer.faces().to_vec();
             // Every frame's files go to a staging directory, moved into place once all are scored.
             let staged = args.save_predictions.map(StagedDir::new).transpose()?;
-            let ev = mvmp_train::evaluate(&pred, args.data, &opts, |i, n, fp| {
+            let ev = evaluate(&pred, args.data, &opts, |i, n, fp| {
                 let b = pb.get_or_insert_with(|| {
                     if quiet {
                         ProgressBar::hidden()
@@ -247,7 +260,7 @@ pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, s
                 let (scene, frame) = &batch.names[0];
                 let path = dir.join(scene).join(frame).join("people.npz");
                 if !path.exists() {
-                    return Err(mvmp_train::TrainError::file(
+                    return Err(mvmp_infer::InferError::file(
                         &path,
                         "no predictions for this frame (expected PRED_DIR/<scene>/<frame>/people.npz)",
                     ));
@@ -547,7 +560,7 @@ pub fn demo(out: &Path, seed: u64, device: &Device) -> Result<()> {
         gate: mvmp_eval::DEFAULT_GATE,
         joints: JointSet::Smplx127,
     };
-    let m_untrained = mvmp_train::evaluate(&untrained, &data, &opts, |_, _, _| Ok(()))?.overall();
+    let m_untrained = evaluate(&untrained, &data, &opts, |_, _, _| Ok(()))?.overall();
     drop(untrained);
     let mean_path = out.join("eval-mean-pose.json");
     let base = EvalArgs::held_out(Source::MeanPose, &data, &mean_path);
@@ -640,19 +653,24 @@ pub fn demo(out: &Path, seed: u64, device: &Device) -> Result<()> {
 /// (VoxelPose's validation split), `train`, a split's name, or comma-separated sequences (every frame).
 /// The pseudo-ground-truth meshes of a joint-annotated evaluation, posed with `--body-model` (default: the
 /// run's body model), and the report's line on what PVE used.
-fn pseudo_layer(args: &EvalArgs, pred: &Predictor, device: &Device) -> Result<Option<SmplxLayer>> {
+fn pseudo_gt(args: &EvalArgs, pred: &Predictor, device: &Device) -> Result<Option<PseudoGt>> {
     let Some(dir) = args.pseudo_gt else {
         return Ok(None);
     };
     if !dir.is_dir() {
         bail!("--pseudo-gt {}: not a directory", dir.display());
     }
-    Ok(Some(match args.body_model {
+    let layer = match args.body_model {
         Some(r) => SmplxLayer::new(
             &mvmp_data::layout::load_body_model(r, Path::new("."))?,
             device,
         ),
         None => pred.layer.clone(),
+    };
+    Ok(Some(PseudoGt {
+        dir: dir.to_path_buf(),
+        layer,
+        gate: args.gate,
     }))
 }
 
@@ -686,7 +704,7 @@ impl EvalProgress {
     }
 }
 
-fn meshes_note(args: &EvalArgs, count: mvmp_train::predict::PseudoGtCount) -> serde_json::Value {
+fn meshes_note(args: &EvalArgs, count: PseudoGtCount) -> serde_json::Value {
     match args.pseudo_gt {
         None => {
             json!("none: PVE and PA-PVE are not computed (pass --pseudo-gt DIR with SMPL-X fits)")
@@ -701,112 +719,116 @@ fn meshes_note(args: &EvalArgs, count: mvmp_train::predict::PseudoGtCount) -> se
     }
 }
 
-fn eval_h36m(
+/// Opens a dataset's sequences in place: root, sequence (or subject) names, cameras, stride.
+type OpenSequences =
+    fn(
+        &Path,
+        &[String],
+        &[&str],
+        usize,
+    ) -> Result<Vec<Box<dyn mvmp_data::sources::JointAnnotated>>, mvmp_data::DataError>;
+
+/// A joint-annotated dataset as `mvmp eval` reads it in place: which sequences, cameras and joints, and
+/// how the report names them.
+struct JointDataset {
+    /// The report's `dataset` and the name in messages.
+    name: &'static str,
+    label: &'static str,
+    set: JointSet,
+    cameras: &'static [&'static str],
+    /// The report key of `parts` ("subjects" or "sequences") and the split's label.
+    parts_key: &'static str,
+    parts: Vec<String>,
+    split_label: String,
+    default_stride: usize,
+    ground_truth: &'static str,
+    open: OpenSequences,
+}
+
+impl JointDataset {
+    fn h36m(split: &str) -> Self {
+        JointDataset {
+            name: "human3.6m",
+            label: "Human3.6M",
+            set: JointSet::H36m17,
+            cameras: &mvmp_data::h36m::CAMERAS,
+            parts_key: "subjects",
+            parts: mvmp_data::h36m::split_subjects(split),
+            split_label: split.to_string(),
+            default_stride: 5,
+            ground_truth: "Human3.6M D3_Positions, 17 of the 32 joints (0,1,2,3,6,7,8,12,13,14,15,17,18,19,25,26,27), world, one person per frame, S11 Directions left out",
+            open: mvmp_data::sources::open_h36m,
+        }
+    }
+
+    fn panoptic(split: &str) -> Self {
+        let (parts, stride, label) = mvmp_data::sources::panoptic_split(split);
+        JointDataset {
+            name: "cmu-panoptic",
+            label: "Panoptic",
+            set: JointSet::Panoptic15,
+            cameras: &mvmp_data::panoptic::VOXELPOSE_CAMERAS,
+            parts_key: "sequences",
+            parts,
+            split_label: label,
+            default_stride: stride,
+            ground_truth: "Panoptic joints19, first 15 joints, a joint counts where its confidence > 0.1; bodies without an annotated body centre are dropped",
+            open: mvmp_data::sources::open_panoptic,
+        }
+    }
+}
+
+/// `mvmp eval --format panoptic|h36m`: a run scored on the dataset read in place.
+fn eval_joint_dataset(
     args: &EvalArgs,
+    ds: JointDataset,
     device: &Device,
     quiet: bool,
 ) -> Result<(Metrics, serde_json::Value)> {
-    use mvmp_data::h36m::{CAMERAS, split_subjects};
     let Source::Run(run_dir) = args.source else {
-        bail!("--format h36m scores a run (--run RUN_DIR)");
+        bail!("--format {} scores a run (--run RUN_DIR)", args.format);
     };
-    let subjects = split_subjects(args.split_name);
-    let stride = args.stride.unwrap_or(5);
+    let stride = args.stride.unwrap_or(ds.default_stride);
     if stride == 0 {
         bail!("--stride 0: keep every N-th frame with N >= 1");
     }
-    let views = args.views.unwrap_or(CAMERAS.len());
-    if views == 0 || views > CAMERAS.len() {
-        bail!("--views {views}: Human3.6M evaluation uses 1 to 4 of the cameras {CAMERAS:?}");
-    }
-    let (run, _, _) = RunDir::open(run_dir)?;
-    let (pred, weights) = Predictor::from_run(&run.root, device)?;
-    let layer = pseudo_layer(args, &pred, device)?;
-    let pseudo = layer.as_ref().map(|layer| mvmp_train::predict::PseudoGt {
-        dir: args.pseudo_gt.expect("set with the layer"),
-        layer,
-    });
-    let mut pb = EvalProgress::new(quiet);
-    let (ev, count) = mvmp_train::predict::evaluate_h36m(
-        &pred,
-        args.data,
-        &subjects,
-        stride,
-        &CAMERAS[..views],
-        args.frames,
-        args.gate,
-        pseudo.as_ref(),
-        |i, n| pb.step(i, n),
-    )?;
-    pb.finish();
-    let header = json!({
-        "source": run_source(&run, &weights)?,
-        "data": absolute(args.data),
-        "dataset": "human3.6m",
-        "split": args.split_name,
-        "subjects": subjects,
-        "stride": stride,
-        "cameras": &CAMERAS[..views],
-        "views": views,
-        "ground_truth": "Human3.6M D3_Positions, 17 of the 32 joints (0,1,2,3,6,7,8,12,13,14,15,17,18,19,25,26,27), world, one person per frame, S11 Directions left out",
-        "meshes": meshes_note(args, count),
-        "protocol": protocol(args.gate, JointSet::H36m17),
-    });
-    finish_report(&ev, header, "ground_truth_people", args.out)
-}
-
-fn eval_panoptic(
-    args: &EvalArgs,
-    device: &Device,
-    quiet: bool,
-) -> Result<(Metrics, serde_json::Value)> {
-    use mvmp_data::panoptic::VOXELPOSE_CAMERAS;
-    let Source::Run(run_dir) = args.source else {
-        bail!("--format panoptic scores a run (--run RUN_DIR)");
-    };
-    let (sequences, split_stride, split_label) =
-        mvmp_data::sources::panoptic_split(args.split_name);
-    let stride = args.stride.unwrap_or(split_stride);
-    let cams = VOXELPOSE_CAMERAS;
-    let views = args.views.unwrap_or(cams.len());
-    if views == 0 || views > cams.len() {
+    let views = args.views.unwrap_or(ds.cameras.len());
+    if views == 0 || views > ds.cameras.len() {
         bail!(
-            "--views {views}: Panoptic evaluation uses 1 to {} of the cameras {cams:?}",
-            cams.len()
+            "--views {views}: {} evaluation uses 1 to {} of the cameras {:?}",
+            ds.label,
+            ds.cameras.len(),
+            ds.cameras
         );
     }
+    let cameras = &ds.cameras[..views];
     let (run, _, _) = RunDir::open(run_dir)?;
     let (pred, weights) = Predictor::from_run(&run.root, device)?;
-    let layer = pseudo_layer(args, &pred, device)?;
-    let pseudo = layer.as_ref().map(|layer| mvmp_train::predict::PseudoGt {
-        dir: args.pseudo_gt.expect("set with the layer"),
-        layer,
-    });
+    let pseudo = pseudo_gt(args, &pred, device)?;
+    let seqs = (ds.open)(args.data, &ds.parts, cameras, stride)?;
     let mut pb = EvalProgress::new(quiet);
-    let (ev, count) = mvmp_train::predict::evaluate_panoptic(
+    let (ev, count) = evaluate_joint_sequences(
         &pred,
-        args.data,
-        &sequences,
-        stride,
-        &cams[..views],
+        &seqs,
+        ds.set,
         args.frames,
         args.gate,
         pseudo.as_ref(),
         |i, n| pb.step(i, n),
     )?;
     pb.finish();
-    let header = json!({
+    let mut header = json!({
         "source": run_source(&run, &weights)?,
         "data": absolute(args.data),
-        "dataset": "cmu-panoptic",
-        "split": split_label,
-        "sequences": sequences,
+        "dataset": ds.name,
+        "split": ds.split_label,
         "stride": stride,
-        "cameras": &cams[..views],
+        "cameras": cameras,
         "views": views,
-        "ground_truth": "Panoptic joints19, first 15 joints, a joint counts where its confidence > 0.1; bodies without an annotated body centre are dropped",
+        "ground_truth": ds.ground_truth,
         "meshes": meshes_note(args, count),
-        "protocol": protocol(args.gate, JointSet::Panoptic15),
+        "protocol": protocol(args.gate, ds.set),
     });
+    header[ds.parts_key] = json!(ds.parts);
     finish_report(&ev, header, "ground_truth_people", args.out)
 }

@@ -428,7 +428,7 @@ fn write_gt_predictions(data: &Path, pred: &Path, shift: [f64; 3]) {
     for f in layout.frames() {
         let rig = &layout.scenes[f.scene].rig;
         let ann = mvmp_data::Annotation::read(&f.dir.join("annotation.json"), rig.len()).unwrap();
-        let people: Vec<mvmp_train::PersonPrediction> = ann
+        let people: Vec<mvmp_infer::PersonPrediction> = ann
             .people
             .iter()
             .map(|p| {
@@ -436,7 +436,7 @@ fn write_gt_predictions(data: &Path, pred: &Path, shift: [f64; 3]) {
                 let arr = |v: &[f64]| -> [f32; 10] {
                     std::array::from_fn(|i| v.get(i).copied().unwrap_or(0.0) as f32)
                 };
-                mvmp_train::PersonPrediction {
+                mvmp_infer::PersonPrediction {
                     score: 1.0,
                     pose: s.full_pose().iter().map(|&x| x as f32).collect(),
                     betas: arr(&s.betas),
@@ -452,7 +452,7 @@ fn write_gt_predictions(data: &Path, pred: &Path, shift: [f64; 3]) {
         let frame = f.dir.file_name().unwrap();
         let dir = pred.join(scene).join(frame);
         std::fs::create_dir_all(&dir).unwrap();
-        mvmp_train::output::write_people_npz(&dir.join("people.npz"), &people).unwrap();
+        mvmp_infer::output::write_people_npz(&dir.join("people.npz"), &people).unwrap();
     }
 }
 

@@ -1,4 +1,5 @@
-//! Matching and metrics for multi-person mesh recovery.
+//! Matching and metrics for multi-person mesh recovery, and the drivers that score a predictor on a
+//! dataset with them ([`drivers`]).
 //!
 //! Protocol: predictions are matched one-to-one to ground-truth people by the Hungarian algorithm on
 //! pelvis distance, and a pair counts only within the gate (0.5 m by default). On matched pairs: MPJPE
@@ -9,6 +10,8 @@
 //! recall at 500 mm (distinct people reached within 500 mm).
 /// The joint sets of joint-annotated datasets (defined with the SMPL-X joint names).
 pub use mvmp_smplx::joint_sets;
+
+pub mod drivers;
 
 use std::collections::BTreeMap;
 

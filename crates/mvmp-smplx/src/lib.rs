@@ -7,6 +7,7 @@ pub mod layer;
 pub mod model;
 pub mod names;
 pub mod params;
+pub mod people;
 pub mod standin;
 
 pub use error::SmplxError;

@@ -1,6 +1,6 @@
 use std::path::PathBuf;
 
-/// Errors of training, prediction and output writing. Each names the file, key or step involved.
+/// Errors of training. Each names the file, key or step involved.
 #[derive(Debug, thiserror::Error)]
 pub enum TrainError {
     #[error("{path}: {source}")]
@@ -36,6 +36,8 @@ pub enum TrainError {
     Smplx(#[from] mvmp_smplx::SmplxError),
     #[error(transparent)]
     Geom(#[from] mvmp_geom::GeomError),
+    #[error(transparent)]
+    Infer(#[from] mvmp_infer::InferError),
     /// Reading or writing weights (burnpack).
     #[error(transparent)]
     Weights(#[from] mvmp_backbone::import::ImportError),

@@ -1,10 +1,9 @@
-//! Training, prediction and evaluation runs of MVMP-HMR, and the files inference writes.
+//! Training MVMP-HMR: configs, run directories, the two-stage training loop, its logs and curves.
+//! Inference lives in `mvmp_infer`, the evaluation drivers in `mvmp_eval::drivers`.
 pub mod config;
 pub mod curves;
 pub mod diagnostics;
 pub mod error;
-pub mod output;
-pub mod predict;
 pub mod pseudo;
 pub mod run;
 pub mod step;
@@ -12,9 +11,21 @@ pub mod train;
 
 pub use config::{LrSchedule, QueryMode, StageConfig, TrainConfig};
 pub use error::TrainError;
-pub use predict::{EvalOptions, PersonPrediction, Predictor, evaluate};
 pub use run::{RunDir, RunState};
 pub use train::{
     Monitor, Outcome, Quiet, StepRecord, TrainOptions, ValRecord, check_validation_source,
     open_training_set, seeded_init, train,
 };
+
+/// The former homes of inference and evaluation, kept as paths for existing callers: the predictor is
+/// `mvmp_infer`'s, the drivers are `mvmp_eval::drivers`'.
+pub mod predict {
+    pub use mvmp_eval::drivers::*;
+    pub use mvmp_infer::predictor::*;
+}
+/// See [`predict`]: the per-frame outputs are `mvmp_infer::output`'s.
+pub mod output {
+    pub use mvmp_infer::output::*;
+}
+pub use mvmp_eval::drivers::{EvalOptions, evaluate};
+pub use mvmp_infer::{PersonPrediction, Predictor};

@@ -21,7 +21,7 @@ use crate::config::TrainConfig;
 use mvmp_geom::io::write_atomic;
 use mvmp_model::ModelConfig;
 
-pub const STATE_FORMAT: &str = "mvmp-run-state";
+pub use mvmp_infer::run_files::STATE_FORMAT;
 
 /// The training cursor: everything before it is in the checkpoint it names.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -100,13 +100,8 @@ impl RunDir {
 
     /// Open an existing run: its resolved configs.
     pub fn open(root: &Path) -> Result<(RunDir, TrainConfig, ModelConfig), TrainError> {
-        let path = root.join("train.toml");
-        if !path.exists() {
-            return Err(TrainError::file(
-                root,
-                "not a run directory (no train.toml); runs are made by `mvmp train`",
-            ));
-        }
+        mvmp_infer::run_files::check_run_dir(root)?;
+        let path = root.join(mvmp_infer::run_files::TRAIN_CONFIG);
         let (cfg, model) = TrainConfig::read(&path)?;
         Ok((RunDir { root: root.into() }, cfg, model))
     }
@@ -143,17 +138,7 @@ impl RunDir {
 
     /// The weights to predict with: the final weights, else the newest checkpoint.
     pub fn weights(&self) -> Result<PathBuf, TrainError> {
-        let fin = self.root.join("model.bpk");
-        if fin.exists() {
-            return Ok(fin);
-        }
-        match self.state()? {
-            Some(s) => Ok(self.root.join(s.checkpoint)),
-            None => Err(TrainError::file(
-                &self.root,
-                "the run has no checkpoint yet (no model.bpk, no state.json)",
-            )),
-        }
+        Ok(mvmp_infer::run_files::weights(&self.root)?)
     }
 
     pub fn metrics_path(&self) -> PathBuf {

@@ -25,9 +25,10 @@ use mvmp_smplx::SmplxLayer;
 
 use crate::TrainError;
 use crate::config::TrainConfig;
-use crate::predict::{EvalOptions, Predictor, evaluate, ground_truth, load_weights};
 use crate::run::{RunDir, RunState, STATE_FORMAT};
 use crate::step::{stage1_loss, stage2_loss};
+use mvmp_eval::drivers::{EvalOptions, PseudoGt, evaluate, ground_truth};
+use mvmp_infer::{Predictor, load_weights};
 
 /// One optimizer step, as logged.
 #[derive(Debug, Clone)]
@@ -180,10 +181,12 @@ pub fn open_training_set(
                 let base = config.parent().unwrap_or(Path::new("."));
                 let body = mvmp_data::layout::load_body_model(&model_cfg.body_model, base)?;
                 let layer = SmplxLayer::new(&body, &Device::flex());
-                SourceDataset::Joints(d.with_meshes(Arc::new(crate::pseudo::PseudoGtMeshes::new(
-                    dir,
-                    layer,
-                    cfg.match_gate,
+                SourceDataset::Joints(d.with_meshes(Arc::new(crate::pseudo::PseudoGtMeshes(
+                    PseudoGt {
+                        dir,
+                        layer,
+                        gate: cfg.match_gate,
+                    },
                 ))))
             }
             (_, part) => part,
@@ -661,7 +664,7 @@ fn validate_joints(
             cfg.match_gate,
         )?
     } else {
-        let (ev, _) = crate::predict::evaluate_joint_sequences(
+        let (ev, _) = mvmp_eval::drivers::evaluate_joint_sequences(
             pred,
             &seqs,
             source.format.joint_set(),

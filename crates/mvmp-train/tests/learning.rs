@@ -9,12 +9,13 @@ use std::sync::atomic::AtomicBool;
 use burn::tensor::Device;
 use mvmp_data::loader::Split;
 use mvmp_data::synth::{SynthConfig, generate};
+use mvmp_eval::drivers::{EvalOptions, evaluate};
 use mvmp_eval::joint_sets::JointSet;
 use mvmp_fusion::VolumeNorm;
 use mvmp_geom::VoxelGrid;
+use mvmp_infer::{Predictor, load_weights};
 use mvmp_model::ModelConfig;
-use mvmp_train::predict::load_weights;
-use mvmp_train::{EvalOptions, Outcome, Predictor, Quiet, RunDir, TrainConfig, TrainOptions};
+use mvmp_train::{Outcome, Quiet, RunDir, TrainConfig, TrainOptions};
 
 /// Two scenes of one frame, three people each, four views: both scenes fall in the train split.
 fn dataset(dir: &Path) -> std::path::PathBuf {
@@ -124,7 +125,7 @@ fn two_frames_are_overfitted_and_every_person_is_found() {
         gate: mvmp_eval::DEFAULT_GATE,
         joints: JointSet::Smplx127,
     };
-    let m = mvmp_train::evaluate(&pred, &data, &eval, |_, _, _| Ok(()))
+    let m = evaluate(&pred, &data, &eval, |_, _, _| Ok(()))
         .unwrap()
         .overall();
     assert_eq!(

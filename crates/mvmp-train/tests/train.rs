@@ -11,16 +11,58 @@ use burn::module::{Module, ModuleVisitor, Param};
 use burn::optim::{AdamConfig, GradientsParams};
 use burn::tensor::{Device, Tensor};
 use mvmp_data::loader::{FrameBatcher, FrameDataset, Split, ViewChoice};
+use mvmp_data::sources::{open_h36m, open_panoptic};
 use mvmp_data::synth::{SynthConfig, generate};
+use mvmp_eval::Evaluator;
+use mvmp_eval::drivers::{PseudoGt, PseudoGtCount, evaluate_joint_sequences, pose_params};
+use mvmp_eval::joint_sets::JointSet;
 use mvmp_geom::VoxelGrid;
+use mvmp_infer::output::{read_people_npz, write_frame, write_people_npz};
+use mvmp_infer::{PersonPrediction, Predictor, load_weights};
 use mvmp_model::{ModelConfig, MvmpHmr};
 use mvmp_smplx::SmplxLayer;
-use mvmp_train::output::{read_people_npz, write_frame};
-use mvmp_train::predict::{load_weights, pose_params};
 use mvmp_train::step::{stage1_loss, stage2_loss};
-use mvmp_train::{
-    Outcome, Predictor, QueryMode, Quiet, RunDir, TrainConfig, TrainError, TrainOptions,
-};
+use mvmp_train::{Outcome, QueryMode, Quiet, RunDir, TrainConfig, TrainError, TrainOptions};
+
+/// Panoptic sequences read in place and scored, as `mvmp eval --format panoptic` does.
+#[allow(clippy::too_many_arguments)]
+fn evaluate_panoptic(
+    pred: &Predictor,
+    root: &Path,
+    sequences: &[String],
+    stride: usize,
+    cameras: &[&str],
+    max_frames: usize,
+    gate: f64,
+    pseudo: Option<&PseudoGt>,
+    each: impl FnMut(usize, usize),
+) -> Result<(Evaluator, PseudoGtCount), TrainError> {
+    let seqs = open_panoptic(root, sequences, cameras, stride)?;
+    let set = JointSet::Panoptic15;
+    Ok(evaluate_joint_sequences(
+        pred, &seqs, set, max_frames, gate, pseudo, each,
+    )?)
+}
+
+/// Human3.6M read in place and scored, as `mvmp eval --format h36m` does.
+#[allow(clippy::too_many_arguments)]
+fn evaluate_h36m(
+    pred: &Predictor,
+    root: &Path,
+    subjects: &[String],
+    stride: usize,
+    cameras: &[&str],
+    max_frames: usize,
+    gate: f64,
+    pseudo: Option<&PseudoGt>,
+    each: impl FnMut(usize, usize),
+) -> Result<(Evaluator, PseudoGtCount), TrainError> {
+    let seqs = open_h36m(root, subjects, cameras, stride)?;
+    let set = JointSet::H36m17;
+    Ok(evaluate_joint_sequences(
+        pred, &seqs, set, max_frames, gate, pseudo, each,
+    )?)
+}
 
 fn dataset() -> &'static Path {
     static DIR: OnceLock<(tempfile::TempDir, PathBuf)> = OnceLock::new();
@@ -490,7 +532,7 @@ fn inference_outputs_load_back_and_reproject_into_the_overlays() {
     let bad = dir.path().join("bad.npz");
     let mut nan = people.clone();
     nan[1].score = f32::NAN;
-    mvmp_train::output::write_people_npz(&bad, &nan).unwrap();
+    write_people_npz(&bad, &nan).unwrap();
     let e = read_people_npz(&bad).unwrap_err().to_string();
     assert!(
         e.contains("bad.npz") && e.contains("`scores`[1] = NaN"),
@@ -498,7 +540,7 @@ fn inference_outputs_load_back_and_reproject_into_the_overlays() {
     );
     let mut huge = people.clone();
     huge[2].betas[4] = 1e30;
-    mvmp_train::output::write_people_npz(&bad, &huge).unwrap();
+    write_people_npz(&bad, &huge).unwrap();
     let e = read_people_npz(&bad).unwrap_err().to_string();
     assert!(e.contains("person 2") && e.contains("`betas`[4]"), "{e}");
     let posed = pose_params(
@@ -659,17 +701,9 @@ fn a_run_scores_on_panoptic_read_in_place() {
     let cams = &mvmp_data::panoptic::VOXELPOSE_CAMERAS[..3];
     let seqs = vec!["160906_pizza1".to_string()];
     let mut seen = 0;
-    let ev = mvmp_train::predict::evaluate_panoptic(
-        &pred,
-        root.path(),
-        &seqs,
-        1,
-        cams,
-        0,
-        0.5,
-        None,
-        |_, n| seen = n,
-    )
+    let ev = evaluate_panoptic(&pred, root.path(), &seqs, 1, cams, 0, 0.5, None, |_, n| {
+        seen = n
+    })
     .unwrap()
     .0;
     assert_eq!(seen, 3);
@@ -683,22 +717,12 @@ fn a_run_scores_on_panoptic_read_in_place() {
     );
     assert!(ev.per_scene().contains_key("160906_pizza1"));
     // Stride 2 keeps frames 0 and 2.
-    let ev = mvmp_train::predict::evaluate_panoptic(
-        &pred,
-        root.path(),
-        &seqs,
-        2,
-        cams,
-        0,
-        0.5,
-        None,
-        |_, _| {},
-    )
-    .unwrap()
-    .0;
+    let ev = evaluate_panoptic(&pred, root.path(), &seqs, 2, cams, 0, 0.5, None, |_, _| {})
+        .unwrap()
+        .0;
     assert_eq!(ev.overall().ground_truth, 4);
     // A sequence of the split that is not there, and an image of the wrong size, are named.
-    let e = mvmp_train::predict::evaluate_panoptic(
+    let e = evaluate_panoptic(
         &pred,
         root.path(),
         &["160906_band4".to_string()],
@@ -716,19 +740,9 @@ fn a_run_scores_on_panoptic_read_in_place() {
         .path()
         .join("160906_pizza1/hdImgs/00_06/00_06_00000001.jpg");
     image::RgbImage::new(80, 60).save(&bad).unwrap();
-    let e = mvmp_train::predict::evaluate_panoptic(
-        &pred,
-        root.path(),
-        &seqs,
-        1,
-        cams,
-        0,
-        0.5,
-        None,
-        |_, _| {},
-    )
-    .unwrap_err()
-    .to_string();
+    let e = evaluate_panoptic(&pred, root.path(), &seqs, 1, cams, 0, 0.5, None, |_, _| {})
+        .unwrap_err()
+        .to_string();
     assert!(
         e.contains("00_06_00000001.jpg") && e.contains("80x60"),
         "{e}"
@@ -772,7 +786,7 @@ fn a_run_scores_on_h36m_read_in_place() {
     );
     let subjects = ["S9".to_string(), "S11".to_string()];
     let mut seen = 0;
-    let ev = mvmp_train::predict::evaluate_h36m(
+    let ev = evaluate_h36m(
         &pred,
         root.path(),
         &subjects,
@@ -799,7 +813,7 @@ fn a_run_scores_on_h36m_read_in_place() {
     let bad = image_file(root.path(), "S9", "Walking", CAMERAS[1], 2);
     image::RgbImage::new(500, 500).save(&bad).unwrap();
     let run = |cams: &[&str]| {
-        mvmp_train::predict::evaluate_h36m(
+        evaluate_h36m(
             &pred,
             root.path(),
             &subjects,
@@ -820,10 +834,10 @@ fn a_run_scores_on_h36m_read_in_place() {
 }
 
 /// A fit in `people.npz`: the rest pose of the stand-in body with its pelvis at `at`.
-fn fit_at(layer: &SmplxLayer, at: [f64; 3]) -> mvmp_train::PersonPrediction {
+fn fit_at(layer: &SmplxLayer, at: [f64; 3]) -> PersonPrediction {
     let rest = pose_params(layer, &[(mvmp_smplx::SmplxParams::default(), 1.0)]);
     let p0 = rest[0].joints[0];
-    mvmp_train::PersonPrediction {
+    PersonPrediction {
         score: 1.0,
         pose: vec![0.0; 165],
         betas: [0.0; 10],
@@ -838,8 +852,6 @@ fn fit_at(layer: &SmplxLayer, at: [f64; 3]) -> mvmp_train::PersonPrediction {
 #[test]
 fn pseudo_ground_truth_meshes_give_pve_on_joint_datasets() {
     use mvmp_data::h36m::CAMERAS;
-    use mvmp_train::output::write_people_npz;
-    use mvmp_train::predict::{PseudoGt, evaluate_h36m};
     let root = tempfile::tempdir().unwrap();
     h36m_fixture(root.path());
     let cfg = model_config();
@@ -867,11 +879,13 @@ fn pseudo_ground_truth_meshes_give_pve_on_joint_datasets() {
         )
         .unwrap();
     }
-    let pseudo = PseudoGt {
-        dir: &fits,
-        layer: &layer,
-    };
-    let score = |p: Option<&PseudoGt>, gate: f64| {
+    // The fits are matched within the evaluation's gate, as `mvmp eval --pseudo-gt` matches them.
+    let score = |with_fits: bool, gate: f64| {
+        let pseudo = PseudoGt {
+            dir: fits.clone(),
+            layer: layer.clone(),
+            gate,
+        };
         evaluate_h36m(
             &pred,
             root.path(),
@@ -880,19 +894,19 @@ fn pseudo_ground_truth_meshes_give_pve_on_joint_datasets() {
             &CAMERAS[..2],
             0,
             gate,
-            p,
+            with_fits.then_some(&pseudo),
             |_, _| {},
         )
     };
-    let (_, count) = score(Some(&pseudo), 0.5).unwrap();
+    let (_, count) = score(true, 0.5).unwrap();
     assert_eq!((count.with_mesh, count.people), (3, 3));
     // A wide gate matches every person to a prediction, so every person's mesh is compared.
-    let (ev, _) = score(Some(&pseudo), 100.0).unwrap();
+    let (ev, _) = score(true, 100.0).unwrap();
     let m = ev.overall();
     assert_eq!(m.matched, 3);
     assert!(m.pve_mm.is_some_and(|v| v.is_finite() && v > 0.0) && m.pa_pve_mm.is_some());
     // Without fits there are no meshes to compare.
-    let (ev, count) = score(None, 100.0).unwrap();
+    let (ev, count) = score(false, 100.0).unwrap();
     assert_eq!(count.people, 0);
     assert!(ev.overall().pve_mm.is_none());
     // The near fit is the one taken: with only the far fit left, nobody has a mesh.
@@ -900,12 +914,12 @@ fn pseudo_ground_truth_meshes_give_pve_on_joint_datasets() {
         let p = fits.join(format!("S9/Walking/{:06}/people.npz", row + 1));
         write_people_npz(&p, &[fit_at(&layer, [3.0, 3.0, 0.9])]).unwrap();
     }
-    let (ev, count) = score(Some(&pseudo), 0.5).unwrap();
+    let (ev, count) = score(true, 0.5).unwrap();
     assert_eq!((count.with_mesh, count.people), (0, 3));
     assert!(ev.overall().pve_mm.is_none());
     // A scored frame without a fit is named.
     std::fs::remove_file(fits.join("S9/Walking/000003/people.npz")).unwrap();
-    let e = score(Some(&pseudo), 0.5).unwrap_err().to_string();
+    let e = score(true, 0.5).unwrap_err().to_string();
     assert!(e.contains("S9/Walking/000003/people.npz"), "{e}");
 }
 
@@ -1318,7 +1332,7 @@ fn h36m_frames_become_samples_with_all_17_joints() {
 #[test]
 fn pseudo_ground_truth_fits_become_smplx_targets() {
     use burn::tensor::TensorData;
-    use mvmp_train::output::write_people_npz;
+    use write_people_npz;
     let root = tempfile::tempdir().unwrap();
     panoptic_fixture(root.path(), "160906_pizza1", 2);
     let pan = root.path().display().to_string();

@@ -3,10 +3,7 @@
 //!
 //! ```text
 //! FRAME_OUT/
-//!   people.npz          per person (N rows) the standard smplx keys, axis-angle: global_orient [N,3],
-//!                       body_pose [N,63], jaw_pose, leye_pose, reye_pose [N,3], left_hand_pose,
-//!                       right_hand_pose [N,45], betas [N,10], expression [N,10], transl [N,3] (smplx's
-//!                       meaning: added to the model origin); and pelvis [N,3] (T_wld), scores [N]
+//!   people.npz          per person the standard smplx keys, pelvis and score (`mvmp_smplx::people`)
 //!   person_XX.obj/.ply  each mesh in world coordinates (metres, z up)
 //!   overlay_VV.png      the meshes drawn over view VV
 //!   topdown.png         the capture area from above: each person's position and heading, the cameras
@@ -17,13 +14,11 @@ use image::{Rgb, RgbImage};
 use mvmp_geom::io::write_atomic_with;
 use mvmp_geom::raster::{Frame, Light, MeshRef, draw};
 use mvmp_geom::{Camera, VoxelGrid};
-use mvmp_smplx::SmplxParams;
-use mvmp_smplx::names::POSE_KEYS;
+pub use mvmp_smplx::people::{StoredPerson, read_people_npz};
 use nalgebra::Vector3;
-use npyz::WriterBuilder;
 
-use crate::TrainError;
-use crate::predict::PersonPrediction;
+use crate::InferError;
+use crate::predictor::PersonPrediction;
 
 /// Person colours (linear RGB), shared by overlays and the top-down view.
 pub const PALETTE: [[f32; 3]; 8] = [
@@ -37,188 +32,10 @@ pub const PALETTE: [[f32; 3]; 8] = [
     [0.60, 0.60, 0.60],
 ];
 
-fn npz_err(path: &Path, e: impl std::fmt::Display) -> TrainError {
-    TrainError::file(path, e.to_string())
-}
-
-/// Write `people.npz` (atomically).
-pub fn write_people_npz(path: &Path, people: &[PersonPrediction]) -> Result<(), TrainError> {
-    let n = people.len();
-    let params: Vec<SmplxParams> = people.iter().map(|p| p.params()).collect();
-    write_atomic_with(path, |w| {
-        let mut w = npyz::npz::NpzWriter::new(w);
-        let mut put = |name: &str, width: usize, data: Vec<f32>| -> std::io::Result<()> {
-            let opts = npyz::zip::write::FileOptions::default()
-                .compression_method(npyz::zip::CompressionMethod::Deflated);
-            let shape: Vec<u64> = if width == 0 {
-                vec![n as u64]
-            } else {
-                vec![n as u64, width as u64]
-            };
-            let mut out = w
-                .array::<f32>(name, opts)?
-                .default_dtype()
-                .shape(&shape)
-                .begin_nd()?;
-            out.extend(data)?;
-            out.finish()
-        };
-        for (key, _, count) in POSE_KEYS {
-            let data = params
-                .iter()
-                .flat_map(|p| {
-                    let full = p.full_pose();
-                    let first = POSE_KEYS.iter().find(|k| k.0 == key).unwrap().1;
-                    full[first * 3..(first + count) * 3]
-                        .iter()
-                        .map(|&x| x as f32)
-                        .collect::<Vec<_>>()
-                })
-                .collect();
-            put(key, count * 3, data)?;
-        }
-        put("betas", 10, people.iter().flat_map(|p| p.betas).collect())?;
-        put(
-            "expression",
-            10,
-            people.iter().flat_map(|p| p.expression).collect(),
-        )?;
-        put("transl", 3, people.iter().flat_map(|p| p.transl).collect())?;
-        put("pelvis", 3, people.iter().flat_map(|p| p.pelvis).collect())?;
-        put("scores", 0, people.iter().map(|p| p.score).collect())?;
-        w.zip_writer().finish()?;
-        Ok(())
-    })?;
-    Ok(())
-}
-
-/// An npz array: shape and values.
-type Array = (Vec<u64>, Vec<f64>);
-
-/// One person read back from `people.npz`.
-#[derive(Debug, Clone, PartialEq)]
-pub struct StoredPerson {
-    pub params: SmplxParams,
-    pub score: f64,
-}
-
-/// Read `people.npz`: the standard smplx keys (missing pose keys are zero; `betas` and `expression` may
-/// have up to 10 columns), optional `scores` (default 1). Any float dtype.
-pub fn read_people_npz(path: &Path) -> Result<Vec<StoredPerson>, TrainError> {
-    let mut npz = npyz::npz::NpzArchive::open(path).map_err(|e| npz_err(path, e))?;
-    let mut read = |name: &str| -> Result<Option<Array>, TrainError> {
-        let Some(arr) = npz.by_name(name).map_err(|e| npz_err(path, e))? else {
-            return Ok(None);
-        };
-        let shape = arr.shape().to_vec();
-        let fortran = matches!(arr.order(), npyz::Order::Fortran);
-        let data: Vec<f64> = match arr.dtype() {
-            npyz::DType::Plain(t)
-                if t.type_char() == npyz::TypeChar::Float && t.size_field() == 4 =>
-            {
-                arr.into_vec::<f32>()
-                    .map_err(|e| npz_err(path, format!("key `{name}`: {e}")))?
-                    .into_iter()
-                    .map(|x| x as f64)
-                    .collect()
-            }
-            _ => arr.into_vec::<f64>().map_err(|e| {
-                npz_err(
-                    path,
-                    format!("key `{name}`: {e} (expected float32 or float64)"),
-                )
-            })?,
-        };
-        // numpy may store column-major arrays; rows are read in C order below.
-        let data = if fortran && shape.len() == 2 {
-            let (r, c) = (shape[0] as usize, shape[1] as usize);
-            (0..r * c).map(|i| data[(i % c) * r + i / c]).collect()
-        } else {
-            data
-        };
-        Ok(Some((shape, data)))
-    };
-    let (shape, transl) = read("transl")?.ok_or_else(|| npz_err(path, "missing key `transl`"))?;
-    if shape.len() != 2 || shape[1] != 3 {
-        return Err(npz_err(
-            path,
-            format!("key `transl` has shape {shape:?}; expected [N, 3]"),
-        ));
-    }
-    let n = shape[0] as usize;
-    let mut people: Vec<StoredPerson> = (0..n)
-        .map(|i| StoredPerson {
-            params: SmplxParams {
-                transl: transl[i * 3..i * 3 + 3].to_vec(),
-                ..Default::default()
-            },
-            score: 1.0,
-        })
-        .collect();
-    let mut keys: Vec<(&str, usize)> = POSE_KEYS.iter().map(|k| (k.0, k.2 * 3)).collect();
-    keys.push(("betas", 0));
-    keys.push(("expression", 0));
-    for (key, width) in keys {
-        let Some((shape, data)) = read(key)? else {
-            continue;
-        };
-        let ok = shape.len() == 2
-            && shape[0] as usize == n
-            && (if width == 0 {
-                shape[1] <= 10
-            } else {
-                shape[1] as usize == width
-            });
-        if !ok {
-            let want = if width == 0 {
-                "[N, <=10]".to_string()
-            } else {
-                format!("[N, {width}]")
-            };
-            return Err(npz_err(
-                path,
-                format!("key `{key}` has shape {shape:?}; expected {want} with N = {n}"),
-            ));
-        }
-        let c = shape[1] as usize;
-        for (i, p) in people.iter_mut().enumerate() {
-            let row = data[i * c..(i + 1) * c].to_vec();
-            match key {
-                "global_orient" => p.params.global_orient = row,
-                "body_pose" => p.params.body_pose = row,
-                "jaw_pose" => p.params.jaw_pose = row,
-                "leye_pose" => p.params.leye_pose = row,
-                "reye_pose" => p.params.reye_pose = row,
-                "left_hand_pose" => p.params.left_hand_pose = row,
-                "right_hand_pose" => p.params.right_hand_pose = row,
-                "betas" => p.params.betas = row,
-                _ => p.params.expression = row,
-            }
-        }
-    }
-    if let Some((shape, data)) = read("scores")? {
-        if shape != [n as u64] {
-            return Err(npz_err(
-                path,
-                format!("key `scores` has shape {shape:?}; expected [{n}]"),
-            ));
-        }
-        if let Some(i) = data.iter().position(|s| !s.is_finite()) {
-            return Err(npz_err(
-                path,
-                format!("key `scores`[{i}] = {} is not finite", data[i]),
-            ));
-        }
-        for (p, s) in people.iter_mut().zip(data) {
-            p.score = s;
-        }
-    }
-    for (i, p) in people.iter().enumerate() {
-        p.params
-            .validate(&format!("person {i}"))
-            .map_err(|e| npz_err(path, e))?;
-    }
-    Ok(people)
+/// Write `people.npz` (atomically) for predicted people.
+pub fn write_people_npz(path: &Path, people: &[PersonPrediction]) -> Result<(), InferError> {
+    let stored: Vec<StoredPerson> = people.iter().map(PersonPrediction::stored).collect();
+    Ok(mvmp_smplx::people::write_people_npz(path, &stored)?)
 }
 
 /// Blend the people's meshes over an image seen by `camera` (same size as the camera's image).
@@ -397,7 +214,7 @@ fn line(img: &mut RgbImage, a: (f64, f64), b: (f64, f64), width: f64, col: Rgb<u
 }
 
 /// Save a PNG atomically.
-pub fn save_png(path: &Path, img: &RgbImage) -> Result<(), TrainError> {
+pub fn save_png(path: &Path, img: &RgbImage) -> Result<(), InferError> {
     write_atomic_with(path, |w| {
         img.write_to(w, image::ImageFormat::Png)
             .map_err(std::io::Error::other)
@@ -414,8 +231,8 @@ pub fn write_frame(
     cameras: &[Camera],
     images: Option<&[RgbImage]>,
     grid: &VoxelGrid,
-) -> Result<(), TrainError> {
-    std::fs::create_dir_all(dir).map_err(|e| TrainError::io(dir, e))?;
+) -> Result<(), InferError> {
+    std::fs::create_dir_all(dir).map_err(|e| InferError::io(dir, e))?;
     write_people_npz(&dir.join("people.npz"), people)?;
     for (i, p) in people.iter().enumerate() {
         mvmp_smplx::export::write_obj(&dir.join(format!("person_{i:02}.obj")), &p.vertices, faces)?;

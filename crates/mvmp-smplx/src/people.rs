@@ -1,0 +1,230 @@
+//! `people.npz`: SMPL-X parameters of the people of one frame, as inference writes them and as
+//! `mvmp eval --predictions` and pseudo-ground-truth read them. Per person (N rows) the standard smplx
+//! keys, axis-angle: global_orient [N,3], body_pose [N,63], jaw_pose, leye_pose, reye_pose [N,3],
+//! left_hand_pose, right_hand_pose [N,45], betas [N,10], expression [N,10], transl [N,3] (smplx's meaning:
+//! added to the model origin); and pelvis [N,3] (the pelvis in the world), scores [N].
+use std::path::Path;
+
+use mvmp_geom::io::write_atomic_with;
+use npyz::WriterBuilder;
+
+use crate::SmplxError;
+use crate::names::POSE_KEYS;
+use crate::params::SmplxParams;
+
+fn npz_err(path: &Path, e: impl std::fmt::Display) -> SmplxError {
+    SmplxError::File {
+        path: path.to_path_buf(),
+        what: e.to_string(),
+    }
+}
+
+/// Columns of `v` as `width` f32 values, zero-padded (an empty vector is all zeros).
+fn padded(v: &[f64], width: usize) -> impl Iterator<Item = f32> + '_ {
+    (0..width).map(move |i| v.get(i).copied().unwrap_or(0.0) as f32)
+}
+
+/// Write `people.npz` (atomically). `pelvis` is written when every person has one.
+pub fn write_people_npz(path: &Path, people: &[StoredPerson]) -> Result<(), SmplxError> {
+    let n = people.len();
+    write_atomic_with(path, |w| {
+        let mut w = npyz::npz::NpzWriter::new(w);
+        let mut put = |name: &str, width: usize, data: Vec<f32>| -> std::io::Result<()> {
+            let opts = npyz::zip::write::FileOptions::default()
+                .compression_method(npyz::zip::CompressionMethod::Deflated);
+            let shape: Vec<u64> = if width == 0 {
+                vec![n as u64]
+            } else {
+                vec![n as u64, width as u64]
+            };
+            let mut out = w
+                .array::<f32>(name, opts)?
+                .default_dtype()
+                .shape(&shape)
+                .begin_nd()?;
+            out.extend(data)?;
+            out.finish()
+        };
+        let poses: Vec<Vec<f64>> = people.iter().map(|p| p.params.full_pose()).collect();
+        for (key, first, count) in POSE_KEYS {
+            let data = poses
+                .iter()
+                .flat_map(|full| {
+                    full[first * 3..(first + count) * 3]
+                        .iter()
+                        .map(|&x| x as f32)
+                })
+                .collect();
+            put(key, count * 3, data)?;
+        }
+        let column = |f: fn(&SmplxParams) -> &Vec<f64>, width: usize| -> Vec<f32> {
+            people
+                .iter()
+                .flat_map(|p| padded(f(&p.params), width).collect::<Vec<_>>())
+                .collect()
+        };
+        put("betas", 10, column(|p| &p.betas, 10))?;
+        put("expression", 10, column(|p| &p.expression, 10))?;
+        put("transl", 3, column(|p| &p.transl, 3))?;
+        if people.iter().all(|p| p.pelvis.is_some()) {
+            let pelvis = people
+                .iter()
+                .flat_map(|p| p.pelvis.unwrap_or_default().map(|x| x as f32))
+                .collect();
+            put("pelvis", 3, pelvis)?;
+        }
+        put("scores", 0, people.iter().map(|p| p.score as f32).collect())?;
+        w.zip_writer().finish()?;
+        Ok(())
+    })?;
+    Ok(())
+}
+
+/// An npz array: shape and values.
+type Array = (Vec<u64>, Vec<f64>);
+
+/// One person read back from `people.npz`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StoredPerson {
+    pub params: SmplxParams,
+    pub score: f64,
+    /// The pelvis in the world, where the file has it (inference writes it; other methods may not).
+    pub pelvis: Option<[f64; 3]>,
+}
+
+/// Read `people.npz`: the standard smplx keys (missing pose keys are zero; `betas` and `expression` may
+/// have up to 10 columns), optional `scores` (default 1). Any float dtype.
+pub fn read_people_npz(path: &Path) -> Result<Vec<StoredPerson>, SmplxError> {
+    let mut npz = npyz::npz::NpzArchive::open(path).map_err(|e| npz_err(path, e))?;
+    let mut read = |name: &str| -> Result<Option<Array>, SmplxError> {
+        let Some(arr) = npz.by_name(name).map_err(|e| npz_err(path, e))? else {
+            return Ok(None);
+        };
+        let shape = arr.shape().to_vec();
+        let fortran = matches!(arr.order(), npyz::Order::Fortran);
+        let data: Vec<f64> = match arr.dtype() {
+            npyz::DType::Plain(t)
+                if t.type_char() == npyz::TypeChar::Float && t.size_field() == 4 =>
+            {
+                arr.into_vec::<f32>()
+                    .map_err(|e| npz_err(path, format!("key `{name}`: {e}")))?
+                    .into_iter()
+                    .map(|x| x as f64)
+                    .collect()
+            }
+            _ => arr.into_vec::<f64>().map_err(|e| {
+                npz_err(
+                    path,
+                    format!("key `{name}`: {e} (expected float32 or float64)"),
+                )
+            })?,
+        };
+        // numpy may store column-major arrays; rows are read in C order below.
+        let data = if fortran && shape.len() == 2 {
+            let (r, c) = (shape[0] as usize, shape[1] as usize);
+            (0..r * c).map(|i| data[(i % c) * r + i / c]).collect()
+        } else {
+            data
+        };
+        Ok(Some((shape, data)))
+    };
+    let (shape, transl) = read("transl")?.ok_or_else(|| npz_err(path, "missing key `transl`"))?;
+    if shape.len() != 2 || shape[1] != 3 {
+        return Err(npz_err(
+            path,
+            format!("key `transl` has shape {shape:?}; expected [N, 3]"),
+        ));
+    }
+    let n = shape[0] as usize;
+    let mut people: Vec<StoredPerson> = (0..n)
+        .map(|i| StoredPerson {
+            params: SmplxParams {
+                transl: transl[i * 3..i * 3 + 3].to_vec(),
+                ..Default::default()
+            },
+            score: 1.0,
+            pelvis: None,
+        })
+        .collect();
+    let mut keys: Vec<(&str, usize)> = POSE_KEYS.iter().map(|k| (k.0, k.2 * 3)).collect();
+    keys.push(("betas", 0));
+    keys.push(("expression", 0));
+    for (key, width) in keys {
+        let Some((shape, data)) = read(key)? else {
+            continue;
+        };
+        let ok = shape.len() == 2
+            && shape[0] as usize == n
+            && (if width == 0 {
+                shape[1] <= 10
+            } else {
+                shape[1] as usize == width
+            });
+        if !ok {
+            let want = if width == 0 {
+                "[N, <=10]".to_string()
+            } else {
+                format!("[N, {width}]")
+            };
+            return Err(npz_err(
+                path,
+                format!("key `{key}` has shape {shape:?}; expected {want} with N = {n}"),
+            ));
+        }
+        let c = shape[1] as usize;
+        for (i, p) in people.iter_mut().enumerate() {
+            let row = data[i * c..(i + 1) * c].to_vec();
+            match key {
+                "global_orient" => p.params.global_orient = row,
+                "body_pose" => p.params.body_pose = row,
+                "jaw_pose" => p.params.jaw_pose = row,
+                "leye_pose" => p.params.leye_pose = row,
+                "reye_pose" => p.params.reye_pose = row,
+                "left_hand_pose" => p.params.left_hand_pose = row,
+                "right_hand_pose" => p.params.right_hand_pose = row,
+                "betas" => p.params.betas = row,
+                _ => p.params.expression = row,
+            }
+        }
+    }
+    if let Some((shape, data)) = read("scores")? {
+        if shape != [n as u64] {
+            return Err(npz_err(
+                path,
+                format!("key `scores` has shape {shape:?}; expected [{n}]"),
+            ));
+        }
+        if let Some(i) = data.iter().position(|s| !s.is_finite()) {
+            return Err(npz_err(
+                path,
+                format!("key `scores`[{i}] = {} is not finite", data[i]),
+            ));
+        }
+        for (p, s) in people.iter_mut().zip(data) {
+            p.score = s;
+        }
+    }
+    if let Some((shape, data)) = read("pelvis")? {
+        if shape != [n as u64, 3] {
+            return Err(npz_err(
+                path,
+                format!("key `pelvis` has shape {shape:?}; expected [{n}, 3]"),
+            ));
+        }
+        if let Some(i) = data.iter().position(|s| !s.is_finite()) {
+            return Err(npz_err(
+                path,
+                format!("key `pelvis`[{}] = {} is not finite", i / 3, data[i]),
+            ));
+        }
+        for (p, c) in people.iter_mut().zip(data.chunks(3)) {
+            p.pelvis = Some([c[0], c[1], c[2]]);
+        }
+    }
+    for (i, p) in people.iter().enumerate() {
+        p.params
+            .validate(&format!("person {i}"))
+            .map_err(|e| npz_err(path, e))?;
+    }
+    Ok(people)
+}
