@@ -7,7 +7,9 @@ use anyhow::Result;
 use burn::tensor::Device;
 use indicatif::{ProgressBar, ProgressStyle};
 
-use mvmp_train::{Monitor, Outcome, RunDir, StepRecord, TrainConfig, TrainOptions, ValRecord};
+use mvmp_train::{
+    Monitor, Outcome, RunDir, Stage, StepRecord, TrainConfig, TrainOptions, ValRecord,
+};
 
 /// A progress bar per stage with ETA and the live loss terms; validations and checkpoints as lines.
 pub struct BarMonitor {
@@ -30,15 +32,11 @@ impl BarMonitor {
 }
 
 impl Monitor for BarMonitor {
-    fn stage(&mut self, stage: u32, epochs: usize, steps_per_epoch: usize, done: usize) {
+    fn stage(&mut self, stage: Stage, epochs: usize, steps_per_epoch: usize, done: usize) {
         if let Some(b) = self.bar.take() {
             b.finish_and_clear();
         }
-        let what = if stage == 1 {
-            "HRNet + RootNet"
-        } else {
-            "whole model"
-        };
+        let what = stage.trains();
         eprintln!("stage {stage} ({what}): {epochs} epochs of {steps_per_epoch} steps");
         let bar = if self.quiet {
             ProgressBar::hidden()

@@ -22,6 +22,55 @@ pub enum QueryMode {
     Mixed,
 }
 
+/// The two training stages. Logs, checkpoint names and `state.json` write them as 1 and 2.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
+#[serde(try_from = "u32", into = "u32")]
+pub enum Stage {
+    /// HRNet and the RootNet learn to find people (the 2D heatmap and detection losses).
+    Detection = 1,
+    /// The whole model, the decoder's losses added.
+    Whole = 2,
+}
+
+impl Stage {
+    pub const ALL: [Stage; 2] = [Stage::Detection, Stage::Whole];
+
+    pub fn number(self) -> u32 {
+        self as u32
+    }
+
+    /// What the stage trains, for progress lines.
+    pub fn trains(self) -> &'static str {
+        match self {
+            Stage::Detection => "HRNet + RootNet",
+            Stage::Whole => "whole model",
+        }
+    }
+}
+
+impl From<Stage> for u32 {
+    fn from(s: Stage) -> u32 {
+        s.number()
+    }
+}
+
+impl TryFrom<u32> for Stage {
+    type Error = String;
+    fn try_from(n: u32) -> Result<Stage, String> {
+        match n {
+            1 => Ok(Stage::Detection),
+            2 => Ok(Stage::Whole),
+            n => Err(format!("stage {n}: expected 1 or 2")),
+        }
+    }
+}
+
+impl std::fmt::Display for Stage {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}", self.number())
+    }
+}
+
 /// The learning-rate curve of a stage after its warm-up.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -318,11 +367,10 @@ impl TrainConfig {
             })
     }
 
-    pub fn stage(&self, stage: u32) -> &StageConfig {
-        if stage == 1 {
-            &self.stage1
-        } else {
-            &self.stage2
+    pub fn stage(&self, stage: Stage) -> &StageConfig {
+        match stage {
+            Stage::Detection => &self.stage1,
+            Stage::Whole => &self.stage2,
         }
     }
 }

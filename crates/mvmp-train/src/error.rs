@@ -21,7 +21,7 @@ pub enum TrainError {
         "stage {stage}, epoch {epoch}, step {step}: loss term `{term}` is {value}; training stopped, the last good checkpoint is {checkpoint}"
     )]
     NonFinite {
-        stage: u32,
+        stage: crate::Stage,
         epoch: usize,
         step: u64,
         term: String,

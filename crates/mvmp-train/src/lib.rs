@@ -9,7 +9,7 @@ pub mod run;
 pub mod step;
 pub mod train;
 
-pub use config::{LrSchedule, QueryMode, StageConfig, TrainConfig};
+pub use config::{LrSchedule, QueryMode, Stage, StageConfig, TrainConfig};
 pub use error::TrainError;
 pub use run::{RunDir, RunState};
 pub use train::{

@@ -17,7 +17,7 @@ use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
 use crate::TrainError;
-use crate::config::TrainConfig;
+use crate::config::{Stage, TrainConfig};
 use mvmp_geom::io::write_atomic;
 use mvmp_model::ModelConfig;
 
@@ -29,8 +29,8 @@ pub use mvmp_infer::run_files::STATE_FORMAT;
 pub struct RunState {
     pub format: String,
     pub version: u32,
-    /// Stage (1 or 2) and epochs completed in it.
-    pub stage: u32,
+    /// Stage and epochs completed in it.
+    pub stage: Stage,
     pub epoch: usize,
     /// Batches of the next epoch already trained (non-zero after an interruption).
     pub step_in_epoch: usize,

@@ -21,19 +21,19 @@ use mvmp_data::sources::{
 };
 use mvmp_eval::{Evaluator, PersonPose};
 use mvmp_model::{ModelConfig, MvmpHmr};
-use mvmp_smplx::SmplxLayer;
+use mvmp_smplx::{BodyModel, SmplxLayer};
 
 use crate::TrainError;
-use crate::config::TrainConfig;
+use crate::config::{Stage, StageConfig, TrainConfig};
 use crate::run::{RunDir, RunState, STATE_FORMAT};
-use crate::step::{stage1_loss, stage2_loss};
+use crate::step::{StepLoss, stage1_loss, stage2_loss};
 use mvmp_eval::drivers::{EvalOptions, PseudoGt, evaluate, ground_truth};
 use mvmp_infer::{Predictor, load_weights};
 
 /// One optimizer step, as logged.
 #[derive(Debug, Clone)]
 pub struct StepRecord {
-    pub stage: u32,
+    pub stage: Stage,
     /// 1-based epoch of the stage and step within it.
     pub epoch: usize,
     pub step: usize,
@@ -44,12 +44,40 @@ pub struct StepRecord {
     /// Weighted terms and their total.
     pub terms: Vec<(String, f32)>,
     pub total: f32,
+    /// People decoded (stage 2) and the detection diagnostics of [`StepLoss`].
+    pub queries: usize,
+    pub root_peak: f32,
+    pub root_at_gt: f32,
+    pub root_background: f32,
+    /// The gradient norm of each top-level module.
+    pub grad_norm: Vec<(String, f32)>,
+}
+
+impl StepRecord {
+    /// The record's line in `metrics.jsonl` (`"kind": "step"`, every term under its own name).
+    pub fn to_json(&self) -> serde_json::Value {
+        let mut line = json!({
+            "kind": "step", "stage": self.stage, "epoch": self.epoch, "step": self.step,
+            "global_step": self.global_step, "lr": self.lr, "seconds": self.seconds,
+            "total": self.total, "queries": self.queries, "root_peak": self.root_peak,
+            "root_at_gt": self.root_at_gt, "root_background": self.root_background,
+        });
+        for (k, v) in &self.terms {
+            line[k] = json!(v);
+        }
+        line["grad_norm"] = self
+            .grad_norm
+            .iter()
+            .map(|(k, v)| (k.clone(), json!(v)))
+            .collect();
+        line
+    }
 }
 
 /// A validation pass at the end of an epoch.
 #[derive(Debug, Clone)]
 pub struct ValRecord {
-    pub stage: u32,
+    pub stage: Stage,
     pub epoch: usize,
     /// `root_mm`/`root_recall` in stage 1; `mpjpe_mm`, `pve_mm`, `pa_pve_mm`, `recall_500` in stage 2.
     pub metrics: Vec<(String, f64)>,
@@ -58,7 +86,7 @@ pub struct ValRecord {
 /// What training reports as it goes (the CLI draws a progress bar from it).
 pub trait Monitor {
     /// A stage starts (or resumes with `done` of its `epochs * steps_per_epoch` steps behind it).
-    fn stage(&mut self, _stage: u32, _epochs: usize, _steps_per_epoch: usize, _done: usize) {}
+    fn stage(&mut self, _stage: Stage, _epochs: usize, _steps_per_epoch: usize, _done: usize) {}
     fn step(&mut self, _s: &StepRecord) {}
     fn validation(&mut self, _v: &ValRecord) {}
     fn checkpoint(&mut self, _path: &Path) {}
@@ -93,12 +121,12 @@ pub enum Outcome {
 }
 
 /// Stage-and-epoch key of the data order and view draws.
-fn epoch_key(stage: u32, epoch: usize) -> u64 {
-    ((stage as u64) << 32) | epoch as u64
+fn epoch_key(stage: Stage, epoch: usize) -> u64 {
+    ((stage.number() as u64) << 32) | epoch as u64
 }
 
 /// The order of the training frames in an epoch (depends on the seed, stage and epoch only).
-pub fn epoch_order(seed: u64, stage: u32, epoch: usize, n: usize) -> Vec<usize> {
+pub fn epoch_order(seed: u64, stage: Stage, epoch: usize, n: usize) -> Vec<usize> {
     let mut rng = ChaCha8Rng::seed_from_u64(
         seed ^ epoch_key(stage, epoch).wrapping_mul(0x9E37_79B9_7F4A_7C15),
     );
@@ -298,265 +326,430 @@ pub fn train(
     mon: &mut dyn Monitor,
 ) -> Result<Outcome, TrainError> {
     let started = Instant::now();
-    let plain = opts.device.clone();
-    let ad = plain.clone().autodiff();
-    let config_path = run.root.join("train.toml");
-    let val_source = cfg.validation_source();
     let state = run.state()?;
     if state.as_ref().is_some_and(|s| s.finished) {
         return Ok(Outcome::Finished);
     }
-    let mut model = seeded_init(model_cfg, &ad, cfg.seed);
-    let (mut stage, mut epoch, mut step_in_epoch, mut global) = (1u32, 0usize, 0usize, 0u64);
-    let mut last_checkpoint = String::from("none (no checkpoint was written yet)");
-    let mut resume_optim: Option<PathBuf> = None;
-    if let Some(s) = &state {
-        load_weights(&mut model, &run.root.join(&s.checkpoint))?;
-        model = model.train();
-        (stage, epoch, step_in_epoch, global) = (s.stage, s.epoch, s.step_in_epoch, s.global_step);
-        last_checkpoint = run.root.join(&s.checkpoint).display().to_string();
-        resume_optim = s.optimizer.as_ref().map(|o| run.root.join(o));
-    }
-    run.truncate_log(global)?;
-    run.remove_stale_temporaries()?;
+    let (mut trainer, model) = Trainer::open(run, cfg, model_cfg, opts, state, started)?;
+    trainer.run(model, mon)
+}
 
-    let body = mvmp_data::layout::load_body_model(&model_cfg.body_model, &run.root)?;
-    let layer = SmplxLayer::new(&body, &ad);
-    let val_layer = SmplxLayer::new(&body, &plain);
-    let ds = open_training_set(cfg, model_cfg, &config_path)?;
-    check_validation_source(cfg)?;
-    // Ground-truth meshes are posed with the body model of the (first) MVMP-HMR source; joint-annotated
-    // people have none.
-    let gt_body = match ds.parts.iter().find_map(|p| match p {
-        SourceDataset::Mvmp(d) => Some(d),
-        SourceDataset::Joints(_) => None,
-    }) {
-        Some(d) => d.layout().body_model()?,
-        None => body.clone(),
-    };
-    let batcher = FrameBatcher::with_vertices(gt_body);
-    let n = ds.total();
-    let steps_per_epoch = n.div_ceil(cfg.batch_size);
+/// Where training stands: every step before it is in the newest checkpoint.
+#[derive(Debug, Clone, Copy)]
+struct Cursor {
+    stage: Stage,
+    /// Epochs of the stage completed, and batches of the next one trained.
+    epoch: usize,
+    step_in_epoch: usize,
+    /// Optimizer steps over the whole run.
+    global: u64,
+}
 
-    while stage <= 2 {
-        let sc = cfg.stage(stage).clone();
-        if epoch >= sc.epochs {
-            stage += 1;
-            (epoch, step_in_epoch) = (0, 0);
-            resume_optim = None;
-            continue;
+/// A training run in progress: the data, the devices, the body layers and the run directory it writes,
+/// with the cursor. The model itself flows through the methods by value (the optimizer consumes it).
+struct Trainer<'a> {
+    run: &'a RunDir,
+    cfg: &'a TrainConfig,
+    model_cfg: &'a ModelConfig,
+    opts: &'a TrainOptions,
+    started: Instant,
+    plain: Device,
+    ad: Device,
+    body: BodyModel,
+    /// The body layer of the stage-2 loss (autodiff device) and of validation (plain device).
+    layer: SmplxLayer,
+    val_layer: SmplxLayer,
+    data: TrainingSet,
+    batcher: FrameBatcher,
+    val_source: Option<SourceSpec>,
+    cursor: Cursor,
+    /// The optimizer state to resume the current stage with.
+    resume_optim: Option<PathBuf>,
+    last_checkpoint: String,
+}
+
+impl<'a> Trainer<'a> {
+    /// The run's data and model, resumed from its state when it has one.
+    fn open(
+        run: &'a RunDir,
+        cfg: &'a TrainConfig,
+        model_cfg: &'a ModelConfig,
+        opts: &'a TrainOptions,
+        state: Option<RunState>,
+        started: Instant,
+    ) -> Result<(Self, MvmpHmr), TrainError> {
+        let plain = opts.device.clone();
+        let ad = plain.clone().autodiff();
+        let mut model = seeded_init(model_cfg, &ad, cfg.seed);
+        let mut cursor = Cursor {
+            stage: Stage::Detection,
+            epoch: 0,
+            step_in_epoch: 0,
+            global: 0,
+        };
+        let mut last_checkpoint = String::from("none (no checkpoint was written yet)");
+        let mut resume_optim = None;
+        if let Some(s) = &state {
+            load_weights(&mut model, &run.root.join(&s.checkpoint))?;
+            model = model.train();
+            cursor = Cursor {
+                stage: s.stage,
+                epoch: s.epoch,
+                step_in_epoch: s.step_in_epoch,
+                global: s.global_step,
+            };
+            last_checkpoint = run.root.join(&s.checkpoint).display().to_string();
+            resume_optim = s.optimizer.as_ref().map(|o| run.root.join(o));
         }
+        run.truncate_log(cursor.global)?;
+        run.remove_stale_temporaries()?;
+        let body = mvmp_data::layout::load_body_model(&model_cfg.body_model, &run.root)?;
+        let data = open_training_set(cfg, model_cfg, &run.root.join("train.toml"))?;
+        check_validation_source(cfg)?;
+        // Ground-truth meshes are posed with the body model of the (first) MVMP-HMR source; joint-annotated
+        // people have none.
+        let gt_body = match data.parts.iter().find_map(|p| match p {
+            SourceDataset::Mvmp(d) => Some(d),
+            SourceDataset::Joints(_) => None,
+        }) {
+            Some(d) => d.layout().body_model()?,
+            None => body.clone(),
+        };
+        let trainer = Trainer {
+            run,
+            cfg,
+            model_cfg,
+            opts,
+            started,
+            layer: SmplxLayer::new(&body, &ad),
+            val_layer: SmplxLayer::new(&body, &plain),
+            plain,
+            ad,
+            body,
+            data,
+            batcher: FrameBatcher::with_vertices(gt_body),
+            val_source: cfg.validation_source(),
+            cursor,
+            resume_optim,
+            last_checkpoint,
+        };
+        Ok((trainer, model))
+    }
+
+    fn steps_per_epoch(&self) -> usize {
+        self.data.total().div_ceil(self.cfg.batch_size)
+    }
+
+    /// Both stages from the cursor on, then the final weights.
+    fn run(&mut self, mut model: MvmpHmr, mon: &mut dyn Monitor) -> Result<Outcome, TrainError> {
+        for stage in Stage::ALL {
+            if stage < self.cursor.stage {
+                continue;
+            }
+            if stage > self.cursor.stage {
+                self.cursor = Cursor {
+                    stage,
+                    epoch: 0,
+                    step_in_epoch: 0,
+                    ..self.cursor
+                };
+                self.resume_optim = None;
+            }
+            let out;
+            (model, out) = self.run_stage(model, mon)?;
+            if let Some(out) = out {
+                return Ok(out);
+            }
+        }
+        let fin = self.run.root.join("model.bpk");
+        mvmp_backbone::import::save_native(&model, &fin)?;
+        let mut s = self
+            .run
+            .state()?
+            .ok_or_else(|| TrainError::file(self.run.state_path(), "missing"))?;
+        s.finished = true;
+        self.run.write_state(&s)?;
+        Ok(Outcome::Finished)
+    }
+
+    /// The current stage's remaining epochs, each validated and checkpointed. `Some` when training stops
+    /// before the stage ends.
+    fn run_stage(
+        &mut self,
+        mut model: MvmpHmr,
+        mon: &mut dyn Monitor,
+    ) -> Result<(MvmpHmr, Option<Outcome>), TrainError> {
+        let stage = self.cursor.stage;
+        let sc = self.cfg.stage(stage).clone();
+        if self.cursor.epoch >= sc.epochs {
+            return Ok((model, None));
+        }
+        let mut optim = self.optimizer(&sc)?;
+        if stage == Stage::Whole && sc.freeze_backbone {
+            model.vit = model.vit.clone().no_grad();
+        }
+        let spe = self.steps_per_epoch();
+        let done = self.cursor.epoch * spe + self.cursor.step_in_epoch;
+        mon.stage(stage, sc.epochs, spe, done);
+        while self.cursor.epoch < sc.epochs {
+            let out;
+            (model, out) = self.run_epoch(model, &sc, &mut optim, mon)?;
+            if out.is_some() {
+                return Ok((model, out));
+            }
+            let out = self.end_epoch(&model, &optim, mon)?;
+            if out.is_some() {
+                return Ok((model, out));
+            }
+        }
+        Ok((model, None))
+    }
+
+    /// Adam for a stage, with the stage's gradient clipping and, on resume, the saved state.
+    fn optimizer(&mut self, sc: &StageConfig) -> Result<ModuleOptimizer, TrainError> {
         let mut adam = AdamConfig::new();
         if sc.grad_clip > 0.0 {
             adam = adam.with_grad_clipping(Some(
                 burn::grad_clipping::GradientClippingConfig::Norm(sc.grad_clip),
             ));
         }
-        let mut optim: ModuleOptimizer = adam.init();
-        if let Some(p) = resume_optim.take() {
-            optim = optim
+        let optim: ModuleOptimizer = adam.init();
+        match self.resume_optim.take() {
+            Some(p) => optim
                 .load(&p)
-                .map_err(|e| TrainError::file(&p, format!("optimizer state: {e}")))?;
-        }
-        if stage == 2 && sc.freeze_backbone {
-            model.vit = model.vit.clone().no_grad();
-        }
-        mon.stage(
-            stage,
-            sc.epochs,
-            steps_per_epoch,
-            epoch * steps_per_epoch + step_in_epoch,
-        );
-        while epoch < sc.epochs {
-            ds.set_epoch(epoch_key(stage, epoch));
-            let order = epoch_order(cfg.seed, stage, epoch, n);
-            for (bi, chunk) in order.chunks(cfg.batch_size).enumerate().skip(step_in_epoch) {
-                let t0 = Instant::now();
-                let items = chunk
-                    .par_iter()
-                    .map(|&i| ds.load(i))
-                    .collect::<Result<Vec<_>, _>>()?;
-                let batch = batcher.batch(items, &ad);
-                let loss_of = |model: &MvmpHmr| {
-                    if stage == 1 {
-                        stage1_loss(model, &batch, model_cfg, &cfg.loss, &ad)
-                    } else {
-                        stage2_loss(
-                            model,
-                            &batch,
-                            model_cfg,
-                            &layer,
-                            &cfg.loss,
-                            cfg.queries,
-                            cfg.match_gate,
-                            &ad,
-                        )
-                    }
-                };
-                if cfg.term_gradients && bi == 0 {
-                    let terms = crate::diagnostics::term_grad_norms(&model, loss_of);
-                    run.log(&json!({
-                        "kind": "grad_terms", "stage": stage, "epoch": epoch + 1,
-                        "global_step": global, "terms": terms,
-                    }))?;
-                }
-                let loss = loss_of(&model);
-                let mut terms = Vec::new();
-                for (name, t) in &loss.terms {
-                    let v: f32 = t.clone().into_scalar();
-                    if !v.is_finite() {
-                        return Err(TrainError::NonFinite {
-                            stage,
-                            epoch: epoch + 1,
-                            step: global + 1,
-                            term: name.to_string(),
-                            value: v,
-                            checkpoint: last_checkpoint,
-                        });
-                    }
-                    terms.push((name.to_string(), v));
-                }
-                let total: f32 = terms.iter().map(|t| t.1).sum();
-                let grads = loss.total.backward();
-                let grad_norms = crate::diagnostics::module_grad_norms(&model, &grads);
-                let grads = GradientsParams::from_grads(grads, &model);
-                let lr = sc.lr_at(epoch * steps_per_epoch + bi, sc.epochs * steps_per_epoch);
-                model = optim.step(lr, model, grads);
-                global += 1;
-                step_in_epoch = bi + 1;
-                let rec = StepRecord {
-                    stage,
-                    epoch: epoch + 1,
-                    step: bi + 1,
-                    steps_per_epoch,
-                    global_step: global,
-                    lr,
-                    seconds: t0.elapsed().as_secs_f64(),
-                    terms,
-                    total,
-                };
-                let mut line = json!({
-                    "kind": "step", "stage": stage, "epoch": rec.epoch, "step": rec.step,
-                    "global_step": global, "lr": lr, "seconds": rec.seconds, "total": total,
-                    "queries": loss.queries, "root_peak": loss.root_peak, "root_at_gt": loss.root_at_gt,
-                    "root_background": loss.root_background,
-                });
-                for (k, v) in &rec.terms {
-                    line[k] = json!(v);
-                }
-                line["grad_norm"] = grad_norms
-                    .iter()
-                    .map(|(k, v)| (k.to_string(), json!(v)))
-                    .collect();
-                run.log(&line)?;
-                mon.step(&rec);
-                let stop = opts.stop.load(Ordering::SeqCst)
-                    || opts.stop_after_steps.is_some_and(|s| global >= s)
-                    || opts.stop_after_time.is_some_and(|d| started.elapsed() >= d);
-                if stop {
-                    let name = format!("step{global:07}-stage{stage}-epoch{:03}-part", epoch + 1);
-                    let path = save(
-                        run,
-                        cfg,
-                        &model,
-                        &optim,
-                        &name,
-                        stage,
-                        epoch,
-                        step_in_epoch,
-                        global,
-                    )?;
-                    mon.checkpoint(&path);
-                    return Ok(Outcome::Interrupted {
-                        checkpoint: path,
-                        global_step: global,
-                    });
-                }
-            }
-            epoch += 1;
-            step_in_epoch = 0;
-            let val = match &val_source {
-                Some(src) => validate(
-                    &model, model_cfg, cfg, &body, &val_layer, src, stage, &plain,
-                )?,
-                None => ValRecord {
-                    stage,
-                    epoch: 0,
-                    metrics: Vec::new(),
-                },
-            };
-            let mut line =
-                json!({"kind": "val", "stage": stage, "epoch": epoch, "global_step": global});
-            for (k, v) in &val.metrics {
-                line[k] = json!(v);
-            }
-            let val = ValRecord { epoch, ..val };
-            run.log(&line)?;
-            crate::curves::write_curves(&run.metrics_path(), &run.root.join("curves.png"))?;
-            mon.validation(&val);
-            let name = format!("step{global:07}-stage{stage}-epoch{epoch:03}");
-            let path = save(run, cfg, &model, &optim, &name, stage, epoch, 0, global)?;
-            last_checkpoint = path.display().to_string();
-            mon.checkpoint(&path);
-            if opts.stop.load(Ordering::SeqCst) {
-                return Ok(Outcome::Interrupted {
-                    checkpoint: path,
-                    global_step: global,
-                });
-            }
+                .map_err(|e| TrainError::file(&p, format!("optimizer state: {e}"))),
+            None => Ok(optim),
         }
     }
-    let fin = run.root.join("model.bpk");
-    mvmp_backbone::import::save_native(&model, &fin)?;
-    let mut s = run
-        .state()?
-        .ok_or_else(|| TrainError::file(run.state_path(), "missing"))?;
-    s.finished = true;
-    run.write_state(&s)?;
-    Ok(Outcome::Finished)
+
+    /// The rest of the current epoch. `Some` when a stop was asked for (after a checkpoint).
+    fn run_epoch(
+        &mut self,
+        mut model: MvmpHmr,
+        sc: &StageConfig,
+        optim: &mut ModuleOptimizer,
+        mon: &mut dyn Monitor,
+    ) -> Result<(MvmpHmr, Option<Outcome>), TrainError> {
+        let Cursor { stage, epoch, .. } = self.cursor;
+        self.data.set_epoch(epoch_key(stage, epoch));
+        let order = epoch_order(self.cfg.seed, stage, epoch, self.data.total());
+        let skip = self.cursor.step_in_epoch;
+        for (bi, chunk) in order.chunks(self.cfg.batch_size).enumerate().skip(skip) {
+            let rec;
+            (model, rec) = self.step(model, sc, optim, bi, chunk)?;
+            mon.step(&rec);
+            if self.stop_requested() {
+                let global = self.cursor.global;
+                let name = format!("step{global:07}-stage{stage}-epoch{:03}-part", epoch + 1);
+                let path = self.save(&model, optim, &name)?;
+                mon.checkpoint(&path);
+                let out = Outcome::Interrupted {
+                    checkpoint: path,
+                    global_step: global,
+                };
+                return Ok((model, Some(out)));
+            }
+        }
+        Ok((model, None))
+    }
+
+    fn stop_requested(&self) -> bool {
+        let o = self.opts;
+        o.stop.load(Ordering::SeqCst)
+            || o.stop_after_steps.is_some_and(|s| self.cursor.global >= s)
+            || o.stop_after_time
+                .is_some_and(|d| self.started.elapsed() >= d)
+    }
+
+    /// One optimizer step on the frames `chunk` (batch `bi` of the epoch), logged to `metrics.jsonl`.
+    fn step(
+        &mut self,
+        model: MvmpHmr,
+        sc: &StageConfig,
+        optim: &mut ModuleOptimizer,
+        bi: usize,
+        chunk: &[usize],
+    ) -> Result<(MvmpHmr, StepRecord), TrainError> {
+        let t0 = Instant::now();
+        let Cursor { stage, epoch, .. } = self.cursor;
+        let items = chunk
+            .par_iter()
+            .map(|&i| self.data.load(i))
+            .collect::<Result<Vec<_>, _>>()?;
+        let batch = self.batcher.batch(items, &self.ad);
+        let (cfg, ad) = (self.cfg, &self.ad);
+        let loss_of = |model: &MvmpHmr| match stage {
+            Stage::Detection => stage1_loss(model, &batch, self.model_cfg, &cfg.loss, ad),
+            Stage::Whole => stage2_loss(
+                model,
+                &batch,
+                self.model_cfg,
+                &self.layer,
+                &cfg.loss,
+                cfg.queries,
+                cfg.match_gate,
+                ad,
+            ),
+        };
+        if cfg.term_gradients && bi == 0 {
+            let terms = crate::diagnostics::term_grad_norms(&model, loss_of);
+            self.run.log(&json!({
+                "kind": "grad_terms", "stage": stage, "epoch": epoch + 1,
+                "global_step": self.cursor.global, "terms": terms,
+            }))?;
+        }
+        let loss = loss_of(&model);
+        let terms = self.finite_terms(&loss)?;
+        let grads = loss.total.backward();
+        let grad_norm = crate::diagnostics::module_grad_norms(&model, &grads);
+        let grads = GradientsParams::from_grads(grads, &model);
+        let spe = self.steps_per_epoch();
+        let lr = sc.lr_at(epoch * spe + bi, sc.epochs * spe);
+        let model = optim.step(lr, model, grads);
+        self.cursor.global += 1;
+        self.cursor.step_in_epoch = bi + 1;
+        let rec = StepRecord {
+            stage,
+            epoch: epoch + 1,
+            step: bi + 1,
+            steps_per_epoch: spe,
+            global_step: self.cursor.global,
+            lr,
+            seconds: t0.elapsed().as_secs_f64(),
+            total: terms.iter().map(|t| t.1).sum(),
+            terms,
+            queries: loss.queries,
+            root_peak: loss.root_peak,
+            root_at_gt: loss.root_at_gt,
+            root_background: loss.root_background,
+            grad_norm: grad_norm.iter().map(|(k, v)| (k.to_string(), *v)).collect(),
+        };
+        self.run.log(&rec.to_json())?;
+        Ok((model, rec))
+    }
+
+    /// Every term's value; a non-finite one stops training, naming the step and the last checkpoint.
+    fn finite_terms(&self, loss: &StepLoss) -> Result<Vec<(String, f32)>, TrainError> {
+        let mut terms = Vec::new();
+        for (name, t) in &loss.terms {
+            let v: f32 = t.clone().into_scalar();
+            if !v.is_finite() {
+                return Err(TrainError::NonFinite {
+                    stage: self.cursor.stage,
+                    epoch: self.cursor.epoch + 1,
+                    step: self.cursor.global + 1,
+                    term: name.to_string(),
+                    value: v,
+                    checkpoint: self.last_checkpoint.clone(),
+                });
+            }
+            terms.push((name.to_string(), v));
+        }
+        Ok(terms)
+    }
+
+    /// Validate, log, redraw the curves and checkpoint at the end of an epoch. `Some` when a stop was
+    /// asked for.
+    fn end_epoch(
+        &mut self,
+        model: &MvmpHmr,
+        optim: &ModuleOptimizer,
+        mon: &mut dyn Monitor,
+    ) -> Result<Option<Outcome>, TrainError> {
+        self.cursor.epoch += 1;
+        self.cursor.step_in_epoch = 0;
+        let Cursor {
+            stage,
+            epoch,
+            global,
+            ..
+        } = self.cursor;
+        let metrics = match &self.val_source {
+            Some(src) => validate(
+                model,
+                self.model_cfg,
+                self.cfg,
+                &self.body,
+                &self.val_layer,
+                src,
+                stage,
+                &self.plain,
+            )?,
+            None => Vec::new(),
+        };
+        let val = ValRecord {
+            stage,
+            epoch,
+            metrics,
+        };
+        let mut line =
+            json!({"kind": "val", "stage": stage, "epoch": epoch, "global_step": global});
+        for (k, v) in &val.metrics {
+            line[k] = json!(v);
+        }
+        self.run.log(&line)?;
+        crate::curves::write_curves(&self.run.metrics_path(), &self.run.root.join("curves.png"))?;
+        mon.validation(&val);
+        let name = format!("step{global:07}-stage{stage}-epoch{epoch:03}");
+        let path = self.save(model, optim, &name)?;
+        self.last_checkpoint = path.display().to_string();
+        mon.checkpoint(&path);
+        if self.opts.stop.load(Ordering::SeqCst) {
+            return Ok(Some(Outcome::Interrupted {
+                checkpoint: path,
+                global_step: global,
+            }));
+        }
+        Ok(None)
+    }
+
+    /// Write a checkpoint (weights and optimizer) at the cursor and move the state to it; prune old ones.
+    fn save(
+        &self,
+        model: &MvmpHmr,
+        optim: &ModuleOptimizer,
+        name: &str,
+    ) -> Result<PathBuf, TrainError> {
+        let dir = self.run.root.join("checkpoints");
+        let weights = dir.join(format!("{name}.bpk"));
+        // BatchNorm keeps its newest running statistics in a per-thread slot until the next update or a
+        // `valid()`/`train()` call folds them in; saving sees only the folded value. Fold them now so the
+        // checkpoint holds the statistics the next step would read (resuming is then exact).
+        let _ = model.valid();
+        mvmp_backbone::import::save_native(model, &weights)?;
+        let opt = dir.join(format!("optim-{name}.bpk"));
+        let tmp = dir.join(format!(".optim-{name}.tmp"));
+        optim
+            .save(&tmp)
+            .map_err(|e| TrainError::file(&opt, e.to_string()))?;
+        std::fs::rename(&tmp, &opt).map_err(|e| TrainError::io(&opt, e))?;
+        let c = self.cursor;
+        self.run.write_state(&RunState {
+            format: STATE_FORMAT.into(),
+            version: 1,
+            stage: c.stage,
+            epoch: c.epoch,
+            step_in_epoch: c.step_in_epoch,
+            global_step: c.global,
+            checkpoint: format!("checkpoints/{name}.bpk"),
+            optimizer: Some(format!("checkpoints/optim-{name}.bpk")),
+            finished: false,
+        })?;
+        prune_checkpoints(&dir, &weights, &opt, self.cfg.keep_checkpoints)?;
+        Ok(weights)
+    }
 }
 
-/// Write a checkpoint (weights and optimizer) and move the state cursor to it; prune old ones.
-#[allow(clippy::too_many_arguments)]
-fn save(
-    run: &RunDir,
-    cfg: &TrainConfig,
-    model: &MvmpHmr,
-    optim: &ModuleOptimizer,
-    name: &str,
-    stage: u32,
-    epoch: usize,
-    step_in_epoch: usize,
-    global: u64,
-) -> Result<PathBuf, TrainError> {
-    let dir = run.root.join("checkpoints");
-    let weights = dir.join(format!("{name}.bpk"));
-    // BatchNorm keeps its newest running statistics in a per-thread slot until the next update or a
-    // `valid()`/`train()` call folds them in; saving sees only the folded value. Fold them now so the
-    // checkpoint holds the statistics the next step would read (resuming is then exact).
-    let _ = model.valid();
-    mvmp_backbone::import::save_native(model, &weights)?;
-    let opt = dir.join(format!("optim-{name}.bpk"));
-    let tmp = dir.join(format!(".optim-{name}.tmp"));
-    optim
-        .save(&tmp)
-        .map_err(|e| TrainError::file(&opt, e.to_string()))?;
-    std::fs::rename(&tmp, &opt).map_err(|e| TrainError::io(&opt, e))?;
-    run.write_state(&RunState {
-        format: STATE_FORMAT.into(),
-        version: 1,
-        stage,
-        epoch,
-        step_in_epoch,
-        global_step: global,
-        checkpoint: format!("checkpoints/{name}.bpk"),
-        optimizer: Some(format!("checkpoints/optim-{name}.bpk")),
-        finished: false,
-    })?;
-    // Only the newest optimizer state is needed; model weights: the newest `keep_checkpoints`.
+/// Only the newest optimizer state is needed; model weights: the newest `keep` (never `weights`).
+fn prune_checkpoints(
+    dir: &Path,
+    weights: &Path,
+    opt: &Path,
+    keep: usize,
+) -> Result<(), TrainError> {
     let mut models = Vec::new();
-    for e in std::fs::read_dir(&dir).map_err(|e| TrainError::io(&dir, e))? {
-        let p = e.map_err(|e| TrainError::io(&dir, e))?.path();
+    for e in std::fs::read_dir(dir).map_err(|e| TrainError::io(dir, e))? {
+        let p = e.map_err(|e| TrainError::io(dir, e))?.path();
         let f = p
             .file_name()
             .and_then(|f| f.to_str())
@@ -569,13 +762,13 @@ fn save(
         }
     }
     models.sort();
-    let drop = models.len().saturating_sub(cfg.keep_checkpoints);
+    let drop = models.len().saturating_sub(keep);
     for p in &models[..drop] {
-        if *p != weights {
+        if p != weights {
             std::fs::remove_file(p).map_err(|e| TrainError::io(p, e))?;
         }
     }
-    Ok(weights)
+    Ok(())
 }
 
 /// Validation on the test split: root error and recall in stage 1, the mesh metrics in stage 2.
@@ -587,9 +780,9 @@ fn validate(
     body: &mvmp_smplx::BodyModel,
     layer: &SmplxLayer,
     source: &SourceSpec,
-    stage: u32,
+    stage: Stage,
     device: &Device,
-) -> Result<ValRecord, TrainError> {
+) -> Result<Vec<(String, f64)>, TrainError> {
     let pred = Predictor::with_layer(
         model.valid(),
         model_cfg.clone(),
@@ -614,7 +807,7 @@ fn validate(
         gate: cfg.match_gate,
         joints: mvmp_eval::joint_sets::JointSet::Smplx127,
     };
-    let metrics = if stage == 1 {
+    let metrics = if stage == Stage::Detection {
         root_metrics(&pred, data, &opts)?
     } else {
         let m = evaluate(&pred, data, &opts, |_, _, _| Ok(()))?.overall();
@@ -625,11 +818,7 @@ fn validate(
             ("recall_500", m.recall_500),
         ])
     };
-    Ok(ValRecord {
-        stage,
-        epoch: 0,
-        metrics,
-    })
+    Ok(metrics)
 }
 
 /// The metrics that were computed (a metric is absent when nothing was matched).
@@ -646,10 +835,10 @@ fn validate_joints(
     pred: &Predictor,
     cfg: &TrainConfig,
     source: &SourceSpec,
-    stage: u32,
-) -> Result<ValRecord, TrainError> {
+    stage: Stage,
+) -> Result<Vec<(String, f64)>, TrainError> {
     let seqs = validation_sequences(cfg, source)?;
-    let metrics = if stage == 1 {
+    let metrics = if stage == Stage::Detection {
         let ds = JointFrameDataset::new(
             &source.root,
             seqs,
@@ -676,11 +865,7 @@ fn validate_joints(
         let m = ev.overall();
         measured(&[("mpjpe_mm", m.mpjpe_mm), ("recall_500", m.recall_500)])
     };
-    Ok(ValRecord {
-        stage,
-        epoch: 0,
-        metrics,
-    })
+    Ok(metrics)
 }
 
 /// Root localisation on a split: mean error of matched roots (mm) and the fraction of people found.

@@ -399,7 +399,7 @@ fn a_diverging_run_stops_naming_the_term_and_the_step() {
         TrainError::NonFinite {
             stage, step, term, ..
         } => {
-            assert_eq!(*stage, 1);
+            assert_eq!(*stage, mvmp_train::Stage::Detection);
             assert!(*step >= 2, "the first step's loss is finite: {err}");
             assert!(
                 ["detection", "heatmap_2d"].contains(&term.as_str()),
