@@ -1,6 +1,6 @@
 //! One training step's losses: the ground truth of a batch turned into targets, the queries chosen
 //! (detected roots matched to people, ground-truth roots, or both), and the weighted loss terms.
-use burn::tensor::{Bool, Device, Int, Tensor, TensorData};
+use burn::tensor::{Device, Int, Tensor, TensorData};
 
 use mvmp_data::loader::FrameBatch;
 use mvmp_fusion::Root;
@@ -8,11 +8,11 @@ use mvmp_fusion::roots::{gaussian_target, root_voxel_and_offset};
 use mvmp_geom::CameraTensors;
 use mvmp_geom::rotation::axis_angle_to_matrix;
 use mvmp_losses::{
-    LossWeights, density_grid, density_loss, detection_loss_weighted, detection_positive_loss,
-    heatmap_loss, heatmap_target, mesh_2d_loss_weighted, mesh_3d_loss_weighted, orientation_loss,
-    parameter_loss,
+    LossTerms, LossWeights, density_grid, density_loss, detection_loss_weighted,
+    detection_positive_loss, heatmap_loss, heatmap_target, mesh_2d_loss_weighted,
+    mesh_3d_loss_weighted, orientation_loss, parameter_loss,
 };
-use mvmp_model::{Detection, ModelConfig, MvmpHmr, RigGrids};
+use mvmp_model::{Detection, ModelConfig, MvmpHmr, MvmpOutput, RigGrids, roots_tensor};
 use mvmp_smplx::SmplxLayer;
 use mvmp_smplx::names::{NUM_JOINTS, NUM_REGRESSED, REGRESSED_TO_JOINT};
 
@@ -330,7 +330,9 @@ pub fn choose_queries(
         .collect()
 }
 
-/// Stage 2: the whole model and the five losses.
+/// Stage 2: the whole model and the five losses. The queries are chosen from the detections (`mode`,
+/// matched within `gate`), the ground truth is gathered per query ([`QueryTargets`]), and each term is
+/// one function.
 #[allow(clippy::too_many_arguments)]
 pub fn stage2_loss(
     model: &MvmpHmr,
@@ -345,175 +347,252 @@ pub fn stage2_loss(
     let gt = HostGt::new(batch);
     let grids = batch_grids(cfg, batch, device);
     let gt_roots = gt.roots(cfg.primary_joint.joint());
-    let b = gt.counts.len();
-    let p = gt.padded;
     let mut slots: Vec<Vec<([f64; 3], usize)>> = Vec::new();
     let out = model.forward_select(batch.images.clone(), &grids, cfg, layer, |det| {
         slots = choose_queries(det, &gt_roots, mode, gate);
-        let k = slots.iter().map(Vec::len).max().unwrap_or(0).max(1);
-        let mut r = vec![0f32; b * k * 3];
-        let mut present = vec![false; b * k];
-        for (bi, s) in slots.iter().enumerate() {
-            for (ki, (root, _)) in s.iter().enumerate() {
-                present[bi * k + ki] = true;
-                for a in 0..3 {
-                    r[(bi * k + ki) * 3 + a] = root[a] as f32;
-                }
-            }
-        }
-        (
-            Tensor::from_data(TensorData::new(r, [b, k, 3]), device),
-            Tensor::<2, Bool>::from_data(TensorData::new(present, [b, k]), device),
-        )
+        let roots: Vec<Vec<Root>> = slots
+            .iter()
+            .map(|s| {
+                s.iter()
+                    .map(|&(position, _)| Root {
+                        position,
+                        score: 1.0,
+                        voxel: [0; 3],
+                    })
+                    .collect()
+            })
+            .collect();
+        let k = slots.iter().map(Vec::len).max().unwrap_or(0);
+        roots_tensor(&roots, k, device)
     });
-    let k = out.roots.dims()[1];
     let queries: usize = slots.iter().map(Vec::len).sum();
-    // Which padded ground-truth row each query compares with (0 for empty slots, masked out).
-    let mut idx = vec![0i64; b * k];
-    let mut mask = vec![0f32; b * k];
-    for (bi, s) in slots.iter().enumerate() {
-        for (ki, &(_, gi)) in s.iter().enumerate() {
-            idx[bi * k + ki] = (bi * p + gi) as i64;
-            mask[bi * k + ki] = 1.0;
-        }
-    }
-    let idx = Tensor::<1, Int>::from_data(TensorData::new(idx, [b * k]), device);
-    let mask = Tensor::<2>::from_data(TensorData::new(mask, [b, k]), device);
-    let pick4 = |t: Tensor<4>| {
-        let [_, _, n, c] = t.dims();
-        t.reshape([b * p, n, c])
-            .select(0, idx.clone())
-            .reshape([b, k, n, c])
-    };
-    let pick3 = |t: Tensor<3>| {
-        let c = t.dims()[2];
-        t.reshape([b * p, c])
-            .select(0, idx.clone())
-            .reshape([b, k, c])
-    };
-    // Supervision masks: SMPL-X terms (parameters, vertices, density) only for people with SMPL-X ground
-    // truth; joint terms per annotated joint; the orientation where its four joints are annotated.
-    let smplx_mask = batch
-        .smplx
-        .clone()
-        .reshape([b * p])
-        .select(0, idx.clone())
-        .reshape([b, k])
-        * mask.clone();
-    let joint_weight = pick3(batch.joint_valid.clone()) * mask.clone().reshape([b, k, 1]);
-    let orient_mask = joint_weight
-        .clone()
-        .narrow(2, 0, 4)
-        .min_dim(2)
-        .reshape([b, k]);
-
-    let mut terms = Vec::new();
+    let t = QueryTargets::new(batch, &slots, out.roots.dims()[1], device);
     let det = Detection {
         heatmaps: out.heatmaps.clone(),
         likelihood: out.likelihood.clone(),
         offset: out.offset.clone(),
     };
     let (d, diag) = detection_term(&det, &gt, cfg, weights, device);
-    if weights.detection > 0.0 {
-        terms.push(("detection", d * weights.detection));
-    }
-    let gt_joints = pick4(batch.joints_3d.clone());
-    if weights.parameters > 0.0 {
-        let rot = axis_angle_to_matrix(batch.pose.clone().reshape([b * p * NUM_JOINTS, 3]))
-            .reshape([b * p, NUM_JOINTS, 3, 3]);
-        let sel: Vec<i64> = REGRESSED_TO_JOINT.iter().map(|&j| j as i64).collect();
-        let sel = Tensor::<1, Int>::from_data(TensorData::new(sel, [NUM_REGRESSED]), device);
-        let gt_rot = rot
-            .select(1, sel)
-            .reshape([b * p, NUM_REGRESSED * 9])
-            .select(0, idx.clone())
-            .reshape([b, k, NUM_REGRESSED, 3, 3]);
-        terms.push((
-            "parameters",
-            parameter_loss(
-                out.rotmats.clone(),
-                gt_rot,
-                out.betas.clone(),
-                pick3(batch.betas.clone()),
-                out.expression.clone(),
-                pick3(batch.expression.clone()),
-                smplx_mask.clone(),
-            ) * weights.parameters,
-        ));
-    }
-    if weights.mesh_3d > 0.0 || weights.mesh_2d > 0.0 {
-        // (predicted, ground truth, weight per point)
-        let mut points = vec![(out.joints.clone(), gt_joints.clone(), joint_weight.clone())];
-        if let Some(v) = &batch.vertices {
-            let nv = v.dims()[2];
-            points.push((
-                out.vertices.clone(),
-                pick4(v.clone()),
-                smplx_mask.clone().reshape([b, k, 1]).repeat_dim(2, nv),
-            ));
-        }
-        let mut mesh: Option<Tensor<1>> = None;
-        let mut add = |t: Tensor<1>| mesh = Some(mesh.take().map_or(t.clone(), |m| m + t));
-        if weights.mesh_3d > 0.0 {
-            for (pred, g, w) in &points {
-                add(mesh_3d_loss_weighted(pred.clone(), g.clone(), w.clone()) * weights.mesh_3d);
+    let on = |w: f32| w > 0.0;
+    let terms = LossTerms {
+        detection: on(weights.detection).then(|| d * weights.detection),
+        parameters: on(weights.parameters)
+            .then(|| parameters_term(&out, batch, &t, device) * weights.parameters),
+        mesh: (on(weights.mesh_3d) || on(weights.mesh_2d))
+            .then(|| mesh_term(&out, batch, &t, weights, device))
+            .flatten(),
+        orientation: on(weights.orientation)
+            .then(|| orientation_term(&out, &t) * weights.orientation),
+        density: on(weights.density)
+            .then(|| density_term(&out, batch, &t, weights, device) * weights.density),
+    };
+    finish(terms.named(), queries, diag, device)
+}
+
+/// The ground truth each query is compared with: padded rows of the batch gathered per query slot, and
+/// the supervision masks (SMPL-X terms only for people with SMPL-X ground truth, joint terms per
+/// annotated joint, the orientation where its four joints are annotated; empty slots masked out).
+pub struct QueryTargets {
+    b: usize,
+    k: usize,
+    /// Padded people per item in the batch.
+    p: usize,
+    /// The padded ground-truth row of each query `[B * K]` (0 for empty slots).
+    rows: Tensor<1, Int>,
+    /// 1 where a slot holds a query `[B, K]`.
+    present: Tensor<2>,
+    smplx: Tensor<2>,
+    joint_weight: Tensor<3>,
+    orientation: Tensor<2>,
+    joints: Tensor<4>,
+}
+
+impl QueryTargets {
+    fn new(
+        batch: &FrameBatch,
+        slots: &[Vec<([f64; 3], usize)>],
+        k: usize,
+        device: &Device,
+    ) -> Self {
+        let (b, p) = (slots.len(), batch.joints_3d.dims()[1]);
+        let mut rows = vec![0i64; b * k];
+        let mut present = vec![0f32; b * k];
+        for (bi, s) in slots.iter().enumerate() {
+            for (ki, &(_, gi)) in s.iter().enumerate() {
+                rows[bi * k + ki] = (bi * p + gi) as i64;
+                present[bi * k + ki] = 1.0;
             }
         }
-        if weights.mesh_2d > 0.0 {
-            let views = batch.cameras[0].len();
-            let size = batch.images.dims()[3] as f32;
-            let mut sum: Option<Tensor<1>> = None;
-            for v in 0..views {
-                let cams: Vec<CameraTensors> = (0..b)
-                    .map(|bi| {
-                        CameraTensors::new(
-                            &batch.cameras[bi][v..v + 1],
-                            Some(&batch.letterboxes[bi][v..v + 1]),
-                            device,
-                        )
-                    })
-                    .collect();
-                for (pred, g, wt) in &points {
-                    let [_, _, n, _] = g.dims();
-                    let uv: Vec<Tensor<3>> = (0..b)
-                        .map(|bi| {
-                            let pts = g.clone().narrow(0, bi, 1).reshape([k * n, 3]);
-                            cams[bi].project(pts).uv.reshape([1, k * n, 2])
-                        })
-                        .collect();
-                    let gt_uv = Tensor::cat(uv, 0).reshape([b, k, n, 2]).detach();
-                    let l = mesh_2d_loss_weighted(pred.clone(), gt_uv, &cams, size, wt.clone());
-                    sum = Some(sum.take().map_or(l.clone(), |s| s + l));
-                }
-            }
-            if let Some(s) = sum {
-                add(s * (weights.mesh_2d / views as f32));
-            }
+        let rows = Tensor::<1, Int>::from_data(TensorData::new(rows, [b * k]), device);
+        let present = Tensor::<2>::from_data(TensorData::new(present, [b, k]), device);
+        let mut t = QueryTargets {
+            b,
+            k,
+            p,
+            rows,
+            smplx: present.clone(),
+            joint_weight: present.clone().reshape([b, k, 1]),
+            orientation: present.clone(),
+            joints: Tensor::zeros([b, k, 1, 3], device),
+            present,
+        };
+        t.smplx = t.pick2(batch.smplx.clone()) * t.present.clone();
+        t.joint_weight = t.pick3(batch.joint_valid.clone()) * t.present.clone().reshape([b, k, 1]);
+        t.orientation = t
+            .joint_weight
+            .clone()
+            .narrow(2, 0, 4)
+            .min_dim(2)
+            .reshape([b, k]);
+        t.joints = t.pick4(batch.joints_3d.clone());
+        t
+    }
+
+    /// Per-person rows `[B, P]` gathered per query `[B, K]`.
+    fn pick2(&self, x: Tensor<2>) -> Tensor<2> {
+        x.reshape([self.b * self.p])
+            .select(0, self.rows.clone())
+            .reshape([self.b, self.k])
+    }
+
+    /// `[B, P, C]` -> `[B, K, C]`.
+    fn pick3(&self, x: Tensor<3>) -> Tensor<3> {
+        let c = x.dims()[2];
+        x.reshape([self.b * self.p, c])
+            .select(0, self.rows.clone())
+            .reshape([self.b, self.k, c])
+    }
+
+    /// `[B, P, N, C]` -> `[B, K, N, C]`.
+    fn pick4(&self, x: Tensor<4>) -> Tensor<4> {
+        let [_, _, n, c] = x.dims();
+        x.reshape([self.b * self.p, n, c])
+            .select(0, self.rows.clone())
+            .reshape([self.b, self.k, n, c])
+    }
+}
+
+/// The parameter loss: the regressed rotations, betas and expression against the ground truth's.
+fn parameters_term(
+    out: &MvmpOutput,
+    batch: &FrameBatch,
+    t: &QueryTargets,
+    device: &Device,
+) -> Tensor<1> {
+    let (b, k, p) = (t.b, t.k, t.p);
+    let rot = axis_angle_to_matrix(batch.pose.clone().reshape([b * p * NUM_JOINTS, 3])).reshape([
+        b * p,
+        NUM_JOINTS,
+        3,
+        3,
+    ]);
+    let sel: Vec<i64> = REGRESSED_TO_JOINT.iter().map(|&j| j as i64).collect();
+    let sel = Tensor::<1, Int>::from_data(TensorData::new(sel, [NUM_REGRESSED]), device);
+    let gt_rot = rot
+        .select(1, sel)
+        .reshape([b * p, NUM_REGRESSED * 9])
+        .select(0, t.rows.clone())
+        .reshape([b, k, NUM_REGRESSED, 3, 3]);
+    parameter_loss(
+        out.rotmats.clone(),
+        gt_rot,
+        out.betas.clone(),
+        t.pick3(batch.betas.clone()),
+        out.expression.clone(),
+        t.pick3(batch.expression.clone()),
+        t.smplx.clone(),
+    )
+}
+
+/// The mesh loss (weighted): 3D and reprojected 2D errors of the joints and, where the batch has ground
+/// truth vertices, of the vertices. `None` when neither weight is on.
+fn mesh_term(
+    out: &MvmpOutput,
+    batch: &FrameBatch,
+    t: &QueryTargets,
+    weights: &LossWeights,
+    device: &Device,
+) -> Option<Tensor<1>> {
+    // (predicted, ground truth, weight per point)
+    let mut points = vec![(out.joints.clone(), t.joints.clone(), t.joint_weight.clone())];
+    if let Some(v) = &batch.vertices {
+        let nv = v.dims()[2];
+        let w = t.smplx.clone().reshape([t.b, t.k, 1]).repeat_dim(2, nv);
+        points.push((out.vertices.clone(), t.pick4(v.clone()), w));
+    }
+    let mut mesh: Option<Tensor<1>> = None;
+    let mut add = |x: Tensor<1>| mesh = Some(mesh.take().map_or(x.clone(), |m| m + x));
+    if weights.mesh_3d > 0.0 {
+        for (pred, g, w) in &points {
+            add(mesh_3d_loss_weighted(pred.clone(), g.clone(), w.clone()) * weights.mesh_3d);
         }
-        if let Some(m) = mesh {
-            terms.push(("mesh", m));
+    }
+    if weights.mesh_2d > 0.0
+        && let Some(s) = mesh_2d_sum(batch, &points, t, device)
+    {
+        let views = batch.cameras[0].len();
+        add(s * (weights.mesh_2d / views as f32));
+    }
+    mesh
+}
+
+/// The 2D mesh loss summed over views and point sets: predictions and ground truth projected into each
+/// view (the ground truth's projection is a constant target).
+fn mesh_2d_sum(
+    batch: &FrameBatch,
+    points: &[(Tensor<4>, Tensor<4>, Tensor<3>)],
+    t: &QueryTargets,
+    device: &Device,
+) -> Option<Tensor<1>> {
+    let (b, k) = (t.b, t.k);
+    let size = batch.images.dims()[3] as f32;
+    let mut sum: Option<Tensor<1>> = None;
+    for v in 0..batch.cameras[0].len() {
+        let cams: Vec<CameraTensors> = (0..b)
+            .map(|bi| {
+                CameraTensors::new(
+                    &batch.cameras[bi][v..v + 1],
+                    Some(&batch.letterboxes[bi][v..v + 1]),
+                    device,
+                )
+            })
+            .collect();
+        for (pred, g, wt) in points {
+            let [_, _, n, _] = g.dims();
+            let uv: Vec<Tensor<3>> = (0..b)
+                .map(|bi| {
+                    let pts = g.clone().narrow(0, bi, 1).reshape([k * n, 3]);
+                    cams[bi].project(pts).uv.reshape([1, k * n, 2])
+                })
+                .collect();
+            let gt_uv = Tensor::cat(uv, 0).reshape([b, k, n, 2]).detach();
+            let l = mesh_2d_loss_weighted(pred.clone(), gt_uv, &cams, size, wt.clone());
+            sum = Some(sum.take().map_or(l.clone(), |s| s + l));
         }
     }
-    if weights.orientation > 0.0 {
-        terms.push((
-            "orientation",
-            orientation_loss(out.joints.clone(), gt_joints.clone(), orient_mask)
-                * weights.orientation,
-        ));
-    }
-    if weights.density > 0.0 {
-        let grid = density_grid(weights.density_grid, weights.density_extent, device);
-        terms.push((
-            "density",
-            density_loss(
-                out.joints.clone(),
-                gt_joints,
-                pick3(batch.pelvis.clone()),
-                grid,
-                weights.density_sigma,
-                smplx_mask,
-            ) * weights.density,
-        ));
-    }
-    finish(terms, queries, diag, device)
+    sum
+}
+
+/// The orientation loss on the joints that define a body's facing.
+fn orientation_term(out: &MvmpOutput, t: &QueryTargets) -> Tensor<1> {
+    orientation_loss(out.joints.clone(), t.joints.clone(), t.orientation.clone())
+}
+
+/// The 3D joint-density loss around each person's pelvis.
+fn density_term(
+    out: &MvmpOutput,
+    batch: &FrameBatch,
+    t: &QueryTargets,
+    weights: &LossWeights,
+    device: &Device,
+) -> Tensor<1> {
+    let grid = density_grid(weights.density_grid, weights.density_extent, device);
+    density_loss(
+        out.joints.clone(),
+        t.joints.clone(),
+        t.pick3(batch.pelvis.clone()),
+        grid,
+        weights.density_sigma,
+        t.smplx.clone(),
+    )
 }
