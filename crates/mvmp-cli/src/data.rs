@@ -3,6 +3,7 @@ use std::path::Path;
 
 use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use mvmp_data::sources::SourceFormat;
 
 use mvmp_data::synth::{SynthConfig, generate};
 
@@ -83,15 +84,14 @@ pub fn stats(dir: &Path, json: bool, sheet: Option<&Path>) -> Result<()> {
     Ok(())
 }
 
-pub fn check(format: &str, dir: &Path, deep: bool) -> Result<()> {
-    if deep && format != "mvmp" {
+pub fn check(format: SourceFormat, dir: &Path, deep: bool) -> Result<()> {
+    if deep && format != SourceFormat::Mvmp {
         anyhow::bail!("--deep applies to --format mvmp (not {format})");
     }
     match format {
-        "mvmp" => {}
-        "panoptic" => return check_panoptic(dir),
-        "h36m" => return check_h36m(dir),
-        other => anyhow::bail!("--format {other:?}: expected mvmp, panoptic or h36m"),
+        SourceFormat::Mvmp => {}
+        SourceFormat::Panoptic => return check_panoptic(dir),
+        SourceFormat::H36m => return check_h36m(dir),
     }
     let r = mvmp_data::check::check_dataset(dir, deep);
     println!(

@@ -2,7 +2,8 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use clap::{Parser, Subcommand};
+use clap::{Parser, Subcommand, ValueEnum};
+use mvmp_data::sources::SourceFormat;
 
 /// mimalloc keeps freed pages: burn allocates a fresh buffer for every op's output, and with the system
 /// allocator each large one page-faults anew (measured: the SMPL-X skinning GEMM took 12.1 ms with the
@@ -49,6 +50,13 @@ struct Cli {
     command: Command,
 }
 
+/// `mvmp eval --baseline`: a reference to score instead of a model.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum Baseline {
+    /// The mean pose placed at each ground-truth pelvis.
+    MeanPose,
+}
+
 #[derive(Subcommand)]
 enum Command {
     /// Body-model tools: the stand-in model, the SMPL-X forward, previews.
@@ -75,8 +83,8 @@ enum Command {
         #[arg(long, conflicts_with = "baseline")]
         predictions: Option<PathBuf>,
         /// A reference instead of a model: `mean-pose` (the mean pose at each ground-truth pelvis).
-        #[arg(long)]
-        baseline: Option<String>,
+        #[arg(long, value_enum)]
+        baseline: Option<Baseline>,
         /// Dataset root (mvmp layout).
         #[arg(long)]
         data: PathBuf,
@@ -104,12 +112,12 @@ enum Command {
         body_model: Option<String>,
         /// Joints MPJPE is taken on: smplx127, panoptic15 or h36m17 (mapped from SMPL-X joints).
         #[arg(long, default_value = "smplx127")]
-        joints: String,
+        joints: mvmp_eval::joint_sets::JointSet,
         /// Dataset layout: mvmp; panoptic (CMU Panoptic read in place; --split test = voxelpose-val,
         /// train = voxelpose-train, or comma-separated sequence names); h36m (Human3.6M read in place;
         /// --split test = S9,S11, train = S1,S5,S6,S7,S8, or comma-separated subjects).
         #[arg(long, default_value = "mvmp")]
-        format: String,
+        format: SourceFormat,
         /// Keep every N-th frame (panoptic: default the split's stride; h36m: default 5, i.e. 10 Hz).
         #[arg(long)]
         stride: Option<usize>,
@@ -236,9 +244,9 @@ enum DataCommand {
     },
     /// Validate a whole dataset tree and list every problem with its file.
     Check {
-        /// Layout of the dataset.
+        /// Layout of the dataset: mvmp, panoptic or h36m.
         #[arg(long, default_value = "mvmp")]
-        format: String,
+        format: SourceFormat,
         /// Decode every image whole (mvmp layout; a plain check reads image headers only).
         #[arg(long)]
         deep: bool,
@@ -386,7 +394,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Data(DataCommand::Stats { dir, json, sheet }) => {
             data::stats(&dir, json, sheet.as_deref())
         }
-        Command::Data(DataCommand::Check { format, dir, deep }) => data::check(&format, &dir, deep),
+        Command::Data(DataCommand::Check { format, dir, deep }) => data::check(format, &dir, deep),
         Command::Model(ModelCommand::Summary { config, views }) => model::summary(&config, views),
         Command::Import(ImportCommand::Dinov2 { variant, from, out }) => {
             import::dinov2(&variant, &from, &out)
@@ -414,21 +422,15 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             stride,
             pseudo_gt,
         } => {
-            let joints = mvmp_eval::joint_sets::JointSet::by_name(&joints).ok_or_else(|| {
-                anyhow::anyhow!("--joints {joints:?}: expected smplx127, panoptic15 or h36m17")
-            })?;
-            let source = match (&run, &predictions, baseline.as_deref()) {
+            let source = match (&run, &predictions, baseline) {
                 (Some(r), None, None) => run::Source::Run(r),
                 (None, Some(p), None) => run::Source::Predictions(p),
-                (None, None, Some("mean-pose")) => run::Source::MeanPose,
-                (None, None, Some(other)) => {
-                    anyhow::bail!("--baseline {other:?}: the only baseline is mean-pose")
-                }
+                (None, None, Some(Baseline::MeanPose)) => run::Source::MeanPose,
                 _ => anyhow::bail!(
                     "pass one of --run RUN_DIR, --predictions DIR, --baseline mean-pose"
                 ),
             };
-            let split_v = if format == "panoptic" || format == "h36m" {
+            let split_v = if format != SourceFormat::Mvmp {
                 mvmp_data::loader::Split::Test
             } else {
                 run::parse_split(&split)?
@@ -445,7 +447,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 save_predictions: save_predictions.as_deref(),
                 body_model: body_model.as_deref(),
                 joints,
-                format: &format,
+                format,
                 split_name: &split,
                 stride,
                 pseudo_gt: pseudo_gt.as_deref(),

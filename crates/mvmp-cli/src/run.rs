@@ -7,6 +7,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
 use mvmp_data::loader::Split;
+use mvmp_data::sources::SourceFormat;
 use mvmp_eval::drivers::{
     EvalOptions, PseudoGt, PseudoGtCount, evaluate, evaluate_frames, evaluate_joint_sequences,
     mean_pose_at, pose_params,
@@ -96,8 +97,8 @@ pub struct EvalArgs<'a> {
     pub save_predictions: Option<&'a Path>,
     pub body_model: Option<&'a str>,
     pub joints: JointSet,
-    /// Dataset layout: "mvmp", "panoptic" or "h36m".
-    pub format: &'a str,
+    /// Dataset layout.
+    pub format: SourceFormat,
     /// The split's name as given (Panoptic: a named split or comma-separated sequences; Human3.6M: a named
     /// split or comma-separated subjects).
     pub split_name: &'a str,
@@ -122,7 +123,7 @@ impl<'a> EvalArgs<'a> {
             save_predictions: None,
             body_model: None,
             joints: JointSet::Smplx127,
-            format: "mvmp",
+            format: SourceFormat::Mvmp,
             split_name: "test",
             stride: None,
             pseudo_gt: None,
@@ -160,7 +161,7 @@ pub fn table(rows: &[(String, Metrics)]) -> String {
 pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, serde_json::Value)> {
     if let Some(dir) = args.save_predictions {
         // Refused rather than ignored: only a model's predictions on an mvmp tree are written.
-        if args.format != "mvmp" {
+        if args.format != SourceFormat::Mvmp {
             bail!(
                 "--save-predictions {}: predictions are saved for --format mvmp only, not {}",
                 dir.display(),
@@ -175,25 +176,21 @@ pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, s
         }
     }
     match args.format {
-        "mvmp" => {
+        SourceFormat::Mvmp => {
             if args.stride.is_some() {
                 bail!(
                     "--stride applies to --format panoptic and h36m; an mvmp split scores every frame"
                 );
             }
         }
-        "panoptic" => {
-            return eval_joint_dataset(
-                args,
-                JointDataset::panoptic(args.split_name),
-                device,
-                quiet,
-            );
+        SourceFormat::Panoptic => {
+            let ds = JointDataset::panoptic(args.split_name);
+            return eval_joint_dataset(args, ds, device, quiet);
         }
-        "h36m" => {
-            return eval_joint_dataset(args, JointDataset::h36m(args.split_name), device, quiet);
+        SourceFormat::H36m => {
+            let ds = JointDataset::h36m(args.split_name);
+            return eval_joint_dataset(args, ds, device, quiet);
         }
-        other => bail!("--format {other:?}: expected mvmp, panoptic or h36m"),
     }
     let split_name = match args.split {
         Split::Train => "train",

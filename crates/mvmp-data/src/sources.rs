@@ -375,6 +375,13 @@ impl SourceFormat {
         }
     }
 
+    /// Every format, in the order messages list them.
+    pub const ALL: [SourceFormat; 3] = [
+        SourceFormat::Mvmp,
+        SourceFormat::Panoptic,
+        SourceFormat::H36m,
+    ];
+
     /// The joint set of the ground truth.
     pub fn joint_set(self) -> JointSet {
         match self {
@@ -382,6 +389,22 @@ impl SourceFormat {
             SourceFormat::Panoptic => JointSet::Panoptic15,
             SourceFormat::H36m => JointSet::H36m17,
         }
+    }
+}
+
+impl std::str::FromStr for SourceFormat {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        SourceFormat::ALL
+            .into_iter()
+            .find(|f| f.name() == s)
+            .ok_or_else(|| format!("{s:?}: expected mvmp, panoptic or h36m"))
+    }
+}
+
+impl std::fmt::Display for SourceFormat {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
     }
 }
 

@@ -56,6 +56,14 @@ pub const H36M17: [(&str, &str); 17] = [
     ("r_wrist", "right_wrist"),
 ];
 
+impl std::str::FromStr for JointSet {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        JointSet::by_name(s)
+            .ok_or_else(|| format!("{s:?}: expected smplx127, panoptic15 or h36m17"))
+    }
+}
+
 impl JointSet {
     pub fn by_name(name: &str) -> Option<JointSet> {
         match name {

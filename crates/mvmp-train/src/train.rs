@@ -172,15 +172,14 @@ pub fn open_training_set(
                 ),
             });
         }
-        if spec.format == SourceFormat::Mvmp {
-            let layout = mvmp_data::DatasetLayout::open(Path::new(&spec.root))?;
-            let cameras = layout.scenes.iter().map(|s| s.rig.len()).min().unwrap_or(0);
+        {
+            let cameras = source_cameras(spec)?;
             if cfg.train_views > cameras {
                 return Err(TrainError::Config {
                     path: config.into(),
                     key: "train_views".into(),
                     what: format!(
-                        "{}: the scenes of {} ({}) have {cameras} cameras",
+                        "{}: the frames of {} ({}) have {cameras} cameras",
                         cfg.train_views,
                         key(i, "root"),
                         spec.root
@@ -236,6 +235,17 @@ pub fn check_validation_source(cfg: &TrainConfig) -> Result<(), TrainError> {
     let Some(src) = cfg.validation_source() else {
         return Ok(());
     };
+    let cameras = source_cameras(&src)?;
+    if cfg.test_views > cameras {
+        return Err(TrainError::file(
+            &src.root,
+            format!(
+                "test_views = {}: the validation {} source has {cameras} cameras",
+                cfg.test_views,
+                src.format.name()
+            ),
+        ));
+    }
     if src.format == SourceFormat::Mvmp {
         let split: Split = src
             .split
@@ -243,17 +253,6 @@ pub fn check_validation_source(cfg: &TrainConfig) -> Result<(), TrainError> {
             .unwrap_or("test")
             .parse()
             .map_err(|e: String| TrainError::file(&src.root, e))?;
-        let layout = mvmp_data::DatasetLayout::open(Path::new(&src.root))?;
-        let cameras = layout.scenes.iter().map(|s| s.rig.len()).min().unwrap_or(0);
-        if cfg.test_views > cameras {
-            return Err(TrainError::file(
-                &src.root,
-                format!(
-                    "test_views = {}: the validation scenes have {cameras} cameras",
-                    cfg.test_views
-                ),
-            ));
-        }
         FrameDataset::open(
             Path::new(&src.root),
             split,
@@ -270,6 +269,18 @@ pub fn check_validation_source(cfg: &TrainConfig) -> Result<(), TrainError> {
         ));
     }
     Ok(())
+}
+
+/// The cameras every frame of a source has: the fewest of any scene of an MVMP-HMR tree, the cameras a
+/// Panoptic or Human3.6M source reads.
+fn source_cameras(spec: &SourceSpec) -> Result<usize, TrainError> {
+    Ok(match spec.format {
+        SourceFormat::Mvmp => {
+            let layout = mvmp_data::DatasetLayout::open(Path::new(&spec.root))?;
+            layout.scenes.iter().map(|s| s.rig.len()).min().unwrap_or(0)
+        }
+        _ => spec.camera_names().len(),
+    })
 }
 
 /// The sequences of a joint-annotated validation source, with the first `test_views` cameras.

@@ -73,7 +73,7 @@ warmup_steps = 5
 schedule = "cosine"
 
 [stage2]
-epochs = 8
+epochs = 16
 lr = 2e-3
 warmup_steps = 10
 schedule = "cosine"
@@ -83,11 +83,14 @@ detection_offset = 0.02
 detection_positive = 1.0
 "#;
 
-/// Bound on the training-frame MPJPE. This run reached 95.8 mm at its last validation (step 200 of 220;
-/// 300.6 mm after the first stage-2 epoch, when the decoder has barely trained, 233.9 after the second),
-/// so 150 mm leaves room for the spread that other thread counts and summation orders bring, and still
-/// fails when the stage-2 gradient path stops learning.
-const MPJPE_BOUND_MM: f64 = 150.0;
+/// Bound on the training-frame MPJPE. Measured with `mvmp train` on this set and these configs (release,
+/// 2 cores), the last validation (stage-2 step 320): 10.4, 10.7 and 10.4 mm with seeds 0, 1 and 2. The
+/// curve falls slowly, then drops sharply (seed 0 over the 16 epochs: 299,
+/// 244, 231, 220, 195, 165, 67, 38, 28, 37, 22, 25, 14, 11, 11, 10 mm), and the drop comes at different
+/// epochs for different seeds: with 12 epochs (on a set with the cameras 0.2 m higher) the seeds ended at
+/// 14.2, 9.5 and 32.3 mm, with 8 epochs the cosine decay ended before the drop (95.8 mm). 40 mm leaves the
+/// drop several epochs of slack and fails when the stage-2 gradient path stops learning.
+const MPJPE_BOUND_MM: f64 = 40.0;
 
 #[test]
 fn two_frames_are_overfitted_and_every_person_is_found() {
@@ -134,6 +137,7 @@ fn two_frames_are_overfitted_and_every_person_is_found() {
         "every person on the training frames is found: {m:?}"
     );
     let mpjpe = m.mpjpe_mm.unwrap();
+    eprintln!("training-frame MPJPE {mpjpe:.1} mm (bound {MPJPE_BOUND_MM} mm): {m:?}");
     assert!(
         mpjpe < MPJPE_BOUND_MM,
         "training-frame MPJPE {mpjpe:.1} mm, bound {MPJPE_BOUND_MM} mm"

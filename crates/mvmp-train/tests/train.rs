@@ -462,7 +462,7 @@ fn bad_configs_name_the_key() {
         .expect("9 views of 3 cameras")
         .to_string();
     assert!(
-        e.contains("train_views") && e.contains("9: the scenes of data") && e.contains("3 cameras"),
+        e.contains("train_views") && e.contains("9: the frames of data") && e.contains("3 cameras"),
         "{e}"
     );
     // A run directory that holds files is not overwritten.
@@ -1228,6 +1228,36 @@ fn source_configs_are_checked() {
     .unwrap()
     .to_string();
     assert!(e.contains("validation.pseudo_gt"), "{e}");
+    // More views than a Panoptic source reads cameras (two listed), for training and for validation: the
+    // key is named before anything is loaded.
+    let cams = "cameras = [\"00_03\", \"00_06\"]\n";
+    let (cfg, model, path) = read(
+        &format!("[[sources]]\nformat = \"panoptic\"\nroot = \"{pan}\"\nsplit = \"160906_pizza1\"\n{cams}"),
+        &|t| t.replacen("train_views = 2", "train_views = 3", 1),
+    )
+    .unwrap();
+    let e = mvmp_train::open_training_set(&cfg, &model, &path)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(
+        e.contains("train_views")
+            && e.contains("3: the frames of sources[0].root")
+            && e.contains("2 cameras"),
+        "{e}"
+    );
+    let (cfg, _, _) = read(
+        &format!("[validation]\nformat = \"panoptic\"\nroot = \"{pan}\"\nsplit = \"160906_pizza1\"\n{cams}"),
+        &|t| t,
+    )
+    .unwrap();
+    let e = mvmp_train::check_validation_source(&cfg)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("test_views = 3") && e.contains("2 cameras"),
+        "{e}"
+    );
     // A primary joint the source does not annotate (Panoptic has no spine joint).
     std::fs::write(dir.path().join("m.toml"), {
         let mut m = model_config();
