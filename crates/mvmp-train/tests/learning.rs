@@ -83,8 +83,8 @@ detection_offset = 0.02
 detection_positive = 1.0
 "#;
 
-/// Bound on the training-frame MPJPE. Measured with `mvmp train` on this set and these configs (release,
-/// 2 cores), the last validation (stage-2 step 320): 10.4, 10.7 and 10.4 mm with seeds 0, 1 and 2. The
+/// Bound on the training-frame MPJPE. Measured with `mvmp train` (release, 2 cores) on a set synthesised
+/// with these settings and with these configs, the last validation (stage-2 step 320): 10.4, 10.7 and 10.4 mm with seeds 0, 1 and 2. The
 /// curve falls slowly, then drops sharply (seed 0 over the 16 epochs: 299,
 /// 244, 231, 220, 195, 165, 67, 38, 28, 37, 22, 25, 14, 11, 11, 10 mm), and the drop comes at different
 /// epochs for different seeds: with 12 epochs (on a set with the cameras 0.2 m higher) the seeds ended at
