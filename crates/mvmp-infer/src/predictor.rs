@@ -108,11 +108,7 @@ impl Predictor {
         cameras: &[Vec<Camera>],
         letterboxes: &[Vec<Letterbox>],
     ) -> Vec<Vec<Root>> {
-        let grids: Vec<RigGrids> = cameras
-            .iter()
-            .zip(letterboxes)
-            .map(|(c, l)| RigGrids::new(&self.cfg, c, l, &self.device))
-            .collect();
+        let grids = RigGrids::for_batch(&self.cfg, cameras, letterboxes, &self.device);
         let det = self.model.detect(images, &grids);
         extract_roots(
             det.likelihood,
@@ -157,11 +153,7 @@ impl Predictor {
         cameras: &[Vec<Camera>],
         letterboxes: &[Vec<Letterbox>],
     ) -> Vec<Vec<PersonPrediction>> {
-        let grids: Vec<RigGrids> = cameras
-            .iter()
-            .zip(letterboxes)
-            .map(|(c, l)| RigGrids::new(&self.cfg, c, l, &self.device))
-            .collect();
+        let grids = RigGrids::for_batch(&self.cfg, cameras, letterboxes, &self.device);
         let out = self
             .model
             .forward(images, &grids, &self.cfg, &self.layer, None);

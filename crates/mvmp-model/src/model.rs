@@ -73,6 +73,20 @@ impl RigGrids {
             ),
         }
     }
+
+    /// The grids of every item of a batch (its cameras and letterboxes per item).
+    pub fn for_batch(
+        cfg: &ModelConfig,
+        cameras: &[Vec<Camera>],
+        letterboxes: &[Vec<Letterbox>],
+        device: &Device,
+    ) -> Vec<Self> {
+        cameras
+            .iter()
+            .zip(letterboxes)
+            .map(|(c, l)| RigGrids::new(cfg, c, l, device))
+            .collect()
+    }
 }
 
 /// Everything the forward produces (inputs of the losses and of inference).

@@ -128,12 +128,7 @@ impl HostGt {
 
 /// Sampling grids of each batch item's selected views.
 pub fn batch_grids(cfg: &ModelConfig, batch: &FrameBatch, device: &Device) -> Vec<RigGrids> {
-    batch
-        .cameras
-        .iter()
-        .zip(&batch.letterboxes)
-        .map(|(c, l)| RigGrids::new(cfg, c, l, device))
-        .collect()
+    RigGrids::for_batch(cfg, &batch.cameras, &batch.letterboxes, device)
 }
 
 /// The detection loss of a batch (Gaussian root volume + sub-voxel offsets of the ground-truth roots).
