@@ -1,4 +1,5 @@
 //! `mvmp body ...` and `mvmp bench smplx`.
+use mvmp_smplx::names::NUM_JOINTS;
 use std::path::Path;
 use std::time::Instant;
 
@@ -216,13 +217,13 @@ pub fn bench(model: Option<&Path>, batch: usize, iters: usize, device: &Device) 
     let model = load_model(model)?;
     let layer = SmplxLayer::new(&model, device);
     // Random-ish but fixed poses: small angles on every joint, varied shapes.
-    let pose: Vec<f32> = (0..batch * 55 * 3)
+    let pose: Vec<f32> = (0..batch * NUM_JOINTS * 3)
         .map(|i| ((i * 7919 % 1000) as f32 / 1000.0 - 0.5) * 0.6)
         .collect();
     let betas: Vec<f32> = (0..batch * 10)
         .map(|i| (i * 104729 % 1000) as f32 / 500.0 - 1.0)
         .collect();
-    let pose = Tensor::<3>::from_data(TensorData::new(pose, [batch, 55, 3]), device);
+    let pose = Tensor::<3>::from_data(TensorData::new(pose, [batch, NUM_JOINTS, 3]), device);
     let betas = Tensor::<2>::from_data(TensorData::new(betas, [batch, 10]), device);
     let expr = Tensor::<2>::zeros([batch, 10], device);
     let transl = Tensor::<2>::zeros([batch, 3], device);

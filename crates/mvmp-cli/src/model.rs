@@ -1,4 +1,5 @@
 //! `mvmp model summary`, `mvmp bench model` and `mvmp bench fusion`.
+use mvmp_smplx::names::NUM_REGRESSED;
 use std::path::Path;
 use std::time::Instant;
 
@@ -241,8 +242,12 @@ pub fn bench(config: &Path, views: usize, iters: usize, device: &Device) -> Resu
             .rot6d
     });
     rows.push(("decoder", t, macs("decoder")));
-    let rotm =
-        mvmp_geom::rotation::rot6d_to_matrix(rot.reshape([k * 53, 6])).reshape([k, 53, 3, 3]);
+    let rotm = mvmp_geom::rotation::rot6d_to_matrix(rot.reshape([k * NUM_REGRESSED, 6])).reshape([
+        k,
+        NUM_REGRESSED,
+        3,
+        3,
+    ]);
     let (_, t) = time(iters, || {
         layer
             .forward(

@@ -11,7 +11,7 @@ use nalgebra::{Vector2, Vector3};
 use crate::DataError;
 use crate::layout::{Annotation, DatasetLayout, FrameRef};
 use mvmp_geom::{Camera, Letterbox};
-use mvmp_smplx::names::NUM_JOINTS_WITH_LANDMARKS;
+use mvmp_smplx::names::{NUM_JOINTS, NUM_JOINTS_WITH_LANDMARKS};
 
 /// ImageNet normalisation (RGB).
 pub const IMAGENET_MEAN: [f32; 3] = [0.485, 0.456, 0.406];
@@ -249,7 +249,7 @@ impl FrameDataset {
                     o.resize(n, 0.0);
                     o
                 };
-                let pose = f32s(&p.smplx.full_pose(), 165);
+                let pose = f32s(&p.smplx.full_pose(), NUM_JOINTS * 3);
                 PersonGt {
                     id: p.id,
                     pose,
@@ -401,7 +401,7 @@ impl Batcher<FrameSample, FrameBatch> for FrameBatcher {
             .unwrap_or(127);
         let mut images = Vec::with_capacity(b * v * 3 * s * s);
         let mut mask = vec![false; b * p];
-        let mut pose = vec![0f32; b * p * 165];
+        let mut pose = vec![0f32; b * p * NUM_JOINTS * 3];
         let mut betas = vec![0f32; b * p * 10];
         let mut expr = vec![0f32; b * p * 10];
         let mut pelvis = vec![0f32; b * p * 3];
@@ -418,7 +418,7 @@ impl Batcher<FrameSample, FrameBatch> for FrameBatcher {
             for (pi, q) in it.people.iter().enumerate() {
                 let k = bi * p + pi;
                 mask[k] = true;
-                pose[k * 165..(k + 1) * 165].copy_from_slice(&q.pose);
+                pose[k * NUM_JOINTS * 3..(k + 1) * NUM_JOINTS * 3].copy_from_slice(&q.pose);
                 betas[k * 10..(k + 1) * 10].copy_from_slice(&q.betas);
                 expr[k * 10..(k + 1) * 10].copy_from_slice(&q.expression);
                 pelvis[k * 3..(k + 1) * 3].copy_from_slice(&q.pelvis);
@@ -444,7 +444,7 @@ impl Batcher<FrameSample, FrameBatch> for FrameBatcher {
             let layer = self.layer(model, device);
             let n = b * p;
             let out = layer.forward_axis_angle(
-                Tensor::from_data(t(pose.clone(), vec![n, 55, 3]), device),
+                Tensor::from_data(t(pose.clone(), vec![n, NUM_JOINTS, 3]), device),
                 Tensor::from_data(t(betas.clone(), vec![n, 10]), device),
                 Tensor::from_data(t(expr.clone(), vec![n, 10]), device),
                 Tensor::from_data(t(pelvis.clone(), vec![n, 3]), device),
@@ -459,7 +459,7 @@ impl Batcher<FrameSample, FrameBatch> for FrameBatcher {
             cameras: items.iter().map(|i| i.cameras.clone()).collect(),
             letterboxes: items.iter().map(|i| i.letterboxes.clone()).collect(),
             mask: Tensor::from_data(TensorData::new(mask, [b, p]), device),
-            pose: Tensor::from_data(t(pose, vec![b, p, 55, 3]), device),
+            pose: Tensor::from_data(t(pose, vec![b, p, NUM_JOINTS, 3]), device),
             betas: Tensor::from_data(t(betas, vec![b, p, 10]), device),
             expression: Tensor::from_data(t(expr, vec![b, p, 10]), device),
             pelvis: Tensor::from_data(t(pelvis, vec![b, p, 3]), device),

@@ -196,7 +196,7 @@ pub fn person_from_joints(
     let root = p.joints[set.root()].map(|x| x as f32);
     PersonGt {
         id: p.id.max(0) as u32,
-        pose: vec![0.0; 165],
+        pose: vec![0.0; mvmp_smplx::names::NUM_JOINTS * 3],
         betas: [0.0; 10],
         expression: [0.0; 10],
         pelvis: root,

@@ -1,6 +1,7 @@
 //! Evaluation drivers: a predictor scored on a dataset split (the MVMP-HMR layout through its frame
 //! dataset, Panoptic and Human3.6M through their joint-annotated sequences), the reference baselines, and
 //! SMPL-X pseudo-ground-truth meshes for joint-annotated data.
+use mvmp_smplx::names::{NUM_BETAS, NUM_EXPRESSION, NUM_REGRESSED};
 use std::path::{Path, PathBuf};
 
 use burn::data::dataloader::batcher::Batcher;
@@ -218,18 +219,23 @@ pub fn mean_pose_at(layer: &SmplxLayer, pelvis: &[[f32; 3]]) -> Vec<PersonPose> 
     let mean = mvmp_decoder::queries::mean_params(device); // [53*6 + 10 + 10]
     let r6 = mean
         .clone()
-        .narrow(0, 0, 53 * 6)
-        .reshape([1, 53 * 6])
+        .narrow(0, 0, NUM_REGRESSED * 6)
+        .reshape([1, NUM_REGRESSED * 6])
         .repeat_dim(0, n);
-    let rot = mvmp_geom::rotation::rot6d_to_matrix(r6.reshape([n * 53, 6])).reshape([n, 53, 3, 3]);
+    let rot = mvmp_geom::rotation::rot6d_to_matrix(r6.reshape([n * NUM_REGRESSED, 6])).reshape([
+        n,
+        NUM_REGRESSED,
+        3,
+        3,
+    ]);
     let betas = mean
         .clone()
-        .narrow(0, 53 * 6, 10)
-        .reshape([1, 10])
+        .narrow(0, NUM_REGRESSED * 6, NUM_BETAS)
+        .reshape([1, NUM_BETAS])
         .repeat_dim(0, n);
     let expr = mean
-        .narrow(0, 53 * 6 + 10, 10)
-        .reshape([1, 10])
+        .narrow(0, NUM_REGRESSED * 6 + NUM_BETAS, NUM_EXPRESSION)
+        .reshape([1, NUM_EXPRESSION])
         .repeat_dim(0, n);
     let flat: Vec<f32> = pelvis.iter().flatten().copied().collect();
     let transl = Tensor::from_data(burn::tensor::TensorData::new(flat, [n, 3]), device);

@@ -9,7 +9,7 @@ use mvmp_fusion::{Root, extract_roots};
 use mvmp_geom::rotation::matrix_to_axis_angle;
 use mvmp_geom::{Camera, Letterbox};
 use mvmp_model::{ModelConfig, MvmpHmr, RigGrids};
-use mvmp_smplx::names::NUM_JOINTS;
+use mvmp_smplx::names::{NUM_BETAS, NUM_EXPRESSION, NUM_JOINTS, NUM_REGRESSED};
 use mvmp_smplx::people::StoredPerson;
 use mvmp_smplx::{BodyModel, SmplxLayer, SmplxParams, regressed_to_full_pose};
 
@@ -23,8 +23,8 @@ pub struct PersonPrediction {
     pub score: f32,
     /// 55 x 3 axis-angle, model joint order.
     pub pose: Vec<f32>,
-    pub betas: [f32; 10],
-    pub expression: [f32; 10],
+    pub betas: [f32; NUM_BETAS],
+    pub expression: [f32; NUM_EXPRESSION],
     /// The pelvis in the world (T_wld).
     pub pelvis: [f32; 3],
     /// smplx's `transl` (added to the model origin): the pelvis minus the shaped rest pelvis.
@@ -160,20 +160,20 @@ impl Predictor {
         let [b, k, nv, _] = out.vertices.dims();
         let nj = out.joints.dims()[2];
         let n = b * k;
-        let full = regressed_to_full_pose(out.rotmats.clone().reshape([n, 53, 3, 3]));
+        let full = regressed_to_full_pose(out.rotmats.clone().reshape([n, NUM_REGRESSED, 3, 3]));
         let aa = matrix_to_axis_angle(full.reshape([n * NUM_JOINTS, 3, 3]));
         let vec =
             |t: Tensor<2>| -> Vec<f32> { t.into_data().convert::<f32>().try_into_vec().unwrap() };
         let aa = vec(aa.reshape([n, NUM_JOINTS * 3]));
-        let betas = vec(out.betas.reshape([n, 10]));
-        let expr = vec(out.expression.reshape([n, 10]));
+        let betas = vec(out.betas.reshape([n, NUM_BETAS]));
+        let expr = vec(out.expression.reshape([n, NUM_EXPRESSION]));
         let rest = self.layer.rest_joints(
             Tensor::from_data(
-                burn::tensor::TensorData::new(betas.clone(), [n, 10]),
+                burn::tensor::TensorData::new(betas.clone(), [n, NUM_BETAS]),
                 &self.device,
             ),
             Tensor::from_data(
-                burn::tensor::TensorData::new(expr.clone(), [n, 10]),
+                burn::tensor::TensorData::new(expr.clone(), [n, NUM_EXPRESSION]),
                 &self.device,
             ),
         );
@@ -194,8 +194,12 @@ impl Predictor {
                         PersonPrediction {
                             score: det.score,
                             pose: aa[i * NUM_JOINTS * 3..(i + 1) * NUM_JOINTS * 3].to_vec(),
-                            betas: betas[i * 10..i * 10 + 10].try_into().unwrap(),
-                            expression: expr[i * 10..i * 10 + 10].try_into().unwrap(),
+                            betas: betas[i * NUM_BETAS..(i + 1) * NUM_BETAS]
+                                .try_into()
+                                .unwrap(),
+                            expression: expr[i * NUM_EXPRESSION..(i + 1) * NUM_EXPRESSION]
+                                .try_into()
+                                .unwrap(),
                             pelvis,
                             transl: std::array::from_fn(|a| pelvis[a] - rest[i * 3 + a]),
                             joints: pts(&joints[i * nj * 3..(i + 1) * nj * 3]),

@@ -103,7 +103,7 @@ fn u(rng: &mut ChaCha8Rng, lo: f64, hi: f64) -> f64 {
 
 /// The full pose for an activity and phase (global orientation from the heading).
 pub fn sample_pose(activity: Activity, heading: f64, phase: f64, rng: &mut ChaCha8Rng) -> Vec<f64> {
-    let mut p = vec![0.0; 165];
+    let mut p = vec![0.0; mvmp_smplx::names::NUM_JOINTS * 3];
     // Global: y-up rest frame to z-up world, then the heading about world z.
     let r = nalgebra::Rotation3::from_axis_angle(&nalgebra::Vector3::z_axis(), heading)
         * nalgebra::Rotation3::from_matrix_unchecked(mvmp_geom::rotation::y_up_to_z_up());

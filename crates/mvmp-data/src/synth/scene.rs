@@ -6,6 +6,7 @@ use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
 use super::people::{PersonState, advance, new_person};
+use mvmp_smplx::names::NUM_JOINTS;
 use mvmp_smplx::{SmplxLayer, SmplxParams, Translation};
 
 /// Closest allowed distance between the surfaces of two people (metres).
@@ -66,7 +67,7 @@ impl Poser {
         };
         let pose = f(
             states.iter().flat_map(|s| s.pose.clone()).collect(),
-            &[n, 55, 3],
+            &[n, NUM_JOINTS, 3],
         );
         let betas = f(states.iter().flat_map(|s| s.betas).collect(), &[n, 10]);
         let expr = f(states.iter().flat_map(|s| s.expression).collect(), &[n, 10]);
@@ -111,7 +112,7 @@ impl Poser {
                     .map(|c| [c[0] as f64, c[1] as f64, (c[2] + lift) as f64])
                     .collect();
                 let pelvis = j[0];
-                let j0 = &rest[i * 55 * 3..i * 55 * 3 + 3];
+                let j0 = &rest[i * NUM_JOINTS * 3..i * NUM_JOINTS * 3 + 3];
                 let transl = [
                     pelvis[0] - j0[0] as f64,
                     pelvis[1] - j0[1] as f64,
