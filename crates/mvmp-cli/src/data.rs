@@ -2,27 +2,14 @@
 use std::path::Path;
 
 use anyhow::{Context, Result};
-use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use mvmp_data::sources::SourceFormat;
 
 use mvmp_data::synth::{SynthConfig, generate};
 
-/// A progress bar on stderr; hidden when stderr is not a terminal.
-pub fn progress_bar(len: u64, what: &str) -> ProgressBar {
-    let pb = ProgressBar::with_draw_target(Some(len), ProgressDrawTarget::stderr());
-    pb.set_style(
-        ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} {elapsed_precise} eta {eta}")
-            .expect("valid template")
-            .progress_chars("=> "),
-    );
-    pb.set_message(what.to_string());
-    pb
-}
-
 pub fn synth(config: &Path, out: &Path) -> Result<()> {
     let cfg = SynthConfig::read(config)?;
     let config_dir = config.parent().unwrap_or(Path::new("."));
-    let pb = progress_bar((cfg.scenes * cfg.frames_per_scene) as u64, "synth");
+    let pb = crate::progress::bar((cfg.scenes * cfg.frames_per_scene) as u64, "synth", false);
     let t0 = std::time::Instant::now();
     let summary = generate(&cfg, out, config_dir, &|| pb.inc(1))
         .with_context(|| format!("synthesising {} into {}", config.display(), out.display()))?;

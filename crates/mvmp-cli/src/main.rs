@@ -17,6 +17,7 @@ mod device;
 mod import;
 mod learn;
 mod model;
+mod progress;
 mod run;
 mod train;
 

@@ -1,9 +1,9 @@
 //! `mvmp eval`, `mvmp infer` and `mvmp demo`.
 use std::path::{Path, PathBuf};
 
+use crate::progress::{self, LazyBar};
 use anyhow::{Context, Result, bail};
 use burn::tensor::Device;
-use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
 use mvmp_data::loader::Split;
@@ -26,18 +26,6 @@ use mvmp_train::run::file_hash;
 pub fn parse_split(s: &str) -> Result<Split> {
     s.parse::<Split>()
         .map_err(|e| anyhow::anyhow!("--split {e}"))
-}
-
-fn bar(n: usize, what: &str) -> ProgressBar {
-    let b = ProgressBar::new(n as u64);
-    b.set_style(
-        ProgressStyle::with_template(&format!(
-            "{what} [{{bar:30}}] {{pos}}/{{len}} {{elapsed_precise}} eta {{eta_precise}}"
-        ))
-        .expect("valid template")
-        .progress_chars("=> "),
-    );
-    b
 }
 
 /// The evaluation protocol, as stated in every report.
@@ -211,28 +199,19 @@ pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, s
                 gate: args.gate,
                 joints: args.joints,
             };
-            let mut pb: Option<ProgressBar> = None;
+            let mut pb = LazyBar::new("eval", quiet);
             let faces = pred.layer.faces().to_vec();
             // Every frame's files go to a staging directory, moved into place once all are scored.
             let staged = args.save_predictions.map(StagedDir::new).transpose()?;
             let ev = evaluate(&pred, args.data, &opts, |i, n, fp| {
-                let b = pb.get_or_insert_with(|| {
-                    if quiet {
-                        ProgressBar::hidden()
-                    } else {
-                        bar(n, "eval")
-                    }
-                });
                 if let Some(dir) = &staged {
                     let d = dir.path().join(&fp.scene).join(&fp.frame);
                     write_frame(&d, &fp.people, &faces, &fp.cameras, None, &pred.cfg.grid)?;
                 }
-                b.set_position(i as u64 + 1);
+                pb.done(i, n);
                 Ok(())
             })?;
-            if let Some(b) = pb {
-                b.finish_and_clear();
-            }
+            pb.finish();
             if let Some(s) = staged {
                 s.finish()?;
             }
@@ -463,11 +442,7 @@ pub fn infer(args: &InferArgs, device: &Device, quiet: bool) -> Result<()> {
                     dir.display()
                 );
             }
-            let b = if quiet {
-                ProgressBar::hidden()
-            } else {
-                bar(frames.len(), "infer")
-            };
+            let b = progress::bar(frames.len() as u64, "infer", quiet);
             // All frames are written to a staging directory and moved into place together.
             let staged = StagedDir::new(args.out)?;
             let mut total = 0;
@@ -671,36 +646,6 @@ fn pseudo_gt(args: &EvalArgs, pred: &Predictor, device: &Device) -> Result<Optio
     }))
 }
 
-/// The progress bar of an evaluation, made once the frame count is known.
-struct EvalProgress {
-    quiet: bool,
-    bar: Option<ProgressBar>,
-}
-
-impl EvalProgress {
-    fn new(quiet: bool) -> Self {
-        EvalProgress { quiet, bar: None }
-    }
-
-    fn step(&mut self, i: usize, n: usize) {
-        let quiet = self.quiet;
-        let b = self.bar.get_or_insert_with(|| {
-            if quiet {
-                ProgressBar::hidden()
-            } else {
-                bar(n, "eval")
-            }
-        });
-        b.set_position(i as u64 + 1);
-    }
-
-    fn finish(self) {
-        if let Some(b) = self.bar {
-            b.finish_and_clear();
-        }
-    }
-}
-
 fn meshes_note(args: &EvalArgs, count: PseudoGtCount) -> serde_json::Value {
     match args.pseudo_gt {
         None => {
@@ -803,7 +748,7 @@ fn eval_joint_dataset(
     let (pred, weights) = Predictor::from_run(&run.root, device)?;
     let pseudo = pseudo_gt(args, &pred, device)?;
     let seqs = (ds.open)(args.data, &ds.parts, cameras, stride)?;
-    let mut pb = EvalProgress::new(quiet);
+    let mut pb = LazyBar::new("eval", quiet);
     let (ev, count) = evaluate_joint_sequences(
         &pred,
         &seqs,
@@ -811,7 +756,7 @@ fn eval_joint_dataset(
         args.frames,
         args.gate,
         pseudo.as_ref(),
-        |i, n| pb.step(i, n),
+        |i, n| pb.done(i, n),
     )?;
     pb.finish();
     let mut header = json!({

@@ -5,7 +5,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use anyhow::Result;
 use burn::tensor::Device;
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::ProgressBar;
 
 use mvmp_train::{
     Monitor, Outcome, RunDir, Stage, StepRecord, TrainConfig, TrainOptions, ValRecord,
@@ -38,19 +38,8 @@ impl Monitor for BarMonitor {
         }
         let what = stage.trains();
         eprintln!("stage {stage} ({what}): {epochs} epochs of {steps_per_epoch} steps");
-        let bar = if self.quiet {
-            ProgressBar::hidden()
-        } else {
-            ProgressBar::new((epochs * steps_per_epoch) as u64)
-        };
-        bar.set_style(
-            ProgressStyle::with_template(
-                "stage {prefix} [{bar:30}] {pos}/{len} {elapsed_precise} eta {eta_precise} {msg}",
-            )
-            .expect("valid template")
-            .progress_chars("=> "),
-        );
-        bar.set_prefix(stage.to_string());
+        let total = (epochs * steps_per_epoch) as u64;
+        let bar = crate::progress::bar(total, &format!("stage {stage}"), self.quiet);
         bar.set_position(done as u64);
         self.bar = Some(bar);
     }
