@@ -216,18 +216,12 @@ fn smplx(other: &Device, r: &mut Report) {
 fn backbones(other: &Device, r: &mut Report) {
     let flex = Device::flex();
     let image = values(2 * 3 * 64 * 64, 5, 1.0);
-    let hr = mvmp::backbone::HRNetConfig::by_name("tiny", 4)
-        .unwrap()
-        .init(&flex)
-        .valid();
+    let hr = mvmp::backbone::HRNetConfig::tiny(4).init(&flex).valid();
     let a = host(hr.forward(t(image.clone(), [2, 3, 64, 64], &flex)));
     let b = host(hr.fork(other).forward(t(image, [2, 3, 64, 64], other)));
     r.check("HRNet heatmaps", &a, &b);
 
-    let vit = mvmp::backbone::ViTConfig::by_name("tiny")
-        .unwrap()
-        .init(&flex)
-        .valid();
+    let vit = mvmp::backbone::ViTConfig::tiny().init(&flex).valid();
     let img = values(3 * 56 * 56, 6, 1.0);
     let a = host(vit.forward(t(img.clone(), [1, 3, 56, 56], &flex)));
     let b = host(vit.fork(other).forward(t(img, [1, 3, 56, 56], other)));

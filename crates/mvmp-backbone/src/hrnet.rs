@@ -47,15 +47,6 @@ impl HRNetConfig {
             .with_blocks(1)
             .with_modules([1, 1, 1])
     }
-    /// A variant by name: `tiny`, `hrnet_w32`, `hrnet_w48`.
-    pub fn by_name(name: &str, joints: usize) -> Option<Self> {
-        match name {
-            "tiny" => Some(Self::tiny(joints)),
-            "hrnet_w32" => Some(Self::hrnet_w32(joints)),
-            "hrnet_w48" => Some(Self::hrnet_w48(joints)),
-            _ => None,
-        }
-    }
 }
 
 fn conv(ci: usize, co: usize, k: usize, stride: usize, bias: bool, device: &Device) -> Conv2d {

@@ -51,17 +51,6 @@ impl ViTConfig {
         ViTConfig::new(1024, 24, 16)
     }
 
-    /// A variant by name: `tiny`, `vit_small_14`, `vit_base_14`, `vit_large_14`.
-    pub fn by_name(name: &str) -> Option<Self> {
-        match name {
-            "tiny" => Some(Self::tiny()),
-            "vit_small_14" => Some(Self::vit_small_14()),
-            "vit_base_14" => Some(Self::vit_base_14()),
-            "vit_large_14" => Some(Self::vit_large_14()),
-            _ => None,
-        }
-    }
-
     /// Patches per side of the position-embedding grid.
     pub fn pos_grid(&self) -> usize {
         self.img_size / PATCH

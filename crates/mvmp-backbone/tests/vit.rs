@@ -81,9 +81,16 @@ fn parameter_counts_follow_the_architecture() {
     let small = ViTConfig::vit_small_14().init(&d);
     assert_eq!(small.num_params(), count(384, 12, 37));
     assert_eq!(small.num_params(), 22_056_576);
+    // Every variant a model config can name parses from that name and back, and builds its config.
     for n in ["tiny", "vit_small_14", "vit_base_14", "vit_large_14"] {
-        assert!(ViTConfig::by_name(n).is_some());
+        let v: mvmp_backbone::VitVariant = n.parse().unwrap();
+        assert_eq!(v.name(), n);
     }
+    assert_eq!(
+        mvmp_backbone::VitVariant::Large14.config(),
+        ViTConfig::vit_large_14()
+    );
+    assert!("vit_huge".parse::<mvmp_backbone::VitVariant>().is_err());
 }
 
 #[test]

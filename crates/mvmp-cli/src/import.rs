@@ -3,14 +3,12 @@ use std::path::Path;
 
 use anyhow::{Result, bail};
 use burn::tensor::Device;
+use mvmp_backbone::{HrnetVariant, VitVariant};
 
-use mvmp_backbone::ViTConfig;
 use mvmp_backbone::import::{import_dinov2, save_native};
 
-pub fn dinov2(variant: &str, from: &Path, out: &Path) -> Result<()> {
-    let Some(cfg) = ViTConfig::by_name(variant) else {
-        bail!("--variant {variant:?}: expected tiny, vit_small_14, vit_base_14 or vit_large_14");
-    };
+pub fn dinov2(variant: VitVariant, from: &Path, out: &Path) -> Result<()> {
+    let cfg = variant.config();
     let device = Device::flex();
     let mut vit = cfg.init(&device);
     let rep = import_dinov2(&mut vit, from)?;
@@ -20,10 +18,8 @@ pub fn dinov2(variant: &str, from: &Path, out: &Path) -> Result<()> {
     Ok(())
 }
 
-pub fn hrnet(variant: &str, joints: usize, from: &Path, out: &Path) -> Result<()> {
-    let Some(cfg) = mvmp_backbone::HRNetConfig::by_name(variant, joints) else {
-        bail!("--variant {variant:?}: expected tiny, hrnet_w32 or hrnet_w48");
-    };
+pub fn hrnet(variant: HrnetVariant, joints: usize, from: &Path, out: &Path) -> Result<()> {
+    let cfg = variant.config(joints);
     if joints == 0 {
         bail!("--joints must be at least 1");
     }

@@ -186,7 +186,7 @@ enum ImportCommand {
     Dinov2 {
         /// tiny, vit_small_14, vit_base_14 or vit_large_14.
         #[arg(long, default_value = "vit_large_14")]
-        variant: String,
+        variant: mvmp_backbone::VitVariant,
         #[arg(long)]
         from: PathBuf,
         /// Output weights (burnpack, mvmp key names).
@@ -197,7 +197,7 @@ enum ImportCommand {
     Hrnet {
         /// tiny, hrnet_w32 or hrnet_w48.
         #[arg(long, default_value = "hrnet_w32")]
-        variant: String,
+        variant: mvmp_backbone::HrnetVariant,
         /// Heatmap joints of the checkpoint's head (17 for COCO).
         #[arg(long, default_value_t = 17)]
         joints: usize,
@@ -398,14 +398,14 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Data(DataCommand::Check { format, dir, deep }) => data::check(format, &dir, deep),
         Command::Model(ModelCommand::Summary { config, views }) => model::summary(&config, views),
         Command::Import(ImportCommand::Dinov2 { variant, from, out }) => {
-            import::dinov2(&variant, &from, &out)
+            import::dinov2(variant, &from, &out)
         }
         Command::Import(ImportCommand::Hrnet {
             variant,
             joints,
             from,
             out,
-        }) => import::hrnet(&variant, joints, &from, &out),
+        }) => import::hrnet(variant, joints, &from, &out),
         Command::Eval {
             run,
             predictions,

@@ -4,7 +4,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use mvmp_backbone::{HRNetConfig, ViTConfig};
+use mvmp_backbone::{HRNetConfig, HrnetVariant, ViTConfig, VitVariant};
 use mvmp_fusion::{FusionMode, VolumeNorm};
 use mvmp_geom::VoxelGrid;
 
@@ -74,11 +74,11 @@ pub struct ModelConfig {
     /// Network input size S (images are letterboxed to S x S).
     pub image_size: u32,
     /// ViT variant: tiny, vit_small_14, vit_base_14, vit_large_14.
-    pub backbone: String,
+    pub backbone: VitVariant,
     /// Feature channels after the 1 x 1 reduction (C_f).
     pub feature_channels: usize,
     /// HRNet variant: tiny, hrnet_w32, hrnet_w48.
-    pub hrnet: String,
+    pub hrnet: HrnetVariant,
     /// SMPL-X joints whose 2D heatmaps HRNet predicts and the heatmap volume holds.
     pub heatmap_joints: Vec<usize>,
     /// The voxel grid (world metres).
@@ -108,9 +108,9 @@ impl Default for ModelConfig {
     fn default() -> Self {
         ModelConfig {
             image_size: 224,
-            backbone: "tiny".into(),
+            backbone: VitVariant::Tiny,
             feature_channels: 32,
-            hrnet: "tiny".into(),
+            hrnet: HrnetVariant::Tiny,
             heatmap_joints: (0..22).collect(),
             grid: VoxelGrid {
                 center: [0.0, 0.0, 1.0],
@@ -154,11 +154,11 @@ impl ModelConfig {
     }
 
     pub fn vit(&self) -> ViTConfig {
-        ViTConfig::by_name(&self.backbone).expect("validated")
+        self.backbone.config()
     }
 
     pub fn hrnet_config(&self) -> HRNetConfig {
-        HRNetConfig::by_name(&self.hrnet, self.heatmap_joints.len()).expect("validated")
+        self.hrnet.config(self.heatmap_joints.len())
     }
 
     pub fn validate(&self) -> Result<(), ModelConfigError> {
@@ -174,21 +174,6 @@ impl ModelConfig {
                     "{}: must be a multiple of 4 of at least 28",
                     self.image_size
                 ),
-            ));
-        }
-        if ViTConfig::by_name(&self.backbone).is_none() {
-            return Err(bad(
-                "backbone",
-                format!(
-                    "{:?}: expected tiny, vit_small_14, vit_base_14 or vit_large_14",
-                    self.backbone
-                ),
-            ));
-        }
-        if HRNetConfig::by_name(&self.hrnet, 1).is_none() {
-            return Err(bad(
-                "hrnet",
-                format!("{:?}: expected tiny, hrnet_w32 or hrnet_w48", self.hrnet),
             ));
         }
         if self.feature_channels == 0 {
