@@ -47,6 +47,12 @@ impl HRNetConfig {
             .with_blocks(1)
             .with_modules([1, 1, 1])
     }
+    /// A variant by its config name (`tiny`, `hrnet_w32`, `hrnet_w48`).
+    pub fn by_name(name: &str, joints: usize) -> Option<Self> {
+        name.parse::<crate::HrnetVariant>()
+            .ok()
+            .map(|v| v.config(joints))
+    }
 }
 
 fn conv(ci: usize, co: usize, k: usize, stride: usize, bias: bool, device: &Device) -> Conv2d {

@@ -51,6 +51,11 @@ impl ViTConfig {
         ViTConfig::new(1024, 24, 16)
     }
 
+    /// A variant by its config name (`tiny`, `vit_small_14`, `vit_base_14`, `vit_large_14`).
+    pub fn by_name(name: &str) -> Option<Self> {
+        name.parse::<crate::VitVariant>().ok().map(|v| v.config())
+    }
+
     /// Patches per side of the position-embedding grid.
     pub fn pos_grid(&self) -> usize {
         self.img_size / PATCH

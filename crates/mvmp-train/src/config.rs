@@ -54,6 +54,13 @@ impl From<Stage> for u32 {
     }
 }
 
+/// Stages compare with their numbers (`stage == 1`), as logs and `state.json` write them.
+impl PartialEq<u32> for Stage {
+    fn eq(&self, n: &u32) -> bool {
+        self.number() == *n
+    }
+}
+
 impl TryFrom<u32> for Stage {
     type Error = String;
     fn try_from(n: u32) -> Result<Stage, String> {
@@ -378,6 +385,20 @@ impl TrainConfig {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn stages_are_numbered_one_and_two() {
+        assert_eq!(Stage::Detection, 1);
+        assert_eq!(Stage::Whole, 2);
+        assert_eq!(serde_json::to_string(&Stage::Whole).unwrap(), "2");
+        assert_eq!(
+            serde_json::from_str::<Stage>("1").unwrap(),
+            Stage::Detection
+        );
+        let e = serde_json::from_str::<Stage>("3").unwrap_err().to_string();
+        assert!(e.contains("stage 3"), "{e}");
+        assert_eq!(format!("stage{}", Stage::Whole), "stage2");
+    }
 
     fn stage(warmup_steps: usize, schedule: LrSchedule) -> StageConfig {
         StageConfig {
