@@ -3,7 +3,8 @@
 //! stem with a bottleneck layer, four stages of parallel branches at strides 4, 8, 16, 32 with repeated
 //! multi-resolution fusion, and a 1 x 1 head on the highest-resolution branch.
 //!
-//! Forward: `[B, 3, H, W]` (H, W multiples of 32) -> heatmaps `[B, J, H/4, W/4]`.
+//! Forward: `[B, 3, H, W]` (H, W multiples of 4; the lower-resolution branches are resized back to each
+//! branch's exact size, so no larger multiple is needed) -> heatmaps `[B, J, H/4, W/4]`.
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
