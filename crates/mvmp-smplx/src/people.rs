@@ -228,3 +228,62 @@ pub fn read_people_npz(path: &Path) -> Result<Vec<StoredPerson>, SmplxError> {
     }
     Ok(people)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn person(pelvis: Option<[f64; 3]>) -> StoredPerson {
+        let mut params = SmplxParams {
+            global_orient: vec![0.5, -0.25, 0.125],
+            betas: vec![1.0, -2.0],
+            transl: vec![0.1, 0.2, 0.3],
+            ..Default::default()
+        };
+        params.body_pose = (0..63).map(|i| i as f64 / 64.0).collect();
+        StoredPerson {
+            params,
+            score: 0.75,
+            pelvis,
+        }
+    }
+
+    #[test]
+    fn people_round_trip_and_a_bad_pelvis_is_named() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("people.npz");
+        let people = [
+            person(Some([1.0, -2.0, 0.5])),
+            person(Some([0.0, 0.0, 1.0])),
+        ];
+        write_people_npz(&path, &people).unwrap();
+        let back = read_people_npz(&path).unwrap();
+        assert_eq!(back.len(), 2);
+        assert_eq!(back[0].pelvis, Some([1.0, -2.0, 0.5]));
+        assert_eq!(back[1].score, 0.75);
+        // Written as float32: these values are exact in it; betas are padded to 10 columns.
+        assert_eq!(back[0].params.global_orient, people[0].params.global_orient);
+        assert_eq!(back[0].params.body_pose, people[0].params.body_pose);
+        assert_eq!(&back[0].params.betas[..2], &[1.0, -2.0]);
+        assert_eq!(back[0].params.betas.len(), 10);
+        // Without a pelvis for every person, the key is left out and reads back as unknown.
+        write_people_npz(&path, &[person(None), person(Some([0.0; 3]))]).unwrap();
+        assert!(
+            read_people_npz(&path)
+                .unwrap()
+                .iter()
+                .all(|p| p.pelvis.is_none())
+        );
+        // A non-finite pelvis is an error naming the file, the key and the person.
+        write_people_npz(
+            &path,
+            &[person(Some([0.0; 3])), person(Some([f64::NAN, 0.0, 0.0]))],
+        )
+        .unwrap();
+        let e = read_people_npz(&path).unwrap_err().to_string();
+        assert!(
+            e.contains("people.npz") && e.contains("`pelvis`[1]") && e.contains("NaN"),
+            "{e}"
+        );
+    }
+}
