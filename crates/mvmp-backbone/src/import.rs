@@ -243,7 +243,10 @@ pub fn load_native<M: burn::module::Module>(
             source: std::io::Error::new(std::io::ErrorKind::NotFound, "no such file"),
         });
     }
-    let mut store = BurnpackStore::from_file(path).auto_extension(false);
+    // Partial: the caller decides which missing tensors it can do without (the report lists them).
+    let mut store = BurnpackStore::from_file(path)
+        .auto_extension(false)
+        .allow_partial(true);
     let r = module
         .load_from(&mut store)
         .map_err(|e| ImportError::Format {

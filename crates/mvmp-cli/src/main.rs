@@ -54,7 +54,7 @@ struct Cli {
 /// `mvmp eval --baseline`: a reference to score instead of a model.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 enum Baseline {
-    /// The mean pose placed at each ground-truth pelvis.
+    /// The training split's mean pose placed upright at each ground-truth pelvis.
     MeanPose,
 }
 
@@ -83,7 +83,7 @@ enum Command {
         /// Predictions in infer's layout: PRED_DIR/<scene>/<frame>/people.npz.
         #[arg(long, conflicts_with = "baseline")]
         predictions: Option<PathBuf>,
-        /// A reference instead of a model: `mean-pose` (the mean pose at each ground-truth pelvis).
+        /// A reference instead of a model: `mean-pose` (the training split's mean pose at each ground-truth pelvis).
         #[arg(long, value_enum)]
         baseline: Option<Baseline>,
         /// Dataset root (mvmp layout).

@@ -10,7 +10,7 @@ use mvmp_data::loader::Split;
 use mvmp_data::sources::SourceFormat;
 use mvmp_eval::drivers::{
     EvalOptions, PseudoGt, PseudoGtCount, evaluate, evaluate_frames, evaluate_joint_sequences,
-    mean_pose_at, pose_params,
+    mean_pose_at, pose_params, reference_mean,
 };
 use mvmp_eval::joint_sets::JointSet;
 use mvmp_eval::{AP_THRESHOLDS, Evaluator, Metrics};
@@ -251,6 +251,9 @@ pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, s
         }
         Source::MeanPose => {
             let layer = SmplxLayer::new(&layout.body_model()?, device);
+            // The mean of the training split (what a trained decoder starts from); without people there,
+            // the untrained decoder's parameters.
+            let (mean, people) = reference_mean(args.data, device)?;
             let opts = EvalOptions {
                 split: args.split,
                 views: 1,
@@ -270,11 +273,14 @@ pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, s
                     .take(p)
                     .map(|i| [pel[i * 3], pel[i * 3 + 1], pel[i * 3 + 2]])
                     .collect();
-                Ok(mean_pose_at(&layer, &pelvis))
+                Ok(mean_pose_at(&layer, &mean, &pelvis))
             })?;
             (
                 ev,
-                json!({"baseline": "mean pose at the ground-truth pelvis"}),
+                json!({
+                    "baseline": "mean pose at the ground-truth pelvis",
+                    "mean_of_training_people": people,
+                }),
                 1,
             )
         }

@@ -6,6 +6,7 @@ pub mod error;
 pub mod h36m;
 pub mod layout;
 pub mod loader;
+pub mod mean;
 pub mod panoptic;
 pub mod sources;
 pub mod stats;

@@ -5,7 +5,7 @@
 //! people masked), pre-norm cross-attention to the volume tokens, pre-norm FFN, each residual. Heads: 53
 //! rotations (6D), betas, expression, each a residual on the mean parameters, and a 3D offset from the root.
 use burn::config::Config;
-use burn::module::Module;
+use burn::module::{Module, Param};
 use burn::nn::attention::{MhaInput, MultiHeadAttention, MultiHeadAttentionConfig};
 use burn::nn::{LayerNorm, LayerNormConfig, Linear, LinearConfig};
 use burn::tensor::activation::{gelu, relu};
@@ -121,7 +121,15 @@ pub struct Decoder {
     pub betas_head: Head,
     pub expr_head: Head,
     pub offset_head: Head,
+    /// Where the residual heads start: the mean parameters `[PARAM_DIM]` (set from the training data,
+    /// kept in checkpoints, never trained).
+    pub mean: Param<Tensor<1>>,
     pub pool: usize,
+}
+
+/// A parameter that is saved and loaded but not trained.
+fn constant(t: Tensor<1>) -> Param<Tensor<1>> {
+    Param::from_tensor(t).set_require_grad(false)
 }
 
 /// Decoder output for `K` query slots.
@@ -206,12 +214,22 @@ impl DecoderConfig {
             betas_head: Head::new(d, NUM_BETAS, device),
             expr_head: Head::new(d, NUM_EXPRESSION, device),
             offset_head: Head::new(d, 3, device),
+            mean: constant(mean_params(device)),
             pool: self.pool.max(1),
         }
     }
 }
 
 impl Decoder {
+    /// The same decoder starting its regression from `mean` `[PARAM_DIM]` (see [`params_vector`]).
+    ///
+    /// [`params_vector`]: crate::queries::params_vector
+    pub fn with_mean(mut self, mean: Tensor<1>) -> Self {
+        assert_eq!(mean.dims(), [PARAM_DIM], "a full parameter vector");
+        self.mean = constant(mean);
+        self
+    }
+
     fn pool_factors(&self, grid: &VoxelGrid) -> [usize; 3] {
         std::array::from_fn(|a| {
             if grid.shape[a].is_multiple_of(self.pool) {
@@ -234,7 +252,7 @@ impl Decoder {
         let k = roots.dims()[1];
         let device = volume.device();
         let sampled = trilinear_sample(volume.clone(), roots.clone(), grid); // [B, K, C]
-        let mean = mean_params(&device).reshape([1, 1, PARAM_DIM]);
+        let mean = self.mean.val().detach().reshape([1, 1, PARAM_DIM]);
         let q_in = Tensor::cat(
             vec![sampled, mean.clone().repeat_dim(0, b).repeat_dim(1, k)],
             2,

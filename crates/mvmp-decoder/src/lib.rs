@@ -4,4 +4,4 @@ pub mod htb;
 pub mod queries;
 
 pub use htb::{Decoder, DecoderConfig, DecoderOutput, HumanTransformerBlock, point_encoding};
-pub use queries::{mean_params, trilinear_sample};
+pub use queries::{mean_params, params_vector, trilinear_sample};

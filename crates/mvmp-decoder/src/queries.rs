@@ -8,21 +8,46 @@ use mvmp_smplx::names::{NUM_BETAS, NUM_EXPRESSION, NUM_REGRESSED};
 /// Width of the parameter vector: 53 rotations in 6D, betas, expression.
 pub const PARAM_DIM: usize = NUM_REGRESSED * 6 + NUM_BETAS + NUM_EXPRESSION;
 
-/// The mean parameter vector `[PARAM_DIM]`: the global orientation of an upright person in the z-up world
-/// (the y-up to z-up turn), identity for every other rotation, zero betas and expression.
+/// The default mean parameter vector `[PARAM_DIM]`: the global orientation of an upright person in the
+/// z-up world (the y-up to z-up turn), identity for every other rotation, zero betas and expression.
+/// Training replaces it with its data's mean ([`params_vector`]); this is where an untrained model starts.
 pub fn mean_params(device: &Device) -> Tensor<1> {
     let g = y_up_to_z_up();
-    let gm: Vec<f32> = (0..9).map(|k| g[(k / 3, k % 3)] as f32).collect();
-    let g6 = matrix_to_rot6d(Tensor::<3>::from_data(
-        TensorData::new(gm, [1, 3, 3]),
+    let mut rotations = vec![[1f32, 0., 0., 0., 1., 0., 0., 0., 1.]; NUM_REGRESSED];
+    rotations[0] = std::array::from_fn(|k| g[(k / 3, k % 3)] as f32);
+    params_vector(
+        &rotations,
+        &[0.0; NUM_BETAS],
+        &[0.0; NUM_EXPRESSION],
+        device,
+    )
+}
+
+/// A parameter vector `[PARAM_DIM]` from 53 rotation matrices in the regressed order (row-major), betas
+/// and expression.
+pub fn params_vector(
+    rotations: &[[f32; 9]],
+    betas: &[f32; NUM_BETAS],
+    expression: &[f32; NUM_EXPRESSION],
+    device: &Device,
+) -> Tensor<1> {
+    assert_eq!(
+        rotations.len(),
+        NUM_REGRESSED,
+        "one rotation per regressed joint"
+    );
+    let flat: Vec<f32> = rotations.iter().flatten().copied().collect();
+    let r6 = matrix_to_rot6d(Tensor::<3>::from_data(
+        TensorData::new(flat, [NUM_REGRESSED, 3, 3]),
         device,
     ))
-    .reshape([6]);
-    let eye = Tensor::<1>::from_data(TensorData::new(vec![1f32, 0., 0., 0., 1., 0.], [6]), device);
-    let mut parts = vec![g6];
-    parts.extend((1..NUM_REGRESSED).map(|_| eye.clone()));
-    parts.push(Tensor::zeros([NUM_BETAS + NUM_EXPRESSION], device));
-    Tensor::cat(parts, 0)
+    .reshape([NUM_REGRESSED * 6]);
+    let coeffs: Vec<f32> = betas.iter().chain(expression).copied().collect();
+    let coeffs = Tensor::from_data(
+        TensorData::new(coeffs, [NUM_BETAS + NUM_EXPRESSION]),
+        device,
+    );
+    Tensor::cat(vec![r6, coeffs], 0)
 }
 
 /// Trilinear sample of `volume` `[B, C, X, Y, Z]` at world points `[B, K, 3]` (voxel-centre convention,

@@ -1,13 +1,14 @@
 //! Evaluation drivers: a predictor scored on a dataset split (the MVMP-HMR layout through its frame
 //! dataset, Panoptic and Human3.6M through their joint-annotated sequences), the reference baselines, and
 //! SMPL-X pseudo-ground-truth meshes for joint-annotated data.
-use mvmp_smplx::names::{NUM_BETAS, NUM_EXPRESSION, NUM_REGRESSED};
+use mvmp_smplx::names::{NUM_BETAS, NUM_EXPRESSION, NUM_REGRESSED, REGRESSED_TO_JOINT};
 use std::path::{Path, PathBuf};
 
 use burn::data::dataloader::batcher::Batcher;
 use burn::tensor::{Device, Tensor};
 
 use mvmp_data::loader::{FrameBatch, FrameBatcher, FrameDataset, Split, ViewChoice};
+use mvmp_data::mean::{MeanAccumulator, MeanParams};
 use mvmp_data::sources::JointAnnotated;
 use mvmp_geom::Camera;
 use mvmp_infer::{InferError, PersonPrediction, Predictor};
@@ -207,16 +208,62 @@ fn to_poses(
         .collect()
 }
 
-/// The reference baseline "mean pose at the ground-truth pelvis": the decoder's initial parameters (mean
-/// pose, upright, facing the model's default direction; zero shape and expression) placed at each
-/// ground-truth pelvis. What a model must beat to show that it reads pose from the images.
-pub fn mean_pose_at(layer: &SmplxLayer, pelvis: &[[f32; 3]]) -> Vec<PersonPose> {
+/// The decoder's parameter vector `[PARAM_DIM]` of a data mean: its rotations in the regressed order, its
+/// betas and expression, except the global orientation, which stays the default upright one (headings are
+/// spread round the circle, so their mean says nothing).
+pub fn mean_vector(m: &MeanParams, device: &Device) -> Tensor<1> {
+    let default = mvmp_decoder::mean_params(device)
+        .narrow(0, 0, 6)
+        .reshape([1, 6]);
+    let global: Vec<f32> = mvmp_geom::rotation::rot6d_to_matrix(default)
+        .to_data()
+        .convert::<f32>()
+        .try_into_vec::<f32>()
+        .expect("f32 data");
+    let rotations: Vec<[f32; 9]> = REGRESSED_TO_JOINT
+        .iter()
+        .enumerate()
+        .map(|(i, &j)| match i {
+            0 => std::array::from_fn(|k| global[k]),
+            _ => m.rotations[j].map(|x| x as f32),
+        })
+        .collect();
+    mvmp_decoder::params_vector(
+        &rotations,
+        &m.betas.map(|x| x as f32),
+        &m.expression.map(|x| x as f32),
+        device,
+    )
+}
+
+/// The mean parameters of a dataset's training split (`None` when it has no people there).
+pub fn training_mean(data: &Path) -> Result<Option<MeanParams>, InferError> {
+    let set = FrameDataset::open(data, Split::Train, ViewChoice::Fixed(vec![0]), 28)?;
+    let mut acc = MeanAccumulator::default();
+    acc.add_frames(set.layout(), set.frames())?;
+    Ok(acc.finish())
+}
+
+/// The parameters of the mean-pose reference on a dataset: its training split's mean ([`mean_vector`])
+/// and how many people it is over; without people there, the untrained decoder's parameters and 0.
+pub fn reference_mean(data: &Path, device: &Device) -> Result<(Tensor<1>, usize), InferError> {
+    Ok(match training_mean(data)? {
+        Some(m) => (mean_vector(&m, device), m.people),
+        None => (mvmp_decoder::mean_params(device), 0),
+    })
+}
+
+/// The reference baseline "mean pose at the ground-truth pelvis": the parameters `mean` `[PARAM_DIM]`
+/// (the training data's mean, [`mean_vector`], or the untrained decoder's) placed upright at each
+/// ground-truth pelvis, facing the model's default direction. What a model must beat to show that it
+/// reads pose from the images.
+pub fn mean_pose_at(layer: &SmplxLayer, mean: &Tensor<1>, pelvis: &[[f32; 3]]) -> Vec<PersonPose> {
     let n = pelvis.len();
     if n == 0 {
         return Vec::new();
     }
     let device = layer.device();
-    let mean = mvmp_decoder::queries::mean_params(device); // [53*6 + 10 + 10]
+    let mean = mean.clone().to_device(device);
     let r6 = mean
         .clone()
         .narrow(0, 0, NUM_REGRESSED * 6)

@@ -384,65 +384,17 @@ pub fn stage2_loss(
     finish(terms.named(), queries, diag, device)
 }
 
-/// The ground truth each query is compared with: padded rows of the batch gathered per query slot, and
-/// the supervision masks (SMPL-X terms only for people with SMPL-X ground truth, joint terms per
-/// annotated joint, the orientation where its four joints are annotated; empty slots masked out).
-pub struct QueryTargets {
+/// Where each query slot's ground truth sits among the batch's padded people.
+struct Slots {
     b: usize,
     k: usize,
     /// Padded people per item in the batch.
     p: usize,
     /// The padded ground-truth row of each query `[B * K]` (0 for empty slots).
     rows: Tensor<1, Int>,
-    /// 1 where a slot holds a query `[B, K]`.
-    present: Tensor<2>,
-    smplx: Tensor<2>,
-    joint_weight: Tensor<3>,
-    orientation: Tensor<2>,
-    joints: Tensor<4>,
 }
 
-impl QueryTargets {
-    fn new(
-        batch: &FrameBatch,
-        slots: &[Vec<([f64; 3], usize)>],
-        k: usize,
-        device: &Device,
-    ) -> Self {
-        let (b, p) = (slots.len(), batch.joints_3d.dims()[1]);
-        let mut rows = vec![0i64; b * k];
-        let mut present = vec![0f32; b * k];
-        for (bi, s) in slots.iter().enumerate() {
-            for (ki, &(_, gi)) in s.iter().enumerate() {
-                rows[bi * k + ki] = (bi * p + gi) as i64;
-                present[bi * k + ki] = 1.0;
-            }
-        }
-        let rows = Tensor::<1, Int>::from_data(TensorData::new(rows, [b * k]), device);
-        let present = Tensor::<2>::from_data(TensorData::new(present, [b, k]), device);
-        let mut t = QueryTargets {
-            b,
-            k,
-            p,
-            rows,
-            smplx: present.clone(),
-            joint_weight: present.clone().reshape([b, k, 1]),
-            orientation: present.clone(),
-            joints: Tensor::zeros([b, k, 1, 3], device),
-            present,
-        };
-        t.smplx = t.pick2(batch.smplx.clone()) * t.present.clone();
-        t.joint_weight = t.pick3(batch.joint_valid.clone()) * t.present.clone().reshape([b, k, 1]);
-        t.orientation = t
-            .joint_weight
-            .clone()
-            .narrow(2, 0, 4)
-            .min_dim(2)
-            .reshape([b, k]);
-        t.joints = t.pick4(batch.joints_3d.clone());
-        t
-    }
-
+impl Slots {
     /// Per-person rows `[B, P]` gathered per query `[B, K]`.
     fn pick2(&self, x: Tensor<2>) -> Tensor<2> {
         x.reshape([self.b * self.p])
@@ -467,6 +419,56 @@ impl QueryTargets {
     }
 }
 
+/// The ground truth each query is compared with: padded rows of the batch gathered per query slot, and
+/// the supervision masks (SMPL-X terms only for people with SMPL-X ground truth, joint terms per
+/// annotated joint, the orientation where its four joints are annotated; empty slots masked out).
+pub struct QueryTargets {
+    at: Slots,
+    smplx: Tensor<2>,
+    joint_weight: Tensor<3>,
+    orientation: Tensor<2>,
+    joints: Tensor<4>,
+}
+
+impl QueryTargets {
+    fn new(
+        batch: &FrameBatch,
+        slots: &[Vec<([f64; 3], usize)>],
+        k: usize,
+        device: &Device,
+    ) -> Self {
+        let (b, p) = (slots.len(), batch.joints_3d.dims()[1]);
+        let mut rows = vec![0i64; b * k];
+        let mut present = vec![0f32; b * k];
+        for (bi, s) in slots.iter().enumerate() {
+            for (ki, &(_, gi)) in s.iter().enumerate() {
+                rows[bi * k + ki] = (bi * p + gi) as i64;
+                present[bi * k + ki] = 1.0;
+            }
+        }
+        let at = Slots {
+            b,
+            k,
+            p,
+            rows: Tensor::from_data(TensorData::new(rows, [b * k]), device),
+        };
+        // 1 where a slot holds a query `[B, K]`.
+        let present = Tensor::<2>::from_data(TensorData::new(present, [b, k]), device);
+        let joint_weight = at.pick3(batch.joint_valid.clone()) * present.clone().reshape([b, k, 1]);
+        QueryTargets {
+            smplx: at.pick2(batch.smplx.clone()) * present.clone(),
+            orientation: joint_weight
+                .clone()
+                .narrow(2, 0, 4)
+                .min_dim(2)
+                .reshape([b, k]),
+            joints: at.pick4(batch.joints_3d.clone()),
+            joint_weight,
+            at,
+        }
+    }
+}
+
 /// The parameter loss: the regressed rotations, betas and expression against the ground truth's.
 fn parameters_term(
     out: &MvmpOutput,
@@ -474,7 +476,7 @@ fn parameters_term(
     t: &QueryTargets,
     device: &Device,
 ) -> Tensor<1> {
-    let (b, k, p) = (t.b, t.k, t.p);
+    let (b, k, p) = (t.at.b, t.at.k, t.at.p);
     let rot = axis_angle_to_matrix(batch.pose.clone().reshape([b * p * NUM_JOINTS, 3])).reshape([
         b * p,
         NUM_JOINTS,
@@ -486,15 +488,15 @@ fn parameters_term(
     let gt_rot = rot
         .select(1, sel)
         .reshape([b * p, NUM_REGRESSED * 9])
-        .select(0, t.rows.clone())
+        .select(0, t.at.rows.clone())
         .reshape([b, k, NUM_REGRESSED, 3, 3]);
     parameter_loss(
         out.rotmats.clone(),
         gt_rot,
         out.betas.clone(),
-        t.pick3(batch.betas.clone()),
+        t.at.pick3(batch.betas.clone()),
         out.expression.clone(),
-        t.pick3(batch.expression.clone()),
+        t.at.pick3(batch.expression.clone()),
         t.smplx.clone(),
     )
 }
@@ -512,8 +514,12 @@ fn mesh_term(
     let mut points = vec![(out.joints.clone(), t.joints.clone(), t.joint_weight.clone())];
     if let Some(v) = &batch.vertices {
         let nv = v.dims()[2];
-        let w = t.smplx.clone().reshape([t.b, t.k, 1]).repeat_dim(2, nv);
-        points.push((out.vertices.clone(), t.pick4(v.clone()), w));
+        let w = t
+            .smplx
+            .clone()
+            .reshape([t.at.b, t.at.k, 1])
+            .repeat_dim(2, nv);
+        points.push((out.vertices.clone(), t.at.pick4(v.clone()), w));
     }
     let mut mesh: Option<Tensor<1>> = None;
     let mut add = |x: Tensor<1>| mesh = Some(mesh.take().map_or(x.clone(), |m| m + x));
@@ -539,7 +545,7 @@ fn mesh_2d_sum(
     t: &QueryTargets,
     device: &Device,
 ) -> Option<Tensor<1>> {
-    let (b, k) = (t.b, t.k);
+    let (b, k) = (t.at.b, t.at.k);
     let size = batch.images.dims()[3] as f32;
     let mut sum: Option<Tensor<1>> = None;
     for v in 0..batch.cameras[0].len() {
@@ -585,7 +591,7 @@ fn density_term(
     density_loss(
         out.joints.clone(),
         t.joints.clone(),
-        t.pick3(batch.pelvis.clone()),
+        t.at.pick3(batch.pelvis.clone()),
         grid,
         weights.density_sigma,
         t.smplx.clone(),

@@ -388,6 +388,36 @@ fn a_wall_time_limit_stops_after_the_step_in_flight_with_a_checkpoint() {
     }
 }
 
+/// A fresh run's decoder regresses from the mean parameters of its training people (kept in the
+/// checkpoint), not from the default upright T-pose.
+#[test]
+fn a_fresh_run_starts_its_decoder_at_the_training_mean() {
+    let dir = tempfile::tempdir().unwrap();
+    let (run, cfg, model) = new_run(dir.path(), "mean", &|s| s);
+    let Outcome::Interrupted { checkpoint, .. } =
+        mvmp_train::train(&run, &cfg, &model, &options(Some(1)), &mut Quiet).unwrap()
+    else {
+        panic!("expected a stop after one step");
+    };
+    let mut m = mvmp_train::seeded_init(&model, &Device::flex(), 0);
+    load_weights(&mut m, &checkpoint).unwrap();
+    let vals = |t: Tensor<1>| t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap();
+    let stored = vals(m.decoder.mean.val());
+    let mean = mvmp_eval::drivers::training_mean(dataset())
+        .unwrap()
+        .unwrap();
+    let want = vals(mvmp_eval::drivers::mean_vector(&mean, &Device::flex()));
+    let default = vals(mvmp_decoder::mean_params(&Device::flex()));
+    assert_eq!(stored, want);
+    // The global orientation stays the default; the synthetic people's arms hang, so the shoulders do not.
+    assert_eq!(stored[..6], default[..6]);
+    let shoulder = 16 * 6;
+    let moved: f32 = (0..6)
+        .map(|k| (stored[shoulder + k] - default[shoulder + k]).abs())
+        .sum();
+    assert!(moved > 0.5, "left shoulder 6D moved by {moved}");
+}
+
 #[test]
 fn a_diverging_run_stops_naming_the_term_and_the_step() {
     let dir = tempfile::tempdir().unwrap();

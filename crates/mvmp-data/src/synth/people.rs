@@ -46,8 +46,19 @@ pub struct Appearance {
     pub shirt: [f32; 3],
     pub pants: [f32; 3],
     pub shoes: [f32; 3],
+    pub hair: [f32; 3],
     pub long_sleeves: bool,
 }
+
+/// Black, dark brown, brown, auburn, blond, grey.
+const HAIR: [[f32; 3]; 6] = [
+    [0.03, 0.03, 0.03],
+    [0.10, 0.06, 0.04],
+    [0.25, 0.15, 0.08],
+    [0.35, 0.12, 0.05],
+    [0.75, 0.62, 0.35],
+    [0.55, 0.55, 0.55],
+];
 
 const SKIN: [[f32; 3]; 6] = [
     [0.93, 0.76, 0.64],
@@ -57,6 +68,13 @@ const SKIN: [[f32; 3]; 6] = [
     [0.40, 0.26, 0.17],
     [0.28, 0.18, 0.12],
 ];
+
+/// A hair colour picked from the clothes already drawn, not from the generator: a draw of its own would
+/// move every later draw and so every scene made before hair existed.
+fn hair_of(shirt: [f32; 3], pants: [f32; 3]) -> [f32; 3] {
+    let mix = (shirt[0] * 7919.0 + shirt[2] * 104_729.0 + pants[1] * 1_299_709.0) as u64;
+    HAIR[(mix % HAIR.len() as u64) as usize]
+}
 
 impl Appearance {
     pub fn sample(rng: &mut ChaCha8Rng) -> Self {
@@ -71,6 +89,7 @@ impl Appearance {
             pants,
             shoes,
             long_sleeves: rng.random_bool(0.5),
+            hair: hair_of(shirt, pants),
         }
     }
 }

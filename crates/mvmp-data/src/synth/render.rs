@@ -7,19 +7,31 @@ use super::scene::Posed;
 use mvmp_geom::Camera;
 use mvmp_geom::raster::{Frame, Light, MeshRef, coverage, draw};
 
-/// Which garment (or skin) covers a face of the body mesh.
+/// Which garment (or skin, or hair) covers a face of the body mesh.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Part {
     Skin,
+    Hair,
     Shirt,
     Sleeve,
     Pants,
     Shoes,
 }
 
-/// The part of each face, from the joint that dominates its first vertex's skinning weights.
+const HEAD: usize = 15;
+
+/// The part of each face, from the joint that dominates its first vertex's skinning weights. The head
+/// is skin in front below the forehead and hair elsewhere: with a head of one colour all round, and
+/// clothes alike front and back, nothing in an image told which way a person faces.
 pub fn face_parts(model: &mvmp_smplx::BodyModel) -> Vec<Part> {
     let nj = mvmp_smplx::names::NUM_JOINTS;
+    let dominant = |v: usize| {
+        let row = &model.weights[v * nj..(v + 1) * nj];
+        (0..nj)
+            .max_by(|&a, &b| row[a].total_cmp(&row[b]))
+            .unwrap_or(0)
+    };
+    let head = HeadBox::new(model, dominant);
     let part_of_joint = |j: usize| match j {
         0 | 1 | 2 | 4 | 5 => Part::Pants,
         7 | 8 | 10 | 11 => Part::Shoes,
@@ -30,15 +42,45 @@ pub fn face_parts(model: &mvmp_smplx::BodyModel) -> Vec<Part> {
     model
         .faces
         .iter()
-        .map(|f| {
-            let v = f[0] as usize;
-            let row = &model.weights[v * nj..(v + 1) * nj];
-            let j = (0..nj)
-                .max_by(|&a, &b| row[a].total_cmp(&row[b]))
-                .unwrap_or(0);
-            part_of_joint(j)
+        .map(|f| match dominant(f[0] as usize) {
+            HEAD if head.is_hair(model, f) => Part::Hair,
+            j => part_of_joint(j),
         })
         .collect()
+}
+
+/// The bounds of the head's vertices in the rest pose (y up, z forward).
+struct HeadBox {
+    lo: [f32; 3],
+    hi: [f32; 3],
+}
+
+impl HeadBox {
+    fn new(model: &mvmp_smplx::BodyModel, dominant: impl Fn(usize) -> usize) -> Self {
+        let mut b = HeadBox {
+            lo: [f32::INFINITY; 3],
+            hi: [f32::NEG_INFINITY; 3],
+        };
+        for v in (0..model.v_template.len() / 3).filter(|&v| dominant(v) == HEAD) {
+            for k in 0..3 {
+                b.lo[k] = b.lo[k].min(model.v_template[v * 3 + k]);
+                b.hi[k] = b.hi[k].max(model.v_template[v * 3 + k]);
+            }
+        }
+        b
+    }
+
+    /// Hair: the back half of the head and its top above the forehead.
+    fn is_hair(&self, model: &mvmp_smplx::BodyModel, face: &[u32; 3]) -> bool {
+        let mean = |k: usize| {
+            face.iter()
+                .map(|&v| model.v_template[v as usize * 3 + k])
+                .sum::<f32>()
+                / 3.0
+        };
+        let rel = |k: usize| (mean(k) - self.lo[k]) / (self.hi[k] - self.lo[k]).max(1e-6);
+        rel(2) < 0.5 || rel(1) > 0.8
+    }
 }
 
 /// Lighting and ground of a scene.
@@ -168,6 +210,7 @@ pub fn render_view(
                 .iter()
                 .map(|part| match part {
                     Part::Skin => a.skin,
+                    Part::Hair => a.hair,
                     Part::Shirt => a.shirt,
                     Part::Sleeve if a.long_sleeves => a.shirt,
                     Part::Sleeve => a.skin,
@@ -227,5 +270,57 @@ pub fn render_view(
         visible,
         silhouette,
         bbox,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The stand-in's head: hair behind and on top, skin on the face, so the face points forward (+z in
+    /// the rest pose) by more than the nose alone.
+    #[test]
+    fn the_head_is_hair_behind_and_skin_in_front() {
+        let model = mvmp_smplx::standin_model(0);
+        let parts = face_parts(&model);
+        let z = |f: &[u32; 3]| {
+            f.iter()
+                .map(|&v| model.v_template[v as usize * 3 + 2] as f64)
+                .sum::<f64>()
+                / 3.0
+        };
+        let nj = mvmp_smplx::names::NUM_JOINTS;
+        let on_head = |f: &[u32; 3]| {
+            let row = &model.weights[f[0] as usize * nj..(f[0] as usize + 1) * nj];
+            (0..nj).max_by(|&a, &b| row[a].total_cmp(&row[b])) == Some(HEAD)
+        };
+        let mean_z = |want: Part| {
+            let zs: Vec<f64> = model
+                .faces
+                .iter()
+                .zip(&parts)
+                .filter(|(f, p)| on_head(f) && **p == want)
+                .map(|(f, _)| z(f))
+                .collect();
+            (zs.iter().sum::<f64>() / zs.len().max(1) as f64, zs.len())
+        };
+        let (hair_z, hair_n) = mean_z(Part::Hair);
+        let (face_z, face_n) = mean_z(Part::Skin);
+        assert!(
+            hair_n > face_n && face_n > 20,
+            "{hair_n} hair, {face_n} skin faces"
+        );
+        assert!(
+            face_z - hair_z > 0.05,
+            "face at z {face_z}, hair at {hair_z}"
+        );
+        // Hair only on the head.
+        let off_head = model
+            .faces
+            .iter()
+            .zip(&parts)
+            .filter(|(f, p)| **p == Part::Hair && !on_head(f))
+            .count();
+        assert_eq!(off_head, 0);
     }
 }
