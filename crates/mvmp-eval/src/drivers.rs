@@ -212,19 +212,12 @@ fn to_poses(
 /// betas and expression, except the global orientation, which stays the default upright one (headings are
 /// spread round the circle, so their mean says nothing).
 pub fn mean_vector(m: &MeanParams, device: &Device) -> Tensor<1> {
-    let default = mvmp_decoder::mean_params(device)
-        .narrow(0, 0, 6)
-        .reshape([1, 6]);
-    let global: Vec<f32> = mvmp_geom::rotation::rot6d_to_matrix(default)
-        .to_data()
-        .convert::<f32>()
-        .try_into_vec::<f32>()
-        .expect("f32 data");
+    let global = mvmp_geom::rotation::y_up_to_z_up();
     let rotations: Vec<[f32; 9]> = REGRESSED_TO_JOINT
         .iter()
         .enumerate()
         .map(|(i, &j)| match i {
-            0 => std::array::from_fn(|k| global[k]),
+            0 => std::array::from_fn(|k| global[(k / 3, k % 3)] as f32),
             _ => m.rotations[j].map(|x| x as f32),
         })
         .collect();

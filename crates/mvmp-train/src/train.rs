@@ -334,7 +334,7 @@ pub fn seeded_init(cfg: &ModelConfig, device: &Device, seed: u64) -> MvmpHmr {
 /// articulation in 192 steps: a head's bias moves about one learning rate per step, and the arms hang
 /// 1.2 rad from the T-pose.
 fn start_at_data_mean(
-    model: MvmpHmr,
+    mut model: MvmpHmr,
     data: &TrainingSet,
     device: &Device,
 ) -> Result<MvmpHmr, TrainError> {
@@ -346,7 +346,6 @@ fn start_at_data_mean(
     }
     Ok(match acc.finish() {
         Some(mean) => {
-            let mut model = model;
             model.decoder = model
                 .decoder
                 .with_mean(mvmp_eval::drivers::mean_vector(&mean, device));
