@@ -280,7 +280,7 @@ fn rootnet(other: &Device, r: &mut Report) {
         let kept = host(nms3d(l.clone()));
         let roots = extract_roots(
             l,
-            Some(t(off.clone(), [2, 3, 16, 16, 8], d)),
+            mvmp::fusion::Subvoxel::Offset(Box::new(t(off.clone(), [2, 3, 16, 16, 8], d))),
             &grid,
             4,
             0.52,

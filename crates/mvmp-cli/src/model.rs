@@ -8,7 +8,7 @@ use burn::tensor::{Bool, Device, Tensor, TensorData};
 use nalgebra::Vector3;
 
 use mvmp_data::synth::look_at;
-use mvmp_fusion::{FusionMode, extract_roots, fuse_views};
+use mvmp_fusion::{FusionMode, Subvoxel, extract_roots, fuse_views};
 use mvmp_geom::{Camera, Letterbox};
 use mvmp_model::summary::summarize;
 use mvmp_model::{ModelConfig, RigGrids};
@@ -222,7 +222,7 @@ pub fn bench(config: &Path, views: usize, iters: usize, device: &Device) -> Resu
     rows.push(("rootnet", t, macs("rootnet")));
     let k = cfg.max_people;
     let t0 = Instant::now();
-    let _ = extract_roots(lik, None, g, k, f32::MIN);
+    let _ = extract_roots(lik, Subvoxel::Centre, g, k, f32::MIN);
     rows.push(("roots", t0.elapsed().as_secs_f64(), 0.0));
     let roots: Vec<f32> = (0..k)
         .flat_map(|i| {

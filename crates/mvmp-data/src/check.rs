@@ -34,13 +34,14 @@ fn problem(r: &mut CheckReport, path: &Path, what: impl Into<String>) {
 /// Decode a whole image; a JPEG must also end with its end-of-image marker (a JPEG cut short decodes
 /// without complaint, its missing rows grey). The loaders read images through this.
 pub fn open_image(path: &Path) -> Result<image::DynamicImage, String> {
-    let img = image::open(path).map_err(|e| format!("does not decode: {e}"))?;
-    let jpeg = path
-        .extension()
-        .and_then(|e| e.to_str())
-        .is_some_and(|e| e.eq_ignore_ascii_case("jpg") || e.eq_ignore_ascii_case("jpeg"));
-    if jpeg {
-        let bytes = std::fs::read(path).map_err(|e| e.to_string())?;
+    // Read once: the bytes are both decoded and checked for the end marker.
+    let bytes = std::fs::read(path).map_err(|e| e.to_string())?;
+    let format = image::ImageFormat::from_path(path)
+        .or_else(|_| image::guess_format(&bytes))
+        .map_err(|e| format!("does not decode: {e}"))?;
+    let img = image::load_from_memory_with_format(&bytes, format)
+        .map_err(|e| format!("does not decode: {e}"))?;
+    if format == image::ImageFormat::Jpeg {
         let end = bytes.iter().rposition(|&b| b != 0).map_or(0, |i| i + 1);
         if !bytes[..end].ends_with(&[0xFF, 0xD9]) {
             return Err("the JPEG ends before its end-of-image marker (cut short)".into());

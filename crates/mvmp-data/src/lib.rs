@@ -1,5 +1,6 @@
 //! Datasets for mvmp: the MVMP-HMR on-disk layout, the synthetic scene generator and renderer,
 //! dataset statistics and validation, and loading for training.
+pub mod augment;
 pub mod cdf_pose;
 pub mod check;
 pub mod error;

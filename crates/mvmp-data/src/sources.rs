@@ -14,6 +14,7 @@ use nalgebra::{Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
 use crate::DataError;
+use crate::augment::Photometric;
 use crate::h36m::H36mSequence;
 use crate::loader::{FrameDataset, FrameSample, PersonGt, Split, ViewChoice, letterbox_into};
 use crate::panoptic::PanopticSequence;
@@ -639,6 +640,10 @@ pub struct TrainingSet {
     pub parts: Vec<SourceDataset>,
     repeats: Vec<usize>,
     starts: Vec<usize>,
+    augment: Photometric,
+    /// Seeds the augmentation draws, with the epoch and the sample's number.
+    seed: u64,
+    epoch: AtomicU64,
 }
 
 impl TrainingSet {
@@ -656,6 +661,18 @@ impl TrainingSet {
             parts,
             repeats,
             starts,
+            augment: Photometric::default(),
+            seed: 0,
+            epoch: AtomicU64::new(0),
+        }
+    }
+
+    /// Samples jittered by `augment`, drawn from `seed`, the epoch and the sample's number.
+    pub fn with_augment(self, augment: Photometric, seed: u64) -> Self {
+        TrainingSet {
+            augment,
+            seed,
+            ..self
         }
     }
 
@@ -665,6 +682,7 @@ impl TrainingSet {
     }
 
     pub fn set_epoch(&self, epoch: u64) {
+        self.epoch.store(epoch, Ordering::Relaxed);
         for p in &self.parts {
             p.set_epoch(epoch);
         }
@@ -678,7 +696,14 @@ impl TrainingSet {
 
     pub fn load(&self, index: usize) -> Result<FrameSample, DataError> {
         let (p, i) = self.locate(index);
-        self.parts[p].load_repeated(i)
+        let mut sample = self.parts[p].load_repeated(i)?;
+        // Its own stream: the view draws (seeded alike) must not move when augmentation is turned on.
+        let epoch = self.epoch.load(Ordering::Relaxed);
+        let seed = (self.seed ^ 0xA076_1D64_78BD_642F)
+            ^ epoch.wrapping_mul(0x9E37_79B9_7F4A_7C15)
+            ^ (index as u64).wrapping_mul(0xD6E8_FEB8_6659_FD93);
+        self.augment.apply(&mut sample, seed);
+        Ok(sample)
     }
 
     pub fn total(&self) -> usize {

@@ -10,5 +10,5 @@ pub mod v2v;
 
 pub use deformable::{DeformableFusion, DeformableFusionConfig};
 pub use project::{FusionMode, SamplingGrid, fuse_views, fuse_views_tensor_ops};
-pub use roots::{Root, extract_roots, gaussian_target};
+pub use roots::{Root, RootRefine, Subvoxel, extract_roots, gaussian_target};
 pub use v2v::{RootNet, RootNetConfig, V2VNet, V2VNetConfig, VolumeNorm};

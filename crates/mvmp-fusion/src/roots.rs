@@ -15,12 +15,45 @@ pub struct Root {
     pub voxel: [usize; 3],
 }
 
-/// NMS (3 x 3 x 3), top-K, threshold, sub-voxel offset. `likelihood`: `[B, 1, X, Y, Z]`; `offset`:
-/// `[B, 3, X, Y, Z]` in voxel units (clamped to half a voxel), or `None`. Returns, per batch item, the
-/// roots with score above `threshold`, best first.
+/// How a root is placed within its peak voxel.
+#[derive(Debug, Clone)]
+pub enum Subvoxel {
+    /// At the voxel centre.
+    Centre,
+    /// Voxel centre plus the offset head's output `[B, 3, X, Y, Z]` (voxel units, clamped to half a
+    /// voxel): the paper's refinement.
+    Offset(Box<Tensor<5>>),
+    /// At the vertex of the Gaussian through the peak and its two neighbours on each axis
+    /// ([`gaussian_peak`]).
+    Peak,
+}
+
+/// Which [`Subvoxel`] refinement a model uses (`root_refine` in model configs).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum RootRefine {
+    /// The offset head (paper).
+    #[default]
+    Offset,
+    /// The likelihood's own peak shape; the offset head is still trained but not read.
+    Peak,
+}
+
+impl RootRefine {
+    /// The refinement with the offset volume a forward produced.
+    pub fn with_offset(self, offset: Tensor<5>) -> Subvoxel {
+        match self {
+            RootRefine::Offset => Subvoxel::Offset(Box::new(offset)),
+            RootRefine::Peak => Subvoxel::Peak,
+        }
+    }
+}
+
+/// NMS (3 x 3 x 3), top-K, threshold, sub-voxel refinement. `likelihood`: `[B, 1, X, Y, Z]`. Returns, per
+/// batch item, the roots with score above `threshold`, best first.
 pub fn extract_roots(
     likelihood: Tensor<5>,
-    offset: Option<Tensor<5>>,
+    refine: Subvoxel,
     grid: &VoxelGrid,
     k: usize,
     threshold: f32,
@@ -28,6 +61,13 @@ pub fn extract_roots(
     let [b, _, x, y, z] = likelihood.dims();
     let p = x * y * z;
     let k = k.min(p);
+    let raw: Option<Vec<f32>> = matches!(refine, Subvoxel::Peak).then(|| {
+        likelihood
+            .clone()
+            .into_data()
+            .try_into_vec()
+            .expect("f32 likelihood")
+    });
     let kept = nms3d(likelihood).reshape([b, p]);
     let (vals, idx) = kept.topk_with_indices(k, 1);
     let vals: Vec<f32> = vals.into_data().try_into_vec().expect("f32 scores");
@@ -36,12 +76,15 @@ pub fn extract_roots(
         .convert::<i64>()
         .try_into_vec()
         .expect("integer indices");
-    let offs: Option<Vec<f32>> = offset.map(|o| {
-        o.reshape([b, 3, p])
-            .into_data()
-            .try_into_vec()
-            .expect("f32 offsets")
-    });
+    let offs: Option<Vec<f32>> = match refine {
+        Subvoxel::Offset(o) => Some(
+            o.reshape([b, 3, p])
+                .into_data()
+                .try_into_vec()
+                .expect("f32 offsets"),
+        ),
+        _ => None,
+    };
     let vs = grid.voxel_size();
     (0..b)
         .map(|bi| {
@@ -50,15 +93,16 @@ pub fn extract_roots(
                 .map(|j| {
                     let flat = idx[bi * k + j] as usize;
                     let voxel = grid.unflatten(flat);
-                    let mut pos = grid.index_to_world(voxel.map(|i| i as f64));
-                    if let Some(o) = &offs {
-                        for a in 0..3 {
-                            let d = (o[(bi * 3 + a) * p + flat] as f64).clamp(-0.5, 0.5);
-                            pos[a] += d * vs[a];
-                        }
-                    }
+                    let d: [f64; 3] = match (&offs, &raw) {
+                        (Some(o), _) => std::array::from_fn(|a| {
+                            (o[(bi * 3 + a) * p + flat] as f64).clamp(-0.5, 0.5)
+                        }),
+                        (_, Some(l)) => gaussian_peak(&l[bi * p..(bi + 1) * p], grid, voxel),
+                        _ => [0.0; 3],
+                    };
+                    let c = grid.index_to_world(voxel.map(|i| i as f64));
                     Root {
-                        position: pos,
+                        position: std::array::from_fn(|a| c[a] + d[a] * vs[a]),
                         score: vals[bi * k + j],
                         voxel,
                     }
@@ -66,6 +110,33 @@ pub fn extract_roots(
                 .collect()
         })
         .collect()
+}
+
+/// The sub-voxel position (voxel units, each axis within [-0.5, 0.5]) of the peak of `volume` (one item,
+/// flat) at `voxel`: per axis the vertex of the parabola through the log-values at the voxel and its two
+/// neighbours, which is exact for a sampled Gaussian. 0 on an axis where the voxel is at the grid's edge
+/// or a value is not positive.
+pub fn gaussian_peak(volume: &[f32], grid: &VoxelGrid, voxel: [usize; 3]) -> [f64; 3] {
+    let at = |v: [usize; 3]| volume[grid.flat_index(v)] as f64;
+    let f0 = at(voxel);
+    std::array::from_fn(|a| {
+        if voxel[a] == 0 || voxel[a] + 1 >= grid.shape[a] {
+            return 0.0;
+        }
+        let (mut lo, mut hi) = (voxel, voxel);
+        lo[a] -= 1;
+        hi[a] += 1;
+        let (fm, fp) = (at(lo), at(hi));
+        if fm <= 0.0 || fp <= 0.0 || f0 <= 0.0 {
+            return 0.0;
+        }
+        let (lm, l0, lp) = (fm.ln(), f0.ln(), fp.ln());
+        let curvature = lm - 2.0 * l0 + lp;
+        if curvature >= 0.0 {
+            return 0.0;
+        }
+        (0.5 * (lm - lp) / curvature).clamp(-0.5, 0.5)
+    })
 }
 
 /// The default width of the Gaussian root target (metres), as VoxelPose and the paper use.

@@ -222,7 +222,7 @@ fn nms_finds_planted_gaussians_at_their_world_positions() {
         }
     }
     let off = Tensor::<5>::from_data(TensorData::new(off, [1, 3, 40, 40, 10]), &d);
-    let found = extract_roots(target.clone(), Some(off), &g, 10, 0.3);
+    let found = extract_roots(target.clone(), Subvoxel::Offset(Box::new(off)), &g, 10, 0.3);
     assert_eq!(found[0].len(), 3, "{:?}", found[0]);
     for r in &roots {
         let best = found[0]
@@ -236,8 +236,23 @@ fn nms_finds_planted_gaussians_at_their_world_positions() {
             .fold(f64::MAX, f64::min);
         assert!(best < 1e-5, "root {r:?}: nearest detection {best} m away");
     }
+    // The Gaussian's own peak finds each root as exactly as the offsets (the targets are Gaussians).
+    let peaks = extract_roots(target.clone(), Subvoxel::Peak, &g, 10, 0.3);
+    assert_eq!(peaks[0].len(), 3);
+    for r in &roots {
+        let best = peaks[0]
+            .iter()
+            .map(|f| {
+                (0..3)
+                    .map(|a| (f.position[a] - r[a]).powi(2))
+                    .sum::<f64>()
+                    .sqrt()
+            })
+            .fold(f64::MAX, f64::min);
+        assert!(best < 1e-4, "root {r:?}: nearest peak {best} m away");
+    }
     // Without offsets, the peak is the voxel centre nearest to the root (within half a voxel per axis).
-    let coarse = extract_roots(target, None, &g, 10, 0.3);
+    let coarse = extract_roots(target.clone(), Subvoxel::Centre, &g, 10, 0.3);
     for f in &coarse[0] {
         assert!(
             roots

@@ -112,7 +112,7 @@ impl Predictor {
         let det = self.model.detect(images, &grids);
         extract_roots(
             det.likelihood,
-            Some(det.offset),
+            self.cfg.root_refine.with_offset(det.offset),
             &self.cfg.grid,
             self.cfg.max_people,
             self.cfg.root_threshold,

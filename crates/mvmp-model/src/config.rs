@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use mvmp_backbone::{HRNetConfig, HrnetVariant, ViTConfig, VitVariant};
-use mvmp_fusion::{FusionMode, VolumeNorm};
+use mvmp_fusion::{FusionMode, RootRefine, VolumeNorm};
 use mvmp_geom::VoxelGrid;
 
 #[derive(Debug, thiserror::Error)]
@@ -95,6 +95,9 @@ pub struct ModelConfig {
     pub max_people: usize,
     /// Root likelihood threshold.
     pub root_threshold: f32,
+    /// Where a root sits within its peak voxel: `offset` (the offset head, paper) or `peak` (the vertex
+    /// of the likelihood's Gaussian peak).
+    pub root_refine: RootRefine,
     pub decoder: DecoderSection,
     /// Body model: `standin:SEED` or a path to an SMPLX_*.npz.
     pub body_model: String,
@@ -123,6 +126,7 @@ impl Default for ModelConfig {
             primary_joint: PrimaryJoint::Pelvis,
             max_people: 10,
             root_threshold: 0.3,
+            root_refine: RootRefine::Offset,
             decoder: DecoderSection {
                 dim: 128,
                 depth: 2,

@@ -236,7 +236,7 @@ impl MvmpHmr {
         } = self.detect(images, grids);
         let detections = extract_roots(
             likelihood.clone().detach(),
-            Some(offset.clone().detach()),
+            cfg.root_refine.with_offset(offset.clone().detach()),
             &cfg.grid,
             cfg.max_people,
             cfg.root_threshold,

@@ -2,6 +2,7 @@
 //! Unknown keys are rejected; every error names the key and the bad value.
 use std::path::{Path, PathBuf};
 
+use mvmp_data::augment::Photometric;
 use mvmp_data::sources::{SourceFormat, SourceSpec};
 use mvmp_losses::LossWeights;
 use mvmp_model::ModelConfig;
@@ -180,6 +181,9 @@ pub struct TrainConfig {
     pub stage2: StageConfig,
     #[serde(default)]
     pub loss: LossWeights,
+    /// Photometric jitter of training images (off by default; the paper states none).
+    #[serde(default)]
+    pub augment: Photometric,
     /// More training data: MVMP-HMR trees, CMU Panoptic or Human3.6M read in place (see
     /// [`SourceSpec`]); their frames are shuffled together with `data`'s.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
@@ -276,6 +280,12 @@ impl TrainConfig {
                     format!("{}: must be 0 (off) or positive", s.grad_clip),
                 ));
             }
+        }
+        if let Some((key, x)) = self.augment.invalid() {
+            return Err(bad(
+                &format!("augment.{key}"),
+                format!("{x}: expected a strength within [0, 1)"),
+            ));
         }
         if self.stage1.freeze_backbone {
             return Err(bad(

@@ -219,7 +219,8 @@ pub fn open_training_set(
             (_, part) => part,
         });
     }
-    let set = TrainingSet::with_repeats(parts, specs.iter().map(SourceSpec::repeat).collect());
+    let set = TrainingSet::with_repeats(parts, specs.iter().map(SourceSpec::repeat).collect())
+        .with_augment(cfg.augment, cfg.seed);
     if set.total() == 0 {
         return Err(TrainError::file(
             config,
