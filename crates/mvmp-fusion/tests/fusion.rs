@@ -222,35 +222,35 @@ fn nms_finds_planted_gaussians_at_their_world_positions() {
         }
     }
     let off = Tensor::<5>::from_data(TensorData::new(off, [1, 3, 40, 40, 10]), &d);
-    let found = extract_roots(target.clone(), Subvoxel::Offset(Box::new(off)), &g, 10, 0.3);
-    assert_eq!(found[0].len(), 3, "{:?}", found[0]);
-    for r in &roots {
-        let best = found[0]
-            .iter()
-            .map(|f| {
-                (0..3)
-                    .map(|a| (f.position[a] - r[a]).powi(2))
-                    .sum::<f64>()
-                    .sqrt()
-            })
-            .fold(f64::MAX, f64::min);
-        assert!(best < 1e-5, "root {r:?}: nearest detection {best} m away");
-    }
-    // The Gaussian's own peak finds each root as exactly as the offsets (the targets are Gaussians).
+    // Each planted root has a detection within `tol` metres.
+    let all_found = |found: &[Vec<Root>], tol: f64, how: &str| {
+        assert_eq!(found[0].len(), 3, "{how}: {:?}", found[0]);
+        for r in &roots {
+            let best = found[0]
+                .iter()
+                .map(|f| {
+                    (0..3)
+                        .map(|a| (f.position[a] - r[a]).powi(2))
+                        .sum::<f64>()
+                        .sqrt()
+                })
+                .fold(f64::MAX, f64::min);
+            assert!(
+                best < tol,
+                "{how}: root {r:?}: nearest detection {best} m away"
+            );
+        }
+    };
+    let offsets = Subvoxel::Offset(Box::new(off));
+    all_found(
+        &extract_roots(target.clone(), offsets, &g, 10, 0.3),
+        1e-5,
+        "offsets",
+    );
+    // The Gaussian's own peak finds each root as exactly as the offsets (the targets are Gaussians; 1e-4:
+    // the logarithms of f32 values).
     let peaks = extract_roots(target.clone(), Subvoxel::Peak, &g, 10, 0.3);
-    assert_eq!(peaks[0].len(), 3);
-    for r in &roots {
-        let best = peaks[0]
-            .iter()
-            .map(|f| {
-                (0..3)
-                    .map(|a| (f.position[a] - r[a]).powi(2))
-                    .sum::<f64>()
-                    .sqrt()
-            })
-            .fold(f64::MAX, f64::min);
-        assert!(best < 1e-4, "root {r:?}: nearest peak {best} m away");
-    }
+    all_found(&peaks, 1e-4, "peak");
     // Without offsets, the peak is the voxel centre nearest to the root (within half a voxel per axis).
     let coarse = extract_roots(target.clone(), Subvoxel::Centre, &g, 10, 0.3);
     for f in &coarse[0] {
