@@ -132,7 +132,8 @@ pub fn gaussian_peak(volume: &[f32], grid: &VoxelGrid, voxel: [usize; 3]) -> [f6
         }
         let (lm, l0, lp) = (fm.ln(), f0.ln(), fp.ln());
         let curvature = lm - 2.0 * l0 + lp;
-        if curvature >= 0.0 {
+        // Not a peak on this axis (flat, a valley, or a NaN from a broken likelihood).
+        if curvature.is_nan() || curvature >= 0.0 {
             return 0.0;
         }
         (0.5 * (lm - lp) / curvature).clamp(-0.5, 0.5)
