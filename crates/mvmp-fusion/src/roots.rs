@@ -192,3 +192,35 @@ pub fn root_voxel_and_offset(grid: &VoxelGrid, root: [f64; 3]) -> Option<([usize
     let c = grid.world_to_index(root);
     Some((v, std::array::from_fn(|a| c[a] - v[a] as f64)))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A 5 x 5 x 5 volume holding a Gaussian of width 1 voxel centred at `mu` (voxel units).
+    fn gaussian_volume(grid: &VoxelGrid, mu: [f64; 3]) -> Vec<f32> {
+        (0..grid.num_voxels())
+            .map(|i| {
+                let v = grid.unflatten(i);
+                let d2: f64 = (0..3).map(|a| (v[a] as f64 - mu[a]).powi(2)).sum();
+                (-d2 / 2.0).exp() as f32
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_peak_of_a_sampled_gaussian_is_found_exactly_and_nan_gives_no_shift() {
+        let grid = VoxelGrid::new([0.0; 3], [5.0; 3], [5, 5, 5]).unwrap();
+        // By hand: the log of a Gaussian is a parabola, so the vertex through three samples is exact.
+        let vol = gaussian_volume(&grid, [2.3, 1.8, 2.0]);
+        let d = gaussian_peak(&vol, &grid, [2, 2, 2]);
+        for (got, want) in d.iter().zip([0.3, -0.2, 0.0]) {
+            assert!((got - want).abs() < 1e-4, "{d:?}");
+        }
+        // At the grid's edge there is no neighbour on one side: no shift along that axis.
+        assert_eq!(gaussian_peak(&vol, &grid, [0, 2, 2])[0], 0.0);
+        let mut broken = vol.clone();
+        broken[grid.flat_index([3, 2, 2])] = f32::NAN;
+        assert_eq!(gaussian_peak(&broken, &grid, [2, 2, 2])[0], 0.0);
+    }
+}
