@@ -208,6 +208,13 @@ pub fn person_from_joints(
     }
 }
 
+/// The seed of one random draw of a training sample: a mix of the run's seed, the epoch and the sample's
+/// number, so that a resumed run draws the same.
+pub fn draw_seed(seed: u64, epoch: u64, index: usize) -> u64 {
+    seed ^ epoch.wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        ^ (index as u64).wrapping_mul(0xD6E8_FEB8_6659_FD93)
+}
+
 /// The views of sample `index` (shared by every dataset so that draws depend on the seed, epoch and index).
 pub fn select_views(views: &ViewChoice, epoch: u64, index: usize, available: usize) -> Vec<usize> {
     use rand::SeedableRng;
@@ -215,10 +222,7 @@ pub fn select_views(views: &ViewChoice, epoch: u64, index: usize, available: usi
     match views {
         ViewChoice::Fixed(v) => v.clone(),
         ViewChoice::Random { count, seed } => {
-            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(
-                seed ^ epoch.wrapping_mul(0x9E37_79B9_7F4A_7C15)
-                    ^ (index as u64).wrapping_mul(0xD6E8_FEB8_6659_FD93),
-            );
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(draw_seed(*seed, epoch, index));
             let mut all: Vec<usize> = (0..available).collect();
             all.shuffle(&mut rng);
             all.truncate(*count);
@@ -699,9 +703,7 @@ impl TrainingSet {
         let mut sample = self.parts[p].load_repeated(i)?;
         // Its own stream: the view draws (seeded alike) must not move when augmentation is turned on.
         let epoch = self.epoch.load(Ordering::Relaxed);
-        let seed = (self.seed ^ 0xA076_1D64_78BD_642F)
-            ^ epoch.wrapping_mul(0x9E37_79B9_7F4A_7C15)
-            ^ (index as u64).wrapping_mul(0xD6E8_FEB8_6659_FD93);
+        let seed = draw_seed(self.seed ^ 0xA076_1D64_78BD_642F, epoch, index);
         self.augment.apply(&mut sample, seed);
         Ok(sample)
     }
