@@ -119,12 +119,51 @@ struct Row {
 
 pub fn bench_learn(args: &LearnArgs, device: &Device) -> Result<()> {
     let out = args.out;
-    if out.exists() && std::fs::read_dir(out)?.next().is_some() {
+    let existed = out.exists();
+    if existed && std::fs::read_dir(out)?.next().is_some() {
         bail!(
             "{} exists and is not empty: pass --out to a new directory",
             out.display()
         );
     }
+    // The benchmark writes in place (its runs can be watched as they train); a failure removes what it
+    // wrote, so that nothing half-done stays behind.
+    bench_into(args, device).map_err(|err| match clear(out, existed) {
+        Ok(()) => anyhow::anyhow!(
+            "{err:#} (what was written under {} was removed)",
+            out.display()
+        ),
+        Err(e) => anyhow::anyhow!(
+            "{err:#} (removing what was written under {} failed too: {e})",
+            out.display()
+        ),
+    })
+}
+
+/// Remove what the benchmark wrote: the directory itself if it made it, else its contents.
+fn clear(out: &Path, existed: bool) -> std::io::Result<()> {
+    let result = if existed {
+        std::fs::read_dir(out).and_then(|entries| {
+            entries.into_iter().try_for_each(|e| {
+                let p = e?.path();
+                if p.is_dir() {
+                    std::fs::remove_dir_all(p)
+                } else {
+                    std::fs::remove_file(p)
+                }
+            })
+        })
+    } else {
+        std::fs::remove_dir_all(out)
+    };
+    match result {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
+        other => other,
+    }
+}
+
+fn bench_into(args: &LearnArgs, device: &Device) -> Result<()> {
+    let out = args.out;
     let variants = select(args.variants)?;
     let cfg_dir = out.join("configs");
     std::fs::create_dir_all(&cfg_dir).with_context(|| format!("creating {}", cfg_dir.display()))?;
@@ -290,4 +329,31 @@ fn report(rows: &[Row], args: &LearnArgs, frames: usize, (e1, e2): (usize, usize
     }
     s += "\n![validation curves of every variant](curves.png)\n";
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::clear;
+
+    #[test]
+    fn a_failed_benchmark_leaves_its_output_as_it_found_it() {
+        let root = tempfile::tempdir().unwrap();
+        let out = root.path().join("learn");
+        let fill = || {
+            std::fs::create_dir_all(out.join("runs/full/checkpoints")).unwrap();
+            std::fs::write(out.join("runs/full/metrics.jsonl"), "{}\n").unwrap();
+            std::fs::write(out.join("learning.md"), "partial").unwrap();
+        };
+        // Made by the benchmark: removed whole.
+        fill();
+        clear(&out, false).unwrap();
+        assert!(!out.exists());
+        // Given empty by the user: emptied again, kept.
+        fill();
+        clear(&out, true).unwrap();
+        assert_eq!(std::fs::read_dir(&out).unwrap().count(), 0);
+        // Nothing written yet: nothing to do.
+        std::fs::remove_dir(&out).unwrap();
+        clear(&out, false).unwrap();
+    }
 }

@@ -66,6 +66,13 @@ impl StagedDir {
             .prefix(".mvmp-partial-")
             .tempdir_in(parent)
             .map_err(io_err)?;
+        // Temporary directories are created private (0700); outputs get the usual 0755.
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            std::fs::set_permissions(tmp.path(), std::fs::Permissions::from_mode(0o755))
+                .map_err(io_err)?;
+        }
         Ok(StagedDir {
             tmp,
             dest: dest.to_path_buf(),
@@ -77,8 +84,10 @@ impl StagedDir {
         self.tmp.path()
     }
 
-    /// Move everything staged into the destination: a missing destination is renamed into place whole;
-    /// into an existing one each staged file replaces its namesake (other files there are kept).
+    /// Put everything staged into the destination: a missing destination is renamed into place whole.
+    /// An existing one gets the staged files in place of their namesakes and keeps its other files: those
+    /// are linked into the stage first and the two directories then swap in one rename (Linux), so the
+    /// destination is never seen half-merged.
     pub fn finish(self) -> Result<(), GeomError> {
         if !self.dest.exists() {
             let tmp = self.tmp.keep();
@@ -87,30 +96,72 @@ impl StagedDir {
                 source,
             });
         }
-        merge_into(self.tmp.path(), &self.dest)
+        if !self.dest.is_dir() {
+            return Err(GeomError::Io {
+                path: self.dest.clone(),
+                source: std::io::Error::other("exists and is not a directory"),
+            });
+        }
+        keep_others(&self.dest, self.tmp.path())?;
+        let perms = self
+            .dest
+            .metadata()
+            .map_err(io_at(&self.dest))?
+            .permissions();
+        std::fs::set_permissions(self.tmp.path(), perms).map_err(io_at(self.tmp.path()))?;
+        swap(self.tmp.path(), &self.dest)
+        // The stage now holds the old tree, removed as the `TempDir` drops.
     }
 }
 
-/// Move the tree under `from` into `to`, file by file (renames within one file system).
-fn merge_into(from: &Path, to: &Path) -> Result<(), GeomError> {
-    let io_err = |path: &Path| {
-        let path = path.to_path_buf();
-        move |source| GeomError::Io { path, source }
-    };
-    if !to.is_dir() {
-        return Err(GeomError::Io {
-            path: to.to_path_buf(),
-            source: std::io::Error::other("exists and is not a directory"),
-        });
+fn io_at(path: &Path) -> impl FnOnce(std::io::Error) -> GeomError + '_ {
+    move |source| GeomError::Io {
+        path: path.to_path_buf(),
+        source,
     }
-    for entry in std::fs::read_dir(from).map_err(io_err(from))? {
-        let entry = entry.map_err(io_err(from))?;
-        let (src, dst) = (entry.path(), to.join(entry.file_name()));
-        if src.is_dir() && dst.is_dir() {
-            merge_into(&src, &dst)?;
-        } else {
-            std::fs::rename(&src, &dst).map_err(io_err(&dst))?;
+}
+
+/// Link (or copy) into `stage` every entry of `dest` that the stage has no namesake of, recursing into
+/// directories both hold.
+fn keep_others(dest: &Path, stage: &Path) -> Result<(), GeomError> {
+    for entry in std::fs::read_dir(dest).map_err(io_at(dest))? {
+        let entry = entry.map_err(io_at(dest))?;
+        let (old, new) = (entry.path(), stage.join(entry.file_name()));
+        let is_dir = entry.file_type().map_err(io_at(&old))?.is_dir();
+        match (is_dir, new.symlink_metadata().ok()) {
+            (true, Some(m)) if m.is_dir() => keep_others(&old, &new)?,
+            (_, Some(_)) => {} // the staged namesake replaces it
+            (true, None) => {
+                std::fs::create_dir(&new).map_err(io_at(&new))?;
+                keep_others(&old, &new)?;
+            }
+            (false, None) => {
+                if std::fs::hard_link(&old, &new).is_err() {
+                    std::fs::copy(&old, &new).map_err(io_at(&new))?;
+                }
+            }
         }
     }
     Ok(())
+}
+
+/// Exchange two directories: one atomic rename on Linux; elsewhere two renames, the destination put back
+/// if the second fails.
+fn swap(stage: &Path, dest: &Path) -> Result<(), GeomError> {
+    #[cfg(target_os = "linux")]
+    {
+        use rustix::fs::{CWD, RenameFlags, renameat_with};
+        renameat_with(CWD, stage, CWD, dest, RenameFlags::EXCHANGE)
+            .map_err(|e| io_at(dest)(e.into()))
+    }
+    #[cfg(not(target_os = "linux"))]
+    {
+        let aside = stage.with_extension("old");
+        std::fs::rename(dest, &aside).map_err(io_at(dest))?;
+        if let Err(e) = std::fs::rename(stage, dest) {
+            let _ = std::fs::rename(&aside, dest);
+            return Err(io_at(dest)(e));
+        }
+        std::fs::rename(&aside, stage).map_err(io_at(stage))
+    }
 }

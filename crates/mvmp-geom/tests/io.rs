@@ -43,6 +43,22 @@ fn a_staged_directory_appears_whole_or_not_at_all() {
     assert_eq!(names(&dest), ["a", "keep.txt"]);
     assert_eq!(names(&dest.join("a")), ["x.txt", "y.txt"]);
     assert_eq!(std::fs::read_to_string(dest.join("a/x.txt")).unwrap(), "2");
+    assert_eq!(std::fs::read_to_string(dest.join("keep.txt")).unwrap(), "k");
+    assert_eq!(names(root.path()), ["out"]);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        let mode = std::fs::metadata(&dest).unwrap().permissions().mode() & 0o777;
+        assert_eq!(mode, 0o755, "the destination keeps its usual permissions");
+    }
+
+    // A file of the destination that the stage holds a directory of is replaced by that directory.
+    let s = StagedDir::new(&dest).unwrap();
+    std::fs::create_dir_all(s.path().join("keep.txt")).unwrap();
+    std::fs::write(s.path().join("keep.txt/inner"), "i").unwrap();
+    s.finish().unwrap();
+    assert_eq!(names(&dest.join("keep.txt")), ["inner"]);
+    assert_eq!(names(&dest.join("a")), ["x.txt", "y.txt"]);
     assert_eq!(names(root.path()), ["out"]);
 
     // A destination that is a file is an error naming it.
