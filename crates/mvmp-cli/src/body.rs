@@ -59,7 +59,12 @@ fn pose(model: &BodyModel, bodies: &[SmplxParams], device: &Device) -> Result<(P
             .try_into_vec()
             .map_err(|e| anyhow::anyhow!("reading tensor: {e:?}"))?;
         if let Some(i) = flat.iter().position(|v| !v.is_finite()) {
-            bail!("the forward produced a non-finite value at flat index {i}");
+            bail!(
+                "bodies[{}]: the forward produced a non-finite point {} (its parameters are finite and \
+                 within range: a body model with extreme directions?)",
+                i / (k * 3),
+                (i / 3) % k
+            );
         }
         Ok(flat
             .chunks_exact(k * 3)

@@ -348,7 +348,31 @@ enum BenchCommand {
     },
 }
 
+/// `println!` panics when standard output is closed (`mvmp ... | head`) or full: that is an I/O error of
+/// the command's output, reported as one (non-zero exit, no panic trace), not a bug.
+fn output_errors_are_errors() {
+    let default = std::panic::take_hook();
+    std::panic::set_hook(Box::new(move |info| {
+        let payload = info.payload();
+        let msg = payload
+            .downcast_ref::<String>()
+            .map(String::as_str)
+            .or_else(|| payload.downcast_ref::<&str>().copied())
+            .unwrap_or("");
+        if let Some(cause) = msg.strip_prefix("failed printing to stdout: ") {
+            use std::io::Write;
+            let _ = writeln!(
+                std::io::stderr(),
+                "error: writing to standard output: {cause}"
+            );
+            std::process::exit(1);
+        }
+        default(info)
+    }));
+}
+
 fn main() -> ExitCode {
+    output_errors_are_errors();
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_env("MVMP_LOG")

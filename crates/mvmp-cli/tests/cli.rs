@@ -1139,3 +1139,22 @@ fn the_learning_benchmark_compares_variants() {
         &["--variants", "huge", "voxelsmplx"],
     );
 }
+
+/// Output that cannot be written (a full device, a closed pipe) is an error with a message, not a panic.
+#[cfg(target_os = "linux")]
+#[test]
+fn an_unwritable_standard_output_is_an_error_not_a_panic() {
+    let full = std::fs::OpenOptions::new()
+        .write(true)
+        .open("/dev/full")
+        .unwrap();
+    let o = Command::new(env!("CARGO_BIN_EXE_mvmp"))
+        .args(["model", "summary", "--config", &config("model/tiny.toml")])
+        .stdout(full)
+        .output()
+        .unwrap();
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("writing to standard output"), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+}

@@ -99,13 +99,18 @@ pub fn check_dataset(root: &Path, deep: bool) -> CheckReport {
             return r;
         }
     };
-    if let Err(e) = crate::layout::load_body_model(&index.body_model, root) {
-        problem(
-            &mut r,
-            &root.join("dataset.json"),
-            format!("body model: {e}"),
-        );
-    }
+    // People must hold the joints the body model outputs: losses and metrics index them by its layout.
+    let joints = match crate::layout::load_body_model(&index.body_model, root) {
+        Ok(m) => Some(m.num_output_joints()),
+        Err(e) => {
+            problem(
+                &mut r,
+                &root.join("dataset.json"),
+                format!("body model: {e}"),
+            );
+            None
+        }
+    };
     for name in &index.scenes {
         let dir = root.join(name);
         r.scenes += 1;
@@ -142,6 +147,16 @@ pub fn check_dataset(root: &Path, deep: bool) -> CheckReport {
                 }
             };
             r.people += ann.people.len();
+            if let (Some(n), Some(p)) = (joints, ann.people.first())
+                && p.joints_3d.len() != n
+            {
+                let what = format!(
+                    "people[0].joints_3d has {} joints, the body model `{}` outputs {n}",
+                    p.joints_3d.len(),
+                    index.body_model
+                );
+                problem(&mut r, &apath, what);
+            }
             for (v, cam) in rig.cameras.iter().enumerate() {
                 let size = (cam.width, cam.height);
                 check_image(&mut r, &fdir.join(&ann.images[v]), size, "image", deep);

@@ -116,6 +116,9 @@ pub struct FrameDataset {
     views: ViewChoice,
     size: u32,
     epoch: std::sync::atomic::AtomicU64,
+    /// The joints per person every annotation must hold (the body layer's output) and that layer's body
+    /// model, once known.
+    joints: Option<(usize, String)>,
 }
 
 impl FrameDataset {
@@ -136,10 +139,16 @@ impl FrameDataset {
         let min_views = layout.scenes.iter().map(|s| s.rig.len()).min().unwrap_or(0);
         match &views {
             ViewChoice::Fixed(v) => {
-                if let Some(bad) = v.iter().find(|&&i| i >= min_views) {
+                if let Some(&bad) = v.iter().find(|&&i| i >= min_views) {
+                    let scene = layout.scenes.iter().find(|s| s.rig.len() <= bad);
+                    let name = scene.map_or(String::new(), |s| format!(" ({})", s.name));
                     return Err(DataError::file(
                         root,
-                        format!("view {bad} requested, but a scene has only {min_views} cameras"),
+                        format!(
+                            "{} views requested (camera index {bad}), but a scene{name} has only \
+                             {min_views} cameras",
+                            bad + 1
+                        ),
                     ));
                 }
             }
@@ -164,7 +173,14 @@ impl FrameDataset {
             views,
             size,
             epoch: Default::default(),
+            joints: None,
         })
+    }
+
+    /// From now on a frame whose people hold another number of joints than `n` (what the body layer that
+    /// consumes them outputs) is an error naming the file, instead of a mismatch deep in a loss or metric.
+    pub fn expect_joints(&mut self, n: usize, body_model: &str) {
+        self.joints = Some((n, body_model.to_string()));
     }
 
     pub fn layout(&self) -> &DatasetLayout {
@@ -196,7 +212,20 @@ impl FrameDataset {
     pub fn load_with_draw(&self, index: usize, draw: usize) -> Result<FrameSample, DataError> {
         let f = &self.frames[index];
         let scene = &self.layout.scenes[f.scene];
-        let ann = Annotation::read(&f.dir.join("annotation.json"), scene.rig.len())?;
+        let apath = f.dir.join("annotation.json");
+        let ann = Annotation::read(&apath, scene.rig.len())?;
+        if let Some((n, body)) = &self.joints
+            && let Some(first) = ann.people.first()
+            && first.joints_3d.len() != *n
+        {
+            return Err(DataError::file(
+                &apath,
+                format!(
+                    "people[0].joints_3d has {} joints, the body model `{body}` outputs {n}",
+                    first.joints_3d.len(),
+                ),
+            ));
+        }
         let views = self.select_views(draw, scene.rig.len());
         let s = self.size as usize;
         let mut images = vec![0f32; views.len() * 3 * s * s];

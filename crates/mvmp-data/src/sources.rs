@@ -680,6 +680,16 @@ impl TrainingSet {
         }
     }
 
+    /// Every MVMP-HMR source's people must hold `n` joints (the output of the body model `body_model`,
+    /// whose joints the losses compare them with): see [`FrameDataset::expect_joints`].
+    pub fn expect_joints(&mut self, n: usize, body_model: &str) {
+        for p in &mut self.parts {
+            if let SourceDataset::Mvmp(d) = p {
+                d.expect_joints(n, body_model);
+            }
+        }
+    }
+
     /// Samples per epoch of source `i`.
     pub fn samples_of(&self, i: usize) -> usize {
         self.parts[i].len() * self.repeats[i]

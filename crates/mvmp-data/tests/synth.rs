@@ -461,6 +461,52 @@ fn deep_checks_decode_images_and_joint_counts_are_checked() {
     );
 }
 
+/// A frame whose people hold 76 joints (a layout of a body model without face landmarks) in a dataset
+/// whose body model outputs 127: the check names the file and both counts, and a loader told what its
+/// body layer outputs refuses the frame instead of letting a loss or a metric index past the end.
+#[test]
+fn joints_of_another_body_model_are_named_by_the_check_and_the_loader() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().join("ds");
+    copy_tree(dataset(), &root);
+    let ann = root.join("scene_000/frame_000001/annotation.json");
+    let mut a: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&ann).unwrap()).unwrap();
+    for p in a["people"].as_array_mut().unwrap() {
+        p["joints_3d"].as_array_mut().unwrap().truncate(76);
+        for v in p["views"].as_array_mut().unwrap() {
+            v["joints_2d"].as_array_mut().unwrap().truncate(76);
+        }
+    }
+    std::fs::write(&ann, serde_json::to_string(&a).unwrap()).unwrap();
+    let problems: Vec<String> = check_dataset(&root, false)
+        .problems
+        .iter()
+        .map(|p| format!("{}: {}", p.path.display(), p.what))
+        .collect();
+    assert_eq!(problems.len(), 1, "{problems:#?}");
+    assert!(
+        problems[0].contains("scene_000/frame_000001/annotation.json")
+            && problems[0].contains("has 76 joints")
+            && problems[0].contains("outputs 127"),
+        "{problems:#?}"
+    );
+    let mut ds = FrameDataset::open(&root, Split::All, ViewChoice::Fixed(vec![0]), 56).unwrap();
+    let bad = ds
+        .frames()
+        .iter()
+        .position(|f| f.dir.ends_with("scene_000/frame_000001"))
+        .unwrap();
+    assert!(ds.load(bad).is_ok(), "a layout the data format allows");
+    ds.expect_joints(127, "standin:0");
+    let e = ds.load(bad).unwrap_err().to_string();
+    assert!(
+        e.contains("frame_000001/annotation.json") && e.contains("76 joints") && e.contains("127"),
+        "{e}"
+    );
+    assert!(ds.load(if bad == 0 { 1 } else { 0 }).is_ok());
+}
+
 #[test]
 fn batches_with_vertices_load_in_several_workers() {
     use burn::data::dataloader::DataLoaderBuilder;

@@ -68,6 +68,34 @@ pub fn ground_truth(batch: &FrameBatch) -> Vec<Vec<PersonPose>> {
         .collect()
 }
 
+/// The people's joints picked to `set`; people with too few joints for it are an error naming `what`
+/// and the frame, not an index out of bounds.
+fn pick_joints(
+    people: Vec<PersonPose>,
+    set: JointSet,
+    frame: &Path,
+    what: &str,
+) -> Result<Vec<PersonPose>, InferError> {
+    let need = set.smplx_indices().into_iter().max().map_or(0, |m| m + 1);
+    people
+        .into_iter()
+        .map(|mut p| {
+            if p.joints.len() < need {
+                return Err(InferError::file(
+                    frame,
+                    format!(
+                        "the {what} hold {} joints per person; the joint set {} needs {need}",
+                        p.joints.len(),
+                        set.name()
+                    ),
+                ));
+            }
+            p.joints = set.select(&p.joints);
+            Ok(p)
+        })
+        .collect()
+}
+
 /// Options of [`evaluate`].
 #[derive(Debug, Clone)]
 pub struct EvalOptions {
@@ -97,31 +125,33 @@ pub fn evaluate_frames(
     device: &Device,
     mut predict: impl FnMut(usize, usize, &FrameBatch) -> Result<Vec<PersonPose>, InferError>,
 ) -> Result<Evaluator, InferError> {
-    let ds = FrameDataset::open(
+    let mut ds = FrameDataset::open(
         data,
         opts.split,
         ViewChoice::Fixed((0..opts.views).collect()),
         image_size,
     )?;
-    let batcher = FrameBatcher::with_vertices(ds.layout().body_model()?);
+    let body = ds.layout().body_model()?;
+    let body_name = ds.layout().index.body_model.clone();
+    ds.expect_joints(body.num_output_joints(), &body_name);
+    let batcher = FrameBatcher::with_vertices(body);
     let n = match opts.max_frames {
         0 => ds.frames().len(),
         m => m.min(ds.frames().len()),
     };
     let mut ev = Evaluator::new(opts.gate);
     ev.root = opts.joints.root();
-    let pick = |mut p: PersonPose| {
-        p.joints = opts.joints.select(&p.joints);
-        p
-    };
     for i in 0..n {
         let batch = batcher.batch(vec![ds.load(i)?], device);
-        let poses: Vec<PersonPose> = predict(i, n, &batch)?.into_iter().map(pick).collect();
-        let gt: Vec<PersonPose> = ground_truth(&batch)
-            .remove(0)
-            .into_iter()
-            .map(pick)
-            .collect();
+        let name = &batch.names[0];
+        let frame = data.join(&name.0).join(&name.1);
+        let poses = pick_joints(predict(i, n, &batch)?, opts.joints, &frame, "predictions")?;
+        let gt = pick_joints(
+            ground_truth(&batch).remove(0),
+            opts.joints,
+            &frame,
+            "annotations",
+        )?;
         ev.add_frame(&batch.names[0].0, &poses, &gt);
     }
     Ok(ev)
@@ -395,17 +425,18 @@ pub fn evaluate_joint_sequences(
         let cams = seq.cameras();
         let images = mvmp_data::sources::read_frame_images(&seq.images(fi), cams)?;
         let people = pred.predict_images(&images, cams)?;
-        let poses: Vec<PersonPose> = people
+        let poses = people
             .iter()
             .map(|p| {
                 let mut pose = pose_of(p);
-                pose.joints = set.select(&pose.joints);
                 if pseudo.is_none() {
                     pose.vertices = None;
                 }
                 pose
             })
             .collect();
+        let frame = PathBuf::from(format!("{} frame {}", seq.name(), seq.frame_key(fi)));
+        let poses = pick_joints(poses, set, &frame, "predictions")?;
         let mut gt: Vec<PersonPose> = seq
             .people(fi)?
             .into_iter()

@@ -229,10 +229,14 @@ impl ModelConfig {
                 ),
             ));
         }
-        if !self.root_threshold.is_finite() {
+        // The likelihood is a sigmoid: at 1 or above no voxel ever passes (below 0 every peak does).
+        if !(self.root_threshold.is_finite() && self.root_threshold < 1.0) {
             return Err(bad(
                 "root_threshold",
-                format!("{}: must be a finite number", self.root_threshold),
+                format!(
+                    "{}: must be a finite likelihood below 1 (a negative one keeps every peak)",
+                    self.root_threshold
+                ),
             ));
         }
         let d = &self.decoder;

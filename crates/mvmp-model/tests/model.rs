@@ -226,11 +226,12 @@ type Edit = fn(&mut ModelConfig);
 
 #[test]
 fn unusable_people_caps_and_thresholds_name_the_key() {
-    let cases: [(&str, Edit); 4] = [
+    let cases: [(&str, Edit); 5] = [
         ("max_people", |c| c.max_people = 100_000_000),
         ("max_people", |c| c.max_people = 0),
         ("root_threshold", |c| c.root_threshold = f32::NAN),
         ("root_threshold", |c| c.root_threshold = f32::INFINITY),
+        ("root_threshold", |c| c.root_threshold = 1.5),
     ];
     for (key, edit) in cases {
         let mut c = ModelConfig::default();

@@ -203,6 +203,20 @@ impl BodyModel {
         self.faces.len()
     }
 
+    /// Joints the body layer outputs for this model: 55, plus the vertex joints when the model has
+    /// SMPL-X's vertices (76), plus the face landmarks when it has them (127).
+    pub fn num_output_joints(&self) -> usize {
+        let v = self.num_vertices();
+        if crate::names::EXTRA_VERTEX_JOINTS
+            .iter()
+            .any(|&(_, vid)| vid >= v)
+        {
+            return NUM_JOINTS;
+        }
+        let landmarks = self.landmarks.as_ref().map_or(0, |(faces, _)| faces.len());
+        NUM_JOINTS + crate::names::EXTRA_VERTEX_JOINTS.len() + landmarks
+    }
+
     /// Load an `SMPLX_*.npz` file.
     pub fn load(path: &Path) -> Result<Self, SmplxError> {
         if path

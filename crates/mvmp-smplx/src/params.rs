@@ -10,6 +10,10 @@ use crate::names::{NUM_BETAS, NUM_EXPRESSION, NUM_JOINTS, POSE_KEYS};
 /// The largest magnitude a shape or expression coefficient may have (in standard deviations; fitted
 /// bodies stay within a few).
 pub const MAX_COEFFICIENT: f64 = 100.0;
+/// Largest axis-angle component accepted (radians, 16 turns): beyond it the f32 forward loses the angle.
+pub const MAX_ANGLE: f64 = 100.0;
+/// Largest translation component accepted (metres).
+pub const MAX_TRANSLATION: f64 = 1.0e5;
 
 /// One body's parameters. Missing keys are zero. Lengths: `global_orient`, `jaw_pose`, `leye_pose`,
 /// `reye_pose`, `transl` 3; `body_pose` 63; hand poses 45 each; `betas` and `expression` up to 10.
@@ -109,9 +113,14 @@ impl SmplxParams {
             }
             // Shape and expression coefficients are in standard deviations of the model's
             // directions: far outside the cap they pose no body, only meshes kilometres wide.
-            if !exact && let Some(i) = v.iter().position(|x| x.abs() > MAX_COEFFICIENT) {
+            let (cap, unit) = match (exact, key) {
+                (false, _) => (MAX_COEFFICIENT, "standard deviations"),
+                (true, "transl") => (MAX_TRANSLATION, "metres"),
+                (true, _) => (MAX_ANGLE, "radians"),
+            };
+            if let Some(i) = v.iter().position(|x| x.abs() > cap) {
                 return Err(SmplxError::Params(format!(
-                    "{which}: key `{key}`[{i}] = {} is outside +-{MAX_COEFFICIENT} (standard deviations)",
+                    "{which}: key `{key}`[{i}] = {} is outside +-{cap} ({unit})",
                     v[i]
                 )));
             }
@@ -231,5 +240,40 @@ impl ParamTensors {
             expression: Tensor::from_data(TensorData::new(expr, [n, NUM_EXPRESSION]), device),
             transl: Tensor::from_data(TensorData::new(transl, [n, 3]), device),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Values no body has are named with their key, index and cap; values at the caps are accepted.
+    #[test]
+    fn out_of_range_values_name_their_key_and_the_cap() {
+        let cases: [(&str, usize, f64, &str); 4] = [
+            ("betas", 10, 1e30, "standard deviations"),
+            ("global_orient", 3, 1e30, "radians"),
+            ("left_hand_pose", 45, -1e6, "radians"),
+            ("transl", 3, 1e39, "metres"),
+        ];
+        for (key, len, bad, unit) in cases {
+            let mut p = SmplxParams::default();
+            *p.field_mut(key) = vec![0.0; len];
+            p.field_mut(key)[len - 1] = bad;
+            let e = p.validate("bodies[1]").unwrap_err().to_string();
+            assert!(
+                e.contains("bodies[1]")
+                    && e.contains(&format!("`{key}`[{}]", len - 1))
+                    && e.contains(unit),
+                "{e}"
+            );
+        }
+        let p = SmplxParams {
+            global_orient: vec![MAX_ANGLE, -MAX_ANGLE, 0.0],
+            transl: vec![MAX_TRANSLATION, 0.0, -MAX_TRANSLATION],
+            betas: vec![MAX_COEFFICIENT],
+            ..Default::default()
+        };
+        p.validate("bodies[0]").unwrap();
     }
 }

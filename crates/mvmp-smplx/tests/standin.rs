@@ -158,3 +158,15 @@ fn npz_round_trip_keeps_everything() {
         );
     }
 }
+
+#[test]
+fn the_joint_count_of_a_model_is_what_its_layer_outputs() {
+    let d = Device::flex();
+    let full = standin().clone();
+    let mut bare = full.clone();
+    bare.landmarks = None;
+    for (m, want) in [(full, 127), (bare, 76)] {
+        assert_eq!(m.num_output_joints(), want);
+        assert_eq!(SmplxLayer::new(&m, &d).num_joints(), want);
+    }
+}
