@@ -684,6 +684,17 @@ fn train_eval_infer_end_to_end() {
     ] {
         assert!(dir.path().join("run").join(f).exists(), "{f}");
     }
+    // Stage-2 validations report how much the predicted people differ (two kept roots per frame).
+    let log = std::fs::read_to_string(dir.path().join("run/metrics.jsonl")).unwrap();
+    let last_val: serde_json::Value = log
+        .lines()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+        .rfind(|l| l["kind"] == "val")
+        .unwrap();
+    for k in ["heading_spread_deg", "body_pose_spread_deg"] {
+        let v = last_val[k].as_f64().unwrap_or(-1.0);
+        assert!((0.0..=90.0).contains(&v), "{k} in {last_val}");
+    }
     // The same directory again is refused; resuming a finished run does nothing and succeeds.
     expect_error(
         &[

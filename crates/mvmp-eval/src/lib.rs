@@ -12,6 +12,7 @@
 pub use mvmp_smplx::joint_sets;
 
 pub mod drivers;
+pub mod spread;
 
 use std::collections::BTreeMap;
 

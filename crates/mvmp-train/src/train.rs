@@ -28,6 +28,7 @@ use crate::config::{Stage, StageConfig, TrainConfig};
 use crate::run::{RunDir, RunState, STATE_FORMAT};
 use crate::step::{StepLoss, stage1_loss, stage2_loss};
 use mvmp_eval::drivers::{EvalOptions, PseudoGt, evaluate, ground_truth};
+use mvmp_eval::spread;
 use mvmp_infer::{Predictor, load_weights};
 
 /// One optimizer step, as logged.
@@ -79,7 +80,8 @@ impl StepRecord {
 pub struct ValRecord {
     pub stage: Stage,
     pub epoch: usize,
-    /// `root_mm`/`root_recall` in stage 1; `mpjpe_mm`, `pve_mm`, `pa_pve_mm`, `recall_500` in stage 2.
+    /// `root_mm`/`root_recall` in stage 1; `mpjpe_mm`, `pve_mm`, `pa_pve_mm`, `recall_500` in stage 2, and
+    /// on MVMP-HMR data `heading_spread_deg`, `body_pose_spread_deg` (see [`mvmp_eval::spread`]).
     pub metrics: Vec<(String, f64)>,
 }
 
@@ -443,7 +445,8 @@ impl<'a> Trainer<'a> {
         run.truncate_log(cursor.global)?;
         run.remove_stale_temporaries()?;
         let body = mvmp_data::layout::load_body_model(&model_cfg.body_model, &run.root)?;
-        let data = open_training_set(cfg, model_cfg, &run.root.join("train.toml"))?;
+        let mut data = open_training_set(cfg, model_cfg, &run.root.join("train.toml"))?;
+        data.expect_joints(body.num_output_joints(), &model_cfg.body_model);
         check_validation_source(cfg)?;
         // Ground-truth meshes are posed with the body model of the (first) MVMP-HMR source; joint-annotated
         // people have none.
@@ -852,12 +855,31 @@ fn validate(
     let metrics = if stage == Stage::Detection {
         root_metrics(&pred, data, &opts)?
     } else {
-        let m = evaluate(&pred, data, &opts, |_, _, _| Ok(()))?.overall();
+        // Every predicted person's pose: their spread across people tells a decoder that reads its
+        // input from one that predicts the same body for everyone (docs/architecture.md, Training).
+        let mut poses: Vec<Vec<f64>> = Vec::new();
+        let m = evaluate(&pred, data, &opts, |_, _, frame| {
+            poses.extend(
+                frame
+                    .people
+                    .iter()
+                    .map(|p| p.pose.iter().map(|&x| x as f64).collect()),
+            );
+            Ok(())
+        })?
+        .overall();
+        let headings: Vec<f64> = poses
+            .iter()
+            .map(|p| spread::heading_deg([p[0], p[1], p[2]]))
+            .collect();
+        let body: Vec<Vec<f64>> = poses.iter().map(|p| p[3..66].to_vec()).collect();
         measured(&[
             ("mpjpe_mm", m.mpjpe_mm),
             ("pve_mm", m.pve_mm),
             ("pa_pve_mm", m.pa_pve_mm),
             ("recall_500", m.recall_500),
+            ("heading_spread_deg", spread::heading_spread_deg(&headings)),
+            ("body_pose_spread_deg", spread::pose_spread_deg(&body)),
         ])
     };
     Ok(metrics)
