@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use mvmp_backbone::{HRNetConfig, HrnetVariant, ViTConfig, VitVariant};
+use mvmp_decoder::DecoderConfig;
 use mvmp_fusion::{FusionMode, RootRefine, VolumeNorm};
 use mvmp_geom::VoxelGrid;
 
@@ -57,13 +58,15 @@ pub struct DecoderSection {
 }
 
 impl Default for DecoderSection {
+    /// The decoder's own defaults ([`DecoderConfig`]), so that they are written once.
     fn default() -> Self {
+        let d = DecoderConfig::new(0);
         DecoderSection {
-            dim: 256,
-            depth: 2,
-            heads: 8,
-            pool: 1,
-            use_htb: true,
+            dim: d.dim,
+            depth: d.depth,
+            heads: d.heads,
+            pool: d.pool,
+            use_htb: d.use_htb,
         }
     }
 }
@@ -129,10 +132,9 @@ impl Default for ModelConfig {
             root_refine: RootRefine::Offset,
             decoder: DecoderSection {
                 dim: 128,
-                depth: 2,
                 heads: 4,
                 pool: 2,
-                use_htb: true,
+                ..Default::default()
             },
             body_model: "standin:0".into(),
         }
