@@ -156,7 +156,19 @@ impl ModelConfig {
             path: path.into(),
             what: e.to_string(),
         })?;
-        Ok(cfg)
+        Ok(cfg.with_body_model_beside(path))
+    }
+
+    /// A relative body-model path is relative to the config file that names it: made absolute here, so
+    /// that a run's copy of the config (another directory) and every command find the same file.
+    fn with_body_model_beside(mut self, path: &Path) -> Self {
+        let named = Path::new(&self.body_model);
+        if !self.body_model.starts_with("standin:") && named.is_relative() {
+            let joined = path.parent().unwrap_or(Path::new(".")).join(named);
+            let absolute = std::path::absolute(&joined).unwrap_or(joined);
+            self.body_model = absolute.to_string_lossy().into_owned();
+        }
+        self
     }
 
     pub fn vit(&self) -> ViTConfig {

@@ -245,3 +245,31 @@ fn unusable_people_caps_and_thresholds_name_the_key() {
     };
     c.validate().unwrap();
 }
+
+/// A relative body-model path names a file beside the config that names it, wherever the config is read
+/// from later (a run keeps a copy of it in its own directory); `standin:SEED` and absolute paths stay.
+#[test]
+fn a_relative_body_model_path_is_relative_to_its_config() {
+    let dir = tempfile::tempdir().unwrap();
+    let base = std::fs::read_to_string(configs_dir().join("tiny.toml")).unwrap();
+    let read = |body: &str| {
+        let text = base.replace(
+            "body_model = \"standin:0\"",
+            &format!("body_model = {body:?}"),
+        );
+        assert!(text.contains(body));
+        let p = dir.path().join("m.toml");
+        std::fs::write(&p, text).unwrap();
+        ModelConfig::read(&p).unwrap().body_model
+    };
+    let abs = std::path::absolute(dir.path()).unwrap();
+    assert_eq!(
+        read("models/SMPLX_NEUTRAL.npz"),
+        abs.join("models/SMPLX_NEUTRAL.npz").to_string_lossy()
+    );
+    assert_eq!(read("standin:3"), "standin:3");
+    assert_eq!(
+        read("/opt/smplx/SMPLX_MALE.npz"),
+        "/opt/smplx/SMPLX_MALE.npz"
+    );
+}

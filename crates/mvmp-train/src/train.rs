@@ -206,7 +206,7 @@ pub fn open_training_set(
                         what: format!("{}: not a directory", dir.display()),
                     });
                 }
-                // The body model resolves as the run resolves it (relative to the run directory).
+                // A path is absolute by now (`ModelConfig::read` resolves it beside its config).
                 let base = config.parent().unwrap_or(Path::new("."));
                 let body = mvmp_data::layout::load_body_model(&model_cfg.body_model, base)?;
                 let layer = SmplxLayer::new(&body, &Device::flex());
