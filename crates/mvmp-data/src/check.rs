@@ -147,14 +147,7 @@ pub fn check_dataset(root: &Path, deep: bool) -> CheckReport {
                 }
             };
             r.people += ann.people.len();
-            if let (Some(n), Some(p)) = (joints, ann.people.first())
-                && p.joints_3d.len() != n
-            {
-                let what = format!(
-                    "people[0].joints_3d has {} joints, the body model `{}` outputs {n}",
-                    p.joints_3d.len(),
-                    index.body_model
-                );
+            if let Some(Err(what)) = joints.map(|n| ann.check_joints(n, &index.body_model)) {
                 problem(&mut r, &apath, what);
             }
             for (v, cam) in rig.cameras.iter().enumerate() {

@@ -214,17 +214,9 @@ impl FrameDataset {
         let scene = &self.layout.scenes[f.scene];
         let apath = f.dir.join("annotation.json");
         let ann = Annotation::read(&apath, scene.rig.len())?;
-        if let Some((n, body)) = &self.joints
-            && let Some(first) = ann.people.first()
-            && first.joints_3d.len() != *n
-        {
-            return Err(DataError::file(
-                &apath,
-                format!(
-                    "people[0].joints_3d has {} joints, the body model `{body}` outputs {n}",
-                    first.joints_3d.len(),
-                ),
-            ));
+        if let Some((n, body)) = &self.joints {
+            ann.check_joints(*n, body)
+                .map_err(|what| DataError::file(&apath, what))?;
         }
         let views = self.select_views(draw, scene.rig.len());
         let s = self.size as usize;
