@@ -44,6 +44,8 @@ impl Activity {
 pub struct Appearance {
     pub skin: [f32; 3],
     pub shirt: [f32; 3],
+    /// The torso's front (what the open jacket `shirt` shows), lighter than the jacket.
+    pub shirt_front: [f32; 3],
     pub pants: [f32; 3],
     pub shoes: [f32; 3],
     pub hair: [f32; 3],
@@ -76,16 +78,24 @@ fn hair_of(shirt: [f32; 3], pants: [f32; 3]) -> [f32; 3] {
     HAIR[(mix % HAIR.len() as u64) as usize]
 }
 
+/// A jacket (the torso's back and the sleeves) and what it shows in front, from one drawn colour (no
+/// draw of its own, as for hair): the front is always the lighter, by 0.1 to 0.7 in every channel, so that
+/// "lighter here" means "the front" for every person, by day and at night.
+pub(crate) fn jacket_and_front(drawn: [f32; 3]) -> ([f32; 3], [f32; 3]) {
+    (drawn.map(|c| 0.6 * c), drawn.map(|c| 0.7 + 0.3 * c))
+}
+
 impl Appearance {
     pub fn sample(rng: &mut ChaCha8Rng) -> Self {
         let mut colour =
             |lo: f32, hi: f32| -> [f32; 3] { std::array::from_fn(|_| rng.random_range(lo..hi)) };
-        let shirt = colour(0.05, 0.95);
+        let (shirt, shirt_front) = jacket_and_front(colour(0.05, 0.95));
         let pants = colour(0.03, 0.45);
         let shoes = colour(0.02, 0.3);
         Appearance {
             skin: SKIN[rng.random_range(0..SKIN.len())],
             shirt,
+            shirt_front,
             pants,
             shoes,
             long_sleeves: rng.random_bool(0.5),
