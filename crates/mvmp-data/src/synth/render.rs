@@ -295,35 +295,42 @@ pub fn render_view(
 mod tests {
     use super::*;
 
-    /// The stand-in's head: hair behind and on top, skin on the face, so the face points forward (+z in
-    /// the rest pose) by more than the nose alone.
-    #[test]
-    fn the_head_is_hair_behind_and_skin_in_front() {
-        let model = mvmp_smplx::standin_model(0);
-        let parts = face_parts(&model);
+    /// The mean rest-pose z (forward) and the number of the faces of part `want` that `keep` accepts.
+    fn mean_z(
+        model: &mvmp_smplx::BodyModel,
+        parts: &[Part],
+        want: Part,
+        keep: impl Fn(&[u32; 3]) -> bool,
+    ) -> (f64, usize) {
         let z = |f: &[u32; 3]| {
             f.iter()
                 .map(|&v| model.v_template[v as usize * 3 + 2] as f64)
                 .sum::<f64>()
                 / 3.0
         };
+        let zs: Vec<f64> = model
+            .faces
+            .iter()
+            .zip(parts)
+            .filter(|(f, p)| **p == want && keep(f))
+            .map(|(f, _)| z(f))
+            .collect();
+        (zs.iter().sum::<f64>() / zs.len().max(1) as f64, zs.len())
+    }
+
+    /// The stand-in's head: hair behind and on top, skin on the face, so the face points forward (+z in
+    /// the rest pose) by more than the nose alone.
+    #[test]
+    fn the_head_is_hair_behind_and_skin_in_front() {
+        let model = mvmp_smplx::standin_model(0);
+        let parts = face_parts(&model);
         let nj = mvmp_smplx::names::NUM_JOINTS;
         let on_head = |f: &[u32; 3]| {
             let row = &model.weights[f[0] as usize * nj..(f[0] as usize + 1) * nj];
             (0..nj).max_by(|&a, &b| row[a].total_cmp(&row[b])) == Some(HEAD)
         };
-        let mean_z = |want: Part| {
-            let zs: Vec<f64> = model
-                .faces
-                .iter()
-                .zip(&parts)
-                .filter(|(f, p)| on_head(f) && **p == want)
-                .map(|(f, _)| z(f))
-                .collect();
-            (zs.iter().sum::<f64>() / zs.len().max(1) as f64, zs.len())
-        };
-        let (hair_z, hair_n) = mean_z(Part::Hair);
-        let (face_z, face_n) = mean_z(Part::Skin);
+        let (hair_z, hair_n) = mean_z(&model, &parts, Part::Hair, on_head);
+        let (face_z, face_n) = mean_z(&model, &parts, Part::Skin, on_head);
         assert!(
             hair_n > face_n && face_n > 20,
             "{hair_n} hair, {face_n} skin faces"
@@ -347,24 +354,9 @@ mod tests {
     fn the_torso_front_differs_from_its_back() {
         let model = mvmp_smplx::standin_model(0);
         let parts = face_parts(&model);
-        let z = |f: &[u32; 3]| {
-            f.iter()
-                .map(|&v| model.v_template[v as usize * 3 + 2] as f64)
-                .sum::<f64>()
-                / 3.0
-        };
-        let mean_z = |want: Part| {
-            let zs: Vec<f64> = model
-                .faces
-                .iter()
-                .zip(&parts)
-                .filter(|(_, p)| **p == want)
-                .map(|(f, _)| z(f))
-                .collect();
-            (zs.iter().sum::<f64>() / zs.len().max(1) as f64, zs.len())
-        };
-        let (front_z, front_n) = mean_z(Part::ShirtFront);
-        let (back_z, back_n) = mean_z(Part::Shirt);
+        let all = |_: &[u32; 3]| true;
+        let (front_z, front_n) = mean_z(&model, &parts, Part::ShirtFront, all);
+        let (back_z, back_n) = mean_z(&model, &parts, Part::Shirt, all);
         assert!(
             front_n > 20 && back_n > 20,
             "{front_n} front, {back_n} back faces"
