@@ -36,8 +36,8 @@ pub fn face_parts(model: &mvmp_smplx::BodyModel) -> Vec<Part> {
             .max_by(|&a, &b| row[a].total_cmp(&row[b]))
             .unwrap_or(0)
     };
-    let head = HeadBox::new(model, |v| dominant(v) == HEAD);
-    let chest = HeadBox::new(model, |v| matches!(dominant(v), 3 | 6 | 9));
+    let head = PartBox::new(model, |v| dominant(v) == HEAD);
+    let chest = PartBox::new(model, |v| matches!(dominant(v), 3 | 6 | 9));
     let part_of_joint = |j: usize| match j {
         0 | 1 | 2 | 4 | 5 => Part::Pants,
         7 | 8 | 10 | 11 => Part::Shoes,
@@ -59,14 +59,14 @@ pub fn face_parts(model: &mvmp_smplx::BodyModel) -> Vec<Part> {
 }
 
 /// The bounds of some of the body's vertices (the head's, the chest's) in the rest pose (y up, z forward).
-struct HeadBox {
+struct PartBox {
     lo: [f32; 3],
     hi: [f32; 3],
 }
 
-impl HeadBox {
+impl PartBox {
     fn new(model: &mvmp_smplx::BodyModel, member: impl Fn(usize) -> bool) -> Self {
-        let mut b = HeadBox {
+        let mut b = PartBox {
             lo: [f32::INFINITY; 3],
             hi: [f32::NEG_INFINITY; 3],
         };
