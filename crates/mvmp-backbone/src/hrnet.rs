@@ -359,6 +359,12 @@ impl HRNetConfig {
 impl HRNet {
     /// `[B, 3, H, W]` -> `[B, J, H/4, W/4]`.
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
+        self.final_layer.forward(self.features(x))
+    }
+
+    /// The highest-resolution branch's output, what the final layer reads: `[B, 3, H, W]` ->
+    /// `[B, width, H/4, W/4]`.
+    pub fn features(&self, x: Tensor<4>) -> Tensor<4> {
         let x = relu(self.bn1.forward(self.conv1.forward(x)));
         let x = relu(self.bn2.forward(self.conv2.forward(x)));
         let x = self.layer1.iter().fold(x, |x, b| b.forward(x));
@@ -374,6 +380,6 @@ impl HRNet {
         for m in &self.stage4 {
             xs = m.forward(xs);
         }
-        self.final_layer.forward(xs.swap_remove(0))
+        xs.swap_remove(0)
     }
 }

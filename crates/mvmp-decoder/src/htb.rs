@@ -36,6 +36,10 @@ pub struct DecoderConfig {
     /// Without blocks: the VoxelSMPLX baseline (an MLP on the sampled queries).
     #[config(default = true)]
     pub use_htb: bool,
+    /// Add each person's estimated heading (a horizontal unit-length direction in the world, `[B, K, 2]`)
+    /// to its query through `heading_proj`; false (the paper) reads none.
+    #[config(default = false)]
+    pub heading: bool,
 }
 
 #[derive(Module, Debug)]
@@ -121,6 +125,8 @@ pub struct Decoder {
     pub betas_head: Head,
     pub expr_head: Head,
     pub offset_head: Head,
+    /// Present when the decoder reads a heading per person (see [`Decoder::forward_with`]).
+    pub heading_proj: Option<Linear>,
     /// Where the residual heads start: the mean parameters `[PARAM_DIM]` (set from the training data,
     /// kept in checkpoints, never trained).
     pub mean: Param<Tensor<1>>,
@@ -214,6 +220,7 @@ impl DecoderConfig {
             betas_head: Head::new(d, NUM_BETAS, device),
             expr_head: Head::new(d, NUM_EXPRESSION, device),
             offset_head: Head::new(d, 3, device),
+            heading_proj: self.heading.then(|| LinearConfig::new(2, d).init(device)),
             mean: constant(mean_params(device)),
             pool: self.pool.max(1),
         }
@@ -248,6 +255,19 @@ impl Decoder {
         roots: Tensor<3>,
         present: Tensor<2, Bool>,
     ) -> DecoderOutput {
+        self.forward_with(volume, None, grid, roots, present)
+    }
+
+    /// [`Decoder::forward`] with each person's heading `[B, K, 2]`, which `heading_proj` adds to the
+    /// queries (a decoder without `heading_proj` ignores it).
+    pub fn forward_with(
+        &self,
+        volume: Tensor<5>,
+        heading: Option<Tensor<3>>,
+        grid: &VoxelGrid,
+        roots: Tensor<3>,
+        present: Tensor<2, Bool>,
+    ) -> DecoderOutput {
         let [b, c, nx, ny, nz] = volume.dims();
         let k = roots.dims()[1];
         let device = volume.device();
@@ -258,6 +278,9 @@ impl Decoder {
             2,
         );
         let mut q = self.query_proj.forward(q_in); // [B, K, D]
+        if let (Some(proj), Some(h)) = (&self.heading_proj, heading) {
+            q = q + proj.forward(h);
+        }
         if self.blocks.is_empty() {
             if let Some(mlp) = &self.baseline {
                 q = q.clone() + mlp.forward(q);

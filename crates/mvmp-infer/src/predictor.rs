@@ -8,7 +8,7 @@ use burn::tensor::{Device, Tensor};
 use mvmp_fusion::{Root, extract_roots};
 use mvmp_geom::rotation::matrix_to_axis_angle;
 use mvmp_geom::{Camera, Letterbox};
-use mvmp_model::{ModelConfig, MvmpHmr, RigGrids};
+use mvmp_model::{Detection, ModelConfig, MvmpHmr, RigGrids};
 use mvmp_smplx::names::{NUM_BETAS, NUM_EXPRESSION, NUM_JOINTS, NUM_REGRESSED};
 use mvmp_smplx::people::StoredPerson;
 use mvmp_smplx::{BodyModel, SmplxLayer, SmplxParams, regressed_to_full_pose};
@@ -108,15 +108,26 @@ impl Predictor {
         cameras: &[Vec<Camera>],
         letterboxes: &[Vec<Letterbox>],
     ) -> Vec<Vec<Root>> {
+        self.detect_with_maps(images, cameras, letterboxes).0
+    }
+
+    /// [`Predictor::detect`] that also returns the detection branch's maps and the batch's grids.
+    pub fn detect_with_maps(
+        &self,
+        images: Tensor<5>,
+        cameras: &[Vec<Camera>],
+        letterboxes: &[Vec<Letterbox>],
+    ) -> (Vec<Vec<Root>>, Detection, Vec<RigGrids>) {
         let grids = RigGrids::for_batch(&self.cfg, cameras, letterboxes, &self.device);
         let det = self.model.detect(images, &grids);
-        extract_roots(
-            det.likelihood,
-            self.cfg.root_refine.with_offset(det.offset),
+        let roots = extract_roots(
+            det.likelihood.clone(),
+            self.cfg.root_refine.with_offset(det.offset.clone()),
             &self.cfg.grid,
             self.cfg.max_people,
             self.cfg.root_threshold,
-        )
+        );
+        (roots, det, grids)
     }
 
     /// People in one frame: one original image per camera (sizes as the cameras say), letterboxed to the

@@ -280,6 +280,18 @@ pub fn heatmap_loss(pred: Tensor<5>, target: Tensor<5>, weight: Tensor<3>) -> Te
     mean_all(per_joint * weight)
 }
 
+/// Loss of a facing head (not one of the paper's five): the squared error of the maps `[B, V, 2, H, W]`
+/// to their targets, weighted per pixel by `weight` `[B, V, H, W]` (where a person's torso shows) and
+/// divided by the weights' sum, so that it is a mean over the supervised pixels whatever their number.
+pub fn facing_loss(pred: Tensor<5>, target: Tensor<5>, weight: Tensor<4>) -> Tensor<1> {
+    let [b, v, _, h, w] = pred.dims();
+    let err = (pred - target)
+        .powi_scalar(2)
+        .sum_dim(2)
+        .reshape([b, v, h, w]);
+    sum_all(err * weight.clone()) / sum_all(weight).clamp_min(1e-6)
+}
+
 /// Gaussian heatmap targets `[J, H, W]` (flat) of one view for joints at network pixels `(u, v)`, on maps of
 /// `stride` network pixels per map pixel (map coordinate `(u + 0.5) / stride - 0.5`, as the fusion samples),
 /// `exp(-d^2 / (2 sigma^2))` with `sigma` in map pixels, cut at 3 sigma. Joints with `None` stay zero.
@@ -340,6 +352,8 @@ pub struct LossWeights {
     pub heatmap_2d: f32,
     /// Width of the 2D heatmap targets in heatmap pixels (HRNet: 2).
     pub heatmap_sigma: f32,
+    /// Weight of [`facing_loss`] in both stages, for a model with a facing head (not one of the five).
+    pub facing: f32,
 }
 
 impl Default for LossWeights {
@@ -359,6 +373,7 @@ impl Default for LossWeights {
             detection_sigma: 0.2,
             heatmap_2d: 1.0,
             heatmap_sigma: 2.0,
+            facing: 0.1,
         }
     }
 }
@@ -376,6 +391,7 @@ impl LossWeights {
             ("heatmap_2d", self.heatmap_2d),
             ("detection_offset", self.detection_offset),
             ("detection_positive", self.detection_positive),
+            ("facing", self.facing),
         ] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(format!(

@@ -321,3 +321,21 @@ fn detection_positive_loss_by_hand() {
     let empty = t(vec![0.0; 4], [1, 1, 1, 1, 4], &d);
     assert_eq!(scalar(detection_positive_loss(lik, empty)), 0.0);
 }
+
+#[test]
+fn facing_loss_by_hand() {
+    let d = Device::flex();
+    // One view of 1 x 2 pixels, channels (c0, c1): predicted (1, 0) and (0.5, 0), targets (0, 0.5) and
+    // (0, -1); squared errors 1 + 0.25 and 0.25 + 1; weights 1 and 3.
+    let pred = t(vec![1.0, 0.5, 0.0, 0.0], [1, 1, 2, 1, 2], &d);
+    let target = t(vec![0.0, 0.0, 0.5, -1.0], [1, 1, 2, 1, 2], &d);
+    let weight = t(vec![1.0, 3.0], [1, 1, 1, 2], &d);
+    let e0 = 1.0 + 0.25;
+    let e1 = 0.25 + 1.0;
+    let want = (e0 + 3.0 * e1) / 4.0;
+    assert!((scalar(facing_loss(pred.clone(), target.clone(), weight)) - want).abs() < 1e-6);
+    // Weight only on pixel 0 with a different error at pixel 1: pixel 1 does not count.
+    let weight = t(vec![2.0, 0.0], [1, 1, 1, 2], &d);
+    let pred = t(vec![1.0, 9.0, 0.0, 9.0], [1, 1, 2, 1, 2], &d);
+    assert!((scalar(facing_loss(pred, target, weight)) - e0).abs() < 1e-6);
+}

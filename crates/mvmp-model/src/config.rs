@@ -102,6 +102,11 @@ pub struct ModelConfig {
     /// of the likelihood's Gaussian peak).
     pub root_refine: RootRefine,
     pub decoder: DecoderSection,
+    /// A facing head on HRNet (two maps: the cosine and sine of each person's heading relative to the
+    /// direction to the camera, trained where the person's torso shows) whose reading at each person,
+    /// turned into the world by the cameras' directions, the decoder adds to its query. false (the paper)
+    /// has none; a backbone trained from scratch needs it (docs/architecture.md, Facing).
+    pub facing: bool,
     /// Body model: `standin:SEED` or a path to an SMPLX_*.npz.
     pub body_model: String,
 }
@@ -136,6 +141,7 @@ impl Default for ModelConfig {
                 pool: 2,
                 ..Default::default()
             },
+            facing: false,
             body_model: "standin:0".into(),
         }
     }

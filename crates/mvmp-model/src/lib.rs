@@ -1,5 +1,6 @@
 //! The assembled MVMP-HMR model and its configuration.
 pub mod config;
+pub mod facing;
 pub mod model;
 pub mod summary;
 

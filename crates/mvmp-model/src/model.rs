@@ -13,6 +13,7 @@ use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::tensor::{Bool, Device, Tensor, TensorData};
 
 use crate::ModelConfig;
+use crate::facing::{FacingHead, facing_readout, turn_to_heading};
 use mvmp_backbone::vit::PATCH;
 use mvmp_backbone::{HRNet, ViT};
 use mvmp_decoder::{Decoder, DecoderConfig};
@@ -36,6 +37,8 @@ pub struct MvmpHmr {
     pub decoder: Decoder,
     /// Present when the config asks for deformable-attention fusion (ablation).
     pub deformable: Option<DeformableFusion>,
+    /// Present when the config asks for a facing head (`facing`).
+    pub facing: Option<FacingHead>,
 }
 
 /// Sampling grids of one rig: for the ViT feature maps (stride 14) and the HRNet heatmaps (stride 4).
@@ -43,6 +46,8 @@ pub struct MvmpHmr {
 pub struct RigGrids {
     pub features: SamplingGrid,
     pub heatmaps: SamplingGrid,
+    /// The cameras' centres in the world, one per view.
+    pub centres: Vec<[f64; 3]>,
 }
 
 impl RigGrids {
@@ -71,6 +76,7 @@ impl RigGrids {
                 [s / 4, s / 4],
                 device,
             ),
+            centres: cameras.iter().map(|c| c.centre().into()).collect(),
         }
     }
 
@@ -94,6 +100,8 @@ impl RigGrids {
 pub struct MvmpOutput {
     /// `[B, V, J, S/4, S/4]`
     pub heatmaps: Tensor<5>,
+    /// `[B, V, 2, S/4, S/4]` with a facing head (see [`Detection::facing`]).
+    pub facing: Option<Tensor<5>>,
     /// `[B, 1, X, Y, Z]` and `[B, 3, X, Y, Z]`
     pub likelihood: Tensor<5>,
     pub offset: Tensor<5>,
@@ -132,9 +140,13 @@ impl ModelConfig {
                 .with_heads(self.decoder.heads)
                 .with_pool(self.decoder.pool)
                 .with_use_htb(self.decoder.use_htb)
+                .with_heading(self.facing)
                 .init(device),
             deformable: (self.fusion == FusionMode::Deformable)
                 .then(|| DeformableFusionConfig::new().init(device)),
+            facing: self
+                .facing
+                .then(|| FacingHead::new(self.hrnet_config().width, device)),
         }
     }
 }
@@ -147,6 +159,8 @@ pub struct Detection {
     /// `[B, 1, X, Y, Z]` and `[B, 3, X, Y, Z]`
     pub likelihood: Tensor<5>,
     pub offset: Tensor<5>,
+    /// `[B, V, 2, S/4, S/4]` with a facing head: each pixel's person's heading relative to the camera.
+    pub facing: Option<Tensor<5>>,
 }
 
 impl MvmpHmr {
@@ -174,9 +188,15 @@ impl MvmpHmr {
     /// The detection branch alone: HRNet heatmaps, their mean fusion and the RootNet.
     pub fn detect(&self, images: Tensor<5>, grids: &[RigGrids]) -> Detection {
         let [b, v, _, s, _] = images.dims();
-        let hm = self.hrnet.forward(images.reshape([b * v, 3, s, s])); // [B*V, J, S/4, S/4]
+        let images = images.reshape([b * v, 3, s, s]);
+        let x = self.hrnet.features(images.clone());
+        let hm = self.hrnet.final_layer.forward(x.clone()); // [B*V, J, S/4, S/4]
         let [_, j, hh, hw] = hm.dims();
         let heatmaps = hm.reshape([b, v, j, hh, hw]);
+        let facing = self
+            .facing
+            .as_ref()
+            .map(|f| f.forward(images, x).reshape([b, v, 2, hh, hw]));
         let hgrids: Vec<SamplingGrid> = grids.iter().map(|g| g.heatmaps.clone()).collect();
         let hvol = fuse_views(heatmaps.clone(), &hgrids, FusionMode::Mean);
         let (likelihood, offset) = self.rootnet.forward(hvol);
@@ -184,6 +204,7 @@ impl MvmpHmr {
             heatmaps,
             likelihood,
             offset,
+            facing,
         }
     }
 
@@ -233,6 +254,7 @@ impl MvmpHmr {
             heatmaps,
             likelihood,
             offset,
+            facing,
         } = self.detect(images, grids);
         let detections = extract_roots(
             likelihood.clone().detach(),
@@ -243,9 +265,17 @@ impl MvmpHmr {
         );
         let (roots, present) = select(&detections);
         let kk = roots.dims()[1];
-        let dec = self
-            .decoder
-            .forward(volume, &cfg.grid, roots.clone(), present.clone());
+        // The decoder reads the facing head's estimate; the facing loss alone trains the head.
+        let heading = facing
+            .clone()
+            .map(|f| facing_readout(f.detach(), grids, &cfg.grid, roots.clone()));
+        let dec = self.decoder.forward_with(
+            volume,
+            heading.clone(),
+            &cfg.grid,
+            roots.clone(),
+            present.clone(),
+        );
         let n = b * kk;
         let rotmats = rot6d_to_matrix(dec.rot6d.clone().reshape([n * NUM_REGRESSED, 6])).reshape([
             n,
@@ -253,6 +283,10 @@ impl MvmpHmr {
             3,
             3,
         ]);
+        let rotmats = match heading {
+            Some(h) => turn_to_heading(rotmats, h.reshape([n, 2])),
+            None => rotmats,
+        };
         let body = layer.forward(
             regressed_to_full_pose(rotmats.clone()),
             dec.betas.clone().reshape([n, 10]),
@@ -264,6 +298,7 @@ impl MvmpHmr {
         let nj = layer.num_joints();
         MvmpOutput {
             heatmaps,
+            facing,
             likelihood,
             offset,
             detections,

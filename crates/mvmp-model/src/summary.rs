@@ -54,6 +54,18 @@ fn conv_macs(ci: usize, co: usize, k: usize, out_pixels: f64) -> f64 {
 }
 
 /// HRNet multiply-accumulates for an `s x s` input, following [`mvmp_backbone::HRNetConfig`]'s structure.
+/// The facing head per view: two stride-2 3 x 3 convolutions on the image, then two 3 x 3 and a 1 x 1
+/// at stride 4 (see `FacingHead`).
+fn facing_macs(cfg: &ModelConfig) -> f64 {
+    let hidden = crate::facing::HIDDEN as f64;
+    let s = cfg.image_size as f64;
+    let (half, quarter) = ((s / 2.0).powi(2), (s / 4.0).powi(2));
+    let width = cfg.hrnet_config().width as f64;
+    half * 27.0 * hidden / 2.0
+        + quarter * 9.0 * (hidden / 2.0 * hidden + (hidden + width) * hidden + hidden * hidden)
+        + quarter * hidden * 2.0
+}
+
 fn hrnet_macs(cfg: &ModelConfig) -> f64 {
     let h = cfg.hrnet_config();
     let s = cfg.image_size as f64;
@@ -154,7 +166,7 @@ pub fn summarize(cfg: &ModelConfig, views: usize, device: &Device) -> Summary {
             k * d * d * 2.0
         };
     let smplx_macs = k * (486.0 * 31425.0 + 12.0 * 55.0 * 10475.0 + 20.0 * 31425.0);
-    let rows = vec![
+    let mut rows = vec![
         ("vit", count(&net.vit), vit_macs),
         ("reduce", count(&net.reduce), v * (c * cf) * (n - 1.0)),
         ("hrnet", count(&net.hrnet), v * hrnet_macs(cfg)),
@@ -166,15 +178,19 @@ pub fn summarize(cfg: &ModelConfig, views: usize, device: &Device) -> Summary {
         ("rootnet", count(&net.rootnet), v2v_macs(cfg)),
         ("decoder", count(&net.decoder), dec_macs),
         ("smplx", (0, 0), smplx_macs),
-    ]
-    .into_iter()
-    .map(|(name, (params, stored_bytes), macs)| Row {
-        name,
-        params,
-        stored_bytes,
-        macs,
-    })
-    .collect();
+    ];
+    if let Some(f) = &net.facing {
+        rows.insert(3, ("facing", count(f), v * facing_macs(cfg)));
+    }
+    let rows = rows
+        .into_iter()
+        .map(|(name, (params, stored_bytes), macs)| Row {
+            name,
+            params,
+            stored_bytes,
+            macs,
+        })
+        .collect();
     let b = |x: f64| (x * 4.0) as usize;
     let hs = (s / 4) as f64;
     let v2v_w0 = (16.0 * cfg.rootnet_width).round().max(2.0);

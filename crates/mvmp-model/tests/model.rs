@@ -125,7 +125,9 @@ fn a_loss_reaches_every_trainable_parameter() {
     );
     let present = Tensor::<2, Bool>::from_data(TensorData::new(vec![true, true], [1, 2]), &d);
     let out = net.forward(images(&d), &grids, &cfg, &layer, Some((roots, present)));
+    let facing = out.facing.expect("tiny.toml has a facing head");
     let loss = out.likelihood.powi_scalar(2).sum() * 1e3
+        + facing.powi_scalar(2).sum()
         + out.offset.abs().sum()
         + out.heatmaps.powi_scalar(2).sum()
         + out.vertices.abs().mean()
@@ -272,4 +274,104 @@ fn a_relative_body_model_path_is_relative_to_its_config() {
         read("/opt/smplx/SMPLX_MALE.npz"),
         "/opt/smplx/SMPLX_MALE.npz"
     );
+}
+
+#[test]
+fn relative_heading_by_hand() {
+    use mvmp_model::facing::relative_heading;
+    // The camera due +x of the person: facing it is (1, 0); facing +y is a quarter turn anticlockwise
+    // from it, (0, 1); facing -x is (-1, 0).
+    let (at, cam) = ([1.0, 2.0, 0.9], [5.0, 2.0, 2.5]);
+    for (heading, want) in [
+        ([1.0, 0.0], [1.0, 0.0]),
+        ([0.0, 1.0], [0.0, 1.0]),
+        ([-1.0, 0.0], [-1.0, 0.0]),
+    ] {
+        let got = relative_heading(heading, at, cam).unwrap();
+        for a in 0..2 {
+            assert!((got[a] - want[a]).abs() < 1e-6, "{heading:?}: {got:?}");
+        }
+    }
+    assert_eq!(relative_heading([1.0, 0.0], at, [1.0, 2.0, 4.0]), None);
+}
+
+#[test]
+fn facing_readout_turns_each_views_relative_heading_into_the_world() {
+    use mvmp_model::facing::{facing_readout, relative_heading};
+    let d = Device::flex();
+    let cfg = small_config();
+    let cams = rig();
+    let lbs: Vec<Letterbox> = cams
+        .iter()
+        .map(|c| Letterbox::new(c.width, c.height, 64).unwrap())
+        .collect();
+    let grids = RigGrids::new(&cfg, &cams, &lbs, &d);
+    let [h, w] = grids.heatmaps.map_hw;
+    let root = [0.3, -0.4, 0.9];
+    let turn = 2.2f64;
+    let heading = [turn.cos(), turn.sin()];
+    // Each view's maps hold, everywhere, the heading relative to that camera, shortened (as an unsure
+    // head's are) by a different factor per view: every view then reads the same world direction,
+    // whatever pixel the root falls on, and the readout is that direction at unit length.
+    let mut maps = Vec::new();
+    for (cam, scale) in cams.iter().zip([0.4, 0.7]) {
+        let rel = relative_heading(heading, root, cam.centre().into()).unwrap();
+        for r in rel {
+            maps.extend(std::iter::repeat_n(r * scale, h * w));
+        }
+    }
+    let facing = Tensor::<5>::from_data(TensorData::new(maps, [1, 2, 2, h, w]), &d);
+    let roots = Tensor::<3>::from_data(
+        TensorData::new(root.iter().map(|&x| x as f32).collect(), [1, 1, 3]),
+        &d,
+    );
+    let got: Vec<f32> = facing_readout(facing, std::slice::from_ref(&grids), &cfg.grid, roots)
+        .into_data()
+        .try_into_vec()
+        .unwrap();
+    for a in 0..2 {
+        assert!(
+            (got[a] as f64 - heading[a]).abs() < 1e-5,
+            "{got:?} vs {heading:?}"
+        );
+    }
+}
+
+#[test]
+fn turn_to_heading_makes_the_upright_default_face_the_heading() {
+    use mvmp_model::facing::turn_to_heading;
+    let d = Device::flex();
+    let j = mvmp_smplx::names::NUM_REGRESSED;
+    // Joint 0: the upright default (+90 degrees about x); joint 1: some other rotation, to stay as it is.
+    let up = [1.0f32, 0., 0., 0., 0., -1., 0., 1., 0.];
+    let other = [0.0f32, -1., 0., 1., 0., 0., 0., 0., 1.];
+    let mut m = Vec::new();
+    for _ in 0..2 {
+        m.extend(up);
+        for _ in 1..j {
+            m.extend(other);
+        }
+    }
+    let rotmats = Tensor::<4>::from_data(TensorData::new(m, [2, j, 3, 3]), &d);
+    let headings = [[0.6f32, 0.8], [0.0, -1.0]];
+    let h = Tensor::<2>::from_data(TensorData::new(headings.concat(), [2, 2]), &d);
+    let out: Vec<f32> = turn_to_heading(rotmats, h)
+        .into_data()
+        .try_into_vec()
+        .unwrap();
+    for (n, want) in headings.iter().enumerate() {
+        let g = &out[n * j * 9..n * j * 9 + 9];
+        // Where the global orientation sends the body's forward axis (+z): its third column.
+        let ahead = [g[2], g[5], g[8]];
+        for (a, w) in [want[0], want[1], 0.0].iter().enumerate() {
+            assert!((ahead[a] - w).abs() < 1e-6, "{n}: {ahead:?} vs {want:?}");
+        }
+        // Still upright: the body's up axis (+y, second column) is the world's +z.
+        assert!((g[7] - 1.0).abs() < 1e-6, "{n}: {g:?}");
+        assert_eq!(
+            &out[n * j * 9 + 9..n * j * 9 + 18],
+            &other,
+            "joint 1 unchanged"
+        );
+    }
 }

@@ -48,6 +48,9 @@ pub fn module_grad_norms(model: &MvmpHmr, grads: &Gradients) -> Vec<(&'static st
     if let Some(d) = &model.deformable {
         out.push(("deformable", norm(d, grads)));
     }
+    if let Some(f) = &model.facing {
+        out.push(("facing", norm(f, grads)));
+    }
     out
 }
 

@@ -9,9 +9,10 @@ use mvmp_geom::CameraTensors;
 use mvmp_geom::rotation::axis_angle_to_matrix;
 use mvmp_losses::{
     LossTerms, LossWeights, density_grid, density_loss, detection_loss_weighted,
-    detection_positive_loss, heatmap_loss, heatmap_target, mesh_2d_loss_weighted,
+    detection_positive_loss, facing_loss, heatmap_loss, heatmap_target, mesh_2d_loss_weighted,
     mesh_3d_loss_weighted, orientation_loss, parameter_loss,
 };
+use mvmp_model::facing::{facing_readout, relative_heading};
 use mvmp_model::{Detection, ModelConfig, MvmpHmr, MvmpOutput, RigGrids, roots_tensor};
 use mvmp_smplx::SmplxLayer;
 use mvmp_smplx::names::{NUM_JOINTS, NUM_REGRESSED, REGRESSED_TO_JOINT};
@@ -248,6 +249,128 @@ pub fn heatmap_term(
     )
 }
 
+/// SMPL-X joints of the torso, where the facing head is trained: pelvis, hips, spine1-3, neck, shoulders.
+const TORSO: [usize; 9] = [0, 1, 2, 3, 6, 9, 12, 16, 17];
+
+/// A person's heading from the joints `[j][3]` (z up): the horizontal direction ahead of them, at right
+/// angles to the line from their right hip and shoulder to their left ones. `None` when those joints are
+/// not annotated (`cover`) or the line is vertical.
+pub fn joint_heading(joints: &[[f64; 3]], cover: &[bool]) -> Option<[f64; 2]> {
+    let pairs = [(1, 2), (16, 17)];
+    let seen = |j: usize| cover.get(j).copied().unwrap_or(false) && j < joints.len();
+    if !pairs.iter().all(|&(l, r)| seen(l) && seen(r)) {
+        return None;
+    }
+    let (mut lx, mut ly) = (0.0, 0.0);
+    for (l, r) in pairs {
+        lx += joints[l][0] - joints[r][0];
+        ly += joints[l][1] - joints[r][1];
+    }
+    let n = (lx * lx + ly * ly).sqrt();
+    // Ahead = left x up: (lx, ly, 0) x (0, 0, 1) = (ly, -lx, 0).
+    (n > 1e-6).then(|| [ly / n, -lx / n])
+}
+
+/// The facing loss of a batch: per view, where each person's torso shows (Gaussians of `sigma` map
+/// pixels at the visible torso joints; the strongest person owns a pixel), the person's heading relative
+/// to the direction to that camera. `None` without a facing head.
+pub fn facing_term(
+    det: &Detection,
+    gt: &HostGt,
+    batch: &FrameBatch,
+    sigma: f32,
+    device: &Device,
+) -> Option<Tensor<1>> {
+    let facing = det.facing.clone()?;
+    let [b, v, _, h, w] = facing.dims();
+    let mut target = vec![0f32; b * v * 2 * h * w];
+    let mut weight = vec![0f32; b * v * h * w];
+    for bi in 0..b {
+        for vi in 0..v {
+            let centre: [f64; 3] = batch.cameras[bi][vi].centre().into();
+            let at = (bi * v + vi) * h * w;
+            for (pi, joints) in gt.joints[bi].iter().enumerate() {
+                let Some(rel) = joint_heading(joints, &gt.cover[bi])
+                    .and_then(|hd| relative_heading(hd, joints[0], centre))
+                else {
+                    continue;
+                };
+                let person = &gt.joints_2d[bi][vi][pi];
+                let pts: Vec<Option<[f32; 2]>> = TORSO
+                    .iter()
+                    .map(|&j| person.get(j).filter(|p| p[2] > 0.5).map(|p| [p[0], p[1]]))
+                    .collect();
+                let maps = heatmap_target(&pts, [h, w], 4.0, sigma);
+                for px in 0..h * w {
+                    let m = (0..TORSO.len())
+                        .map(|j| maps[j * h * w + px])
+                        .fold(0.0, f32::max);
+                    if m > weight[at + px] {
+                        weight[at + px] = m;
+                        let t = (bi * v + vi) * 2 * h * w + px;
+                        target[t] = rel[0];
+                        target[t + h * w] = rel[1];
+                    }
+                }
+            }
+        }
+    }
+    Some(facing_loss(
+        facing,
+        Tensor::from_data(TensorData::new(target, [b, v, 2, h, w]), device),
+        Tensor::from_data(TensorData::new(weight, [b, v, h, w]), device),
+    ))
+}
+
+/// Per annotated person, the angle (degrees) between the facing head's reading at the person's true
+/// root (`facing_readout`) and their heading from the joints. Empty without a facing head.
+pub fn facing_errors_deg(
+    det: &Detection,
+    grids: &[RigGrids],
+    gt: &HostGt,
+    cfg: &ModelConfig,
+    device: &Device,
+) -> Vec<f64> {
+    let Some(facing) = det.facing.clone() else {
+        return Vec::new();
+    };
+    let roots = gt.roots(cfg.primary_joint.joint());
+    let k = roots.iter().map(Vec::len).max().unwrap_or(0);
+    if k == 0 {
+        return Vec::new();
+    }
+    let as_roots: Vec<Vec<Root>> = roots
+        .iter()
+        .map(|r| {
+            r.iter()
+                .map(|&position| Root {
+                    position,
+                    score: 1.0,
+                    voxel: [0; 3],
+                })
+                .collect()
+        })
+        .collect();
+    let (rt, _) = roots_tensor(&as_roots, k, device);
+    let read: Vec<f32> = facing_readout(facing, grids, &cfg.grid, rt)
+        .into_data()
+        .try_into_vec::<f32>()
+        .unwrap_or_default();
+    let mut out = Vec::new();
+    for (bi, people) in gt.joints.iter().enumerate() {
+        for (pi, joints) in people.iter().enumerate() {
+            let Some(h) = joint_heading(joints, &gt.cover[bi]) else {
+                continue;
+            };
+            let o = (bi * k + pi) * 2;
+            let (x, y) = (read[o] as f64, read[o + 1] as f64);
+            let turn = (h[0] * y - h[1] * x).atan2(h[0] * x + h[1] * y);
+            out.push(turn.abs().to_degrees());
+        }
+    }
+    out
+}
+
 /// Stage 1: HRNet and the RootNet alone.
 pub fn stage1_loss(
     model: &MvmpHmr,
@@ -269,6 +392,11 @@ pub fn stage1_loss(
             "heatmap_2d",
             heatmap_term(&det, &gt, cfg, weights.heatmap_sigma, device) * weights.heatmap_2d,
         ));
+    }
+    if weights.facing > 0.0
+        && let Some(f) = facing_term(&det, &gt, batch, weights.heatmap_sigma, device)
+    {
+        terms.push(("facing", f * weights.facing));
     }
     finish(terms, 0, diag, device)
 }
@@ -366,6 +494,7 @@ pub fn stage2_loss(
         heatmaps: out.heatmaps.clone(),
         likelihood: out.likelihood.clone(),
         offset: out.offset.clone(),
+        facing: out.facing.clone(),
     };
     let (d, diag) = detection_term(&det, &gt, cfg, weights, device);
     let on = |w: f32| w > 0.0;
@@ -381,7 +510,13 @@ pub fn stage2_loss(
         density: on(weights.density)
             .then(|| density_term(&out, batch, &t, weights, device) * weights.density),
     };
-    finish(terms.named(), queries, diag, device)
+    let mut named = terms.named();
+    if weights.facing > 0.0
+        && let Some(f) = facing_term(&det, &gt, batch, weights.heatmap_sigma, device)
+    {
+        named.push(("facing", f * weights.facing));
+    }
+    finish(named, queries, diag, device)
 }
 
 /// Where each query slot's ground truth sits among the batch's padded people.
@@ -596,4 +731,37 @@ fn density_term(
         weights.density_sigma,
         t.smplx.clone(),
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::joint_heading;
+
+    /// Joints 0..18 with the hips and shoulders of a person whose left is `left` (horizontal).
+    fn body(left: [f64; 2]) -> Vec<[f64; 3]> {
+        let mut j = vec![[0.0, 0.0, 1.0]; 18];
+        for (l, r, z) in [(1, 2, 0.9), (16, 17, 1.4)] {
+            j[l] = [0.1 * left[0], 0.1 * left[1], z];
+            j[r] = [-0.1 * left[0], -0.1 * left[1], z];
+        }
+        j
+    }
+
+    #[test]
+    fn joint_heading_is_ahead_of_the_left_right_line() {
+        let cover = vec![true; 18];
+        // Left along +x: an upright SMPL-X body (left +x, forward +z in its frame) turned z-up faces -y.
+        for (left, ahead) in [
+            ([1.0, 0.0], [0.0, -1.0]),
+            ([0.0, 1.0], [1.0, 0.0]),
+            ([-0.6, -0.8], [-0.8, 0.6]),
+        ] {
+            let h = joint_heading(&body(left), &cover).unwrap();
+            assert!((h[0] - ahead[0]).abs() < 1e-12 && (h[1] - ahead[1]).abs() < 1e-12);
+        }
+        let mut partial = cover.clone();
+        partial[16] = false;
+        assert_eq!(joint_heading(&body([1.0, 0.0]), &partial), None);
+        assert_eq!(joint_heading(&body([0.0, 0.0]), &cover), None);
+    }
 }

@@ -968,11 +968,19 @@ fn root_metrics_of(
     };
     let primary = pred.cfg.primary_joint.joint();
     let mut ev = Evaluator::new(gate);
+    let mut facing = Vec::new();
     for i in 0..n {
         let batch = batcher.batch(vec![load(i)?], &pred.device);
-        let roots = pred
-            .detect(batch.images.clone(), &batch.cameras, &batch.letterboxes)
-            .remove(0);
+        let (mut roots, det, grids) =
+            pred.detect_with_maps(batch.images.clone(), &batch.cameras, &batch.letterboxes);
+        let roots = roots.remove(0);
+        facing.extend(crate::step::facing_errors_deg(
+            &det,
+            &grids,
+            &crate::step::HostGt::new(&batch),
+            &pred.cfg,
+            &pred.device,
+        ));
         let gt: Vec<PersonPose> = ground_truth(&batch)
             .remove(0)
             .into_iter()
@@ -999,6 +1007,11 @@ fn root_metrics_of(
     let mut out = vec![("root_recall".to_string(), found)];
     if let Some(e) = m.mpjpe_mm {
         out.push(("root_mm".into(), e));
+    }
+    if !facing.is_empty() {
+        // The median: a head that has learned leaves a few people (hidden in most views) far off.
+        facing.sort_by(f64::total_cmp);
+        out.push(("facing_deg".into(), facing[facing.len() / 2]));
     }
     Ok(out)
 }

@@ -1,0 +1,213 @@
+//! The facing head and its reading (docs/architecture.md, Facing).
+//!
+//! Mean fusion keeps no trace of which camera saw what: a person's front seen by one camera and back by
+//! another fuse into the same voxels whichever way the person faces, so the volume cannot tell a heading.
+//! A camera can: it sees a face or a shirt's front, or not. The facing head draws, per view and pixel,
+//! the cosine and sine of the heading of the person there relative to the horizontal direction from that
+//! person to the camera; read at a person's chest in every view and turned by each camera's direction,
+//! the views agree on one heading in the world.
+use burn::module::Module;
+use burn::nn::PaddingConfig2d;
+use burn::nn::conv::{Conv2d, Conv2dConfig};
+use burn::tensor::activation::relu;
+use burn::tensor::ops::{GridSampleOptions, GridSamplePaddingMode, InterpolateMode};
+use burn::tensor::{Device, Tensor, TensorData};
+
+use mvmp_decoder::trilinear_sample;
+use mvmp_geom::VoxelGrid;
+
+use crate::RigGrids;
+
+/// Height above the root (metres) where the facing maps are read: about the chest, over the torso the
+/// head is trained on.
+pub const FACING_HEIGHT: f32 = 0.3;
+
+/// Channels of the facing head's own image features and of its hidden layers.
+pub(crate) const HIDDEN: usize = 32;
+
+/// The facing head: its own two stride-2 convolutions on the image (HRNet's features, trained for
+/// joints, carry too little of a person's colours), joined with HRNet's highest-resolution features,
+/// two 3 x 3 convolutions and a 1 x 1: `[N, 3, S, S]` and `[N, width, S/4, S/4]` -> `[N, 2, S/4, S/4]`
+/// (relative cosine and sine).
+#[derive(Module, Debug)]
+pub struct FacingHead {
+    pub down1: Conv2d,
+    pub down2: Conv2d,
+    pub conv1: Conv2d,
+    pub conv2: Conv2d,
+    pub out: Conv2d,
+}
+
+impl FacingHead {
+    pub fn new(width: usize, device: &Device) -> Self {
+        let conv3 = |i, o, stride| {
+            Conv2dConfig::new([i, o], [3, 3])
+                .with_stride([stride, stride])
+                .with_padding(PaddingConfig2d::Explicit(1, 1, 1, 1))
+                .init(device)
+        };
+        FacingHead {
+            down1: conv3(3, HIDDEN / 2, 2),
+            down2: conv3(HIDDEN / 2, HIDDEN, 2),
+            conv1: conv3(HIDDEN + width, HIDDEN, 1),
+            conv2: conv3(HIDDEN, HIDDEN, 1),
+            out: Conv2dConfig::new([HIDDEN, 2], [1, 1]).init(device),
+        }
+    }
+
+    pub fn forward(&self, image: Tensor<4>, features: Tensor<4>) -> Tensor<4> {
+        let x = relu(self.down1.forward(image));
+        let x = relu(self.down2.forward(x));
+        let x = relu(self.conv1.forward(Tensor::cat(vec![x, features], 1)));
+        let x = relu(self.conv2.forward(x));
+        self.out.forward(x)
+    }
+}
+
+/// Each person's heading in the world `[B, K, 2]` from the facing maps `[B, V, 2, h, w]` read at
+/// `FACING_HEIGHT` above the roots `[B, K, 3]`: per view the (cos, sin) there, relative to the
+/// horizontal unit direction `d` from the root to the camera, becomes `cos d + sin d_perp` (`d_perp`
+/// is `d` turned 90 degrees anticlockwise about the vertical), averaged over the views and scaled to
+/// unit length.
+pub fn facing_readout(
+    facing: Tensor<5>,
+    grids: &[RigGrids],
+    grid: &VoxelGrid,
+    roots: Tensor<3>,
+) -> Tensor<3> {
+    let b = facing.dims()[0];
+    let items: Vec<Tensor<3>> = (0..b)
+        .map(|bi| {
+            readout_item(
+                facing.clone().narrow(0, bi, 1),
+                &grids[bi],
+                grid,
+                roots.clone().narrow(0, bi, 1),
+            )
+        })
+        .collect();
+    Tensor::cat(items, 0)
+}
+
+/// [`facing_readout`] of one batch item: `facing [1, V, 2, h, w]`, `roots [1, K, 3]` -> `[1, K, 2]`.
+fn readout_item(facing: Tensor<5>, g: &RigGrids, grid: &VoxelGrid, roots: Tensor<3>) -> Tensor<3> {
+    let [_, v, c, h, w] = facing.dims();
+    let k = roots.dims()[1];
+    let device = facing.device();
+    let lift = Tensor::<1>::from_data(TensorData::new(vec![0.0, 0.0, FACING_HEIGHT], [3]), &device);
+    let points = roots.clone() + lift.reshape([1, 1, 3]);
+    let rel = sample_views(facing.reshape([v, c, h, w]), g, grid, points); // [V, 2, K]
+    let (cos, sin) = (
+        rel.clone().narrow(1, 0, 1).reshape([v, k]),
+        rel.narrow(1, 1, 1).reshape([v, k]),
+    );
+    let d = to_cameras(g, roots, &device); // [V, K, 2]
+    let (dx, dy) = (
+        d.clone().narrow(2, 0, 1).reshape([v, k]),
+        d.narrow(2, 1, 1).reshape([v, k]),
+    );
+    let x = cos.clone() * dx.clone() - sin.clone() * dy.clone();
+    let y = cos * dy + sin * dx;
+    let mean = Tensor::stack::<3>(vec![x, y], 2)
+        .mean_dim(0)
+        .reshape([1, k, 2]);
+    // A squared-error head shrinks its maps towards 0 where it is unsure, and its mean over the views
+    // is shorter still; the decoder gets the direction alone, at the scale of its other inputs.
+    let len = mean
+        .clone()
+        .powi_scalar(2)
+        .sum_dim(2)
+        .sqrt()
+        .clamp_min(1e-6);
+    mean / len
+}
+
+/// The regressed rotations `[N, 53, 3, 3]` with the global orientation (the first) turned about the
+/// vertical so that an upright default person (facing -y: the y-up to z-up turn of the canonical +z)
+/// faces `heading` `[N, 2]` (unit): the decoder's global orientation is relative to the facing
+/// head's reading, so that a decoder that has not yet learned the heading already gets it.
+pub fn turn_to_heading(rotmats: Tensor<4>, heading: Tensor<2>) -> Tensor<4> {
+    let [n, j, _, _] = rotmats.dims();
+    let hx = heading.clone().narrow(1, 0, 1);
+    let hy = heading.narrow(1, 1, 1);
+    // The turn about z taking (0, -1) to (hx, hy): cosine -hy, sine hx.
+    let (c, s) = (hy.neg(), hx);
+    let zero = c.zeros_like();
+    let one = zero.clone().add_scalar(1.0);
+    let turn = Tensor::cat(
+        vec![
+            c.clone(),
+            s.clone().neg(),
+            zero.clone(),
+            s,
+            c,
+            zero.clone(),
+            zero.clone(),
+            zero,
+            one,
+        ],
+        1,
+    )
+    .reshape([n, 1, 3, 3]);
+    let global = turn.matmul(rotmats.clone().narrow(1, 0, 1));
+    Tensor::cat(vec![global, rotmats.narrow(1, 1, j - 1)], 1)
+}
+
+/// Maps `[V, C, h, w]` at world `points [1, K, 3]` in each view -> `[V, C, K]`. The map positions of the
+/// voxel centres are smooth in space: a point's is their trilinear interpolation.
+fn sample_views(maps: Tensor<4>, g: &RigGrids, grid: &VoxelGrid, points: Tensor<3>) -> Tensor<3> {
+    let [v, c, _, _] = maps.dims();
+    let k = points.dims()[1];
+    let [nx, ny, nz] = grid.shape;
+    let p = g.heatmaps.grid.dims()[2];
+    let coords = g
+        .heatmaps
+        .grid
+        .clone()
+        .reshape([v, p, 2])
+        .swap_dims(1, 2)
+        .reshape([1, v * 2, nx, ny, nz]);
+    let uv = trilinear_sample(coords, points, grid) // [1, K, V * 2]
+        .reshape([k, v, 2])
+        .swap_dims(0, 1)
+        .reshape([v, 1, k, 2]);
+    let opts = GridSampleOptions::new(InterpolateMode::Bilinear)
+        .with_padding_mode(GridSamplePaddingMode::Border)
+        .with_align_corners(false);
+    maps.grid_sample_2d(uv, opts).reshape([v, c, k])
+}
+
+/// Horizontal unit directions from the roots `[1, K, 3]` to each view's camera -> `[V, K, 2]`.
+fn to_cameras(g: &RigGrids, roots: Tensor<3>, device: &Device) -> Tensor<3> {
+    let v = g.centres.len();
+    let k = roots.dims()[1];
+    let centres: Vec<f32> = g
+        .centres
+        .iter()
+        .flat_map(|c| [c[0] as f32, c[1] as f32])
+        .collect();
+    let centres = Tensor::<2>::from_data(TensorData::new(centres, [v, 2]), device);
+    let to_cam = centres.reshape([v, 1, 2]) - roots.narrow(2, 0, 2).reshape([1, k, 2]);
+    let len = to_cam
+        .clone()
+        .powi_scalar(2)
+        .sum_dim(2)
+        .sqrt()
+        .clamp_min(1e-3);
+    to_cam / len
+}
+
+/// The target of the facing maps for one person and camera: (cos, sin) of the heading `[hx, hy]` (unit,
+/// horizontal) relative to the horizontal unit direction from the person at `at` to the camera at
+/// `camera`. `None` when the camera stands right above the person.
+pub fn relative_heading(heading: [f64; 2], at: [f64; 3], camera: [f64; 3]) -> Option<[f32; 2]> {
+    let (dx, dy) = (camera[0] - at[0], camera[1] - at[1]);
+    let n = (dx * dx + dy * dy).sqrt();
+    if n < 1e-6 {
+        return None;
+    }
+    let (dx, dy) = (dx / n, dy / n);
+    let cos = heading[0] * dx + heading[1] * dy;
+    let sin = heading[1] * dx - heading[0] * dy;
+    Some([cos as f32, sin as f32])
+}
