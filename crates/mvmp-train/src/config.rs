@@ -222,6 +222,16 @@ impl TrainConfig {
         cfg.validate(path)?;
         let model_path = cfg.model_path(path);
         let model = ModelConfig::read(&model_path)?;
+        if model.facing && cfg.loss.facing == 0.0 {
+            return Err(TrainError::Config {
+                path: path.into(),
+                key: "loss.facing".into(),
+                what: format!(
+                    "0, but the model ({}) has a facing head (`facing = true`), which only this loss trains: the decoder would read an untrained head",
+                    model_path.display()
+                ),
+            });
+        }
         Ok((cfg, model))
     }
 
