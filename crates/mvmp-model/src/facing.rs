@@ -113,13 +113,13 @@ fn readout_item(facing: Tensor<5>, g: &RigGrids, grid: &VoxelGrid, roots: Tensor
         .reshape([1, k, 2]);
     // A squared-error head shrinks its maps towards 0 where it is unsure, and its mean over the views
     // is shorter still; the decoder gets the direction alone, at the scale of its other inputs.
-    let len = mean
-        .clone()
-        .powi_scalar(2)
-        .sum_dim(2)
-        .sqrt()
-        .clamp_min(1e-6);
-    mean / len
+    unit(mean, 1e-6)
+}
+
+/// `x` `[.., .., 2]` divided by its length along the last axis (at least `eps`).
+fn unit(x: Tensor<3>, eps: f32) -> Tensor<3> {
+    let len = x.clone().powi_scalar(2).sum_dim(2).sqrt().clamp_min(eps);
+    x / len
 }
 
 /// The regressed rotations `[N, 53, 3, 3]` with the global orientation (the first) turned about the
@@ -188,13 +188,7 @@ fn to_cameras(g: &RigGrids, roots: Tensor<3>, device: &Device) -> Tensor<3> {
         .collect();
     let centres = Tensor::<2>::from_data(TensorData::new(centres, [v, 2]), device);
     let to_cam = centres.reshape([v, 1, 2]) - roots.narrow(2, 0, 2).reshape([1, k, 2]);
-    let len = to_cam
-        .clone()
-        .powi_scalar(2)
-        .sum_dim(2)
-        .sqrt()
-        .clamp_min(1e-3);
-    to_cam / len
+    unit(to_cam, 1e-3)
 }
 
 /// The target of the facing maps for one person and camera: (cos, sin) of the heading `[hx, hy]` (unit,
