@@ -273,7 +273,7 @@ pub fn joint_heading(joints: &[[f64; 3]], cover: &[bool]) -> Option<[f64; 2]> {
 
 /// The facing loss of a batch: per view, where each person's torso shows (Gaussians of `sigma` map
 /// pixels at the visible torso joints; the strongest person owns a pixel), the person's heading relative
-/// to the direction to that camera. `None` without a facing head.
+/// to the direction to that camera. `None` without a facing head or without a pixel to supervise.
 pub fn facing_term(
     det: &Detection,
     gt: &HostGt,
@@ -314,6 +314,11 @@ pub fn facing_term(
                 }
             }
         }
+    }
+    // No torso with a heading in view (joint-annotated people without hips and shoulders apart, or
+    // none visible): nothing to supervise, no term.
+    if !weight.iter().any(|&w| w > 0.0) {
+        return None;
     }
     Some(facing_loss(
         facing,
