@@ -295,16 +295,8 @@ pub fn facing_term(
                 else {
                     continue;
                 };
-                let person = &gt.joints_2d[bi][vi][pi];
-                let pts: Vec<Option<[f32; 2]>> = TORSO
-                    .iter()
-                    .map(|&j| person.get(j).filter(|p| p[2] > 0.5).map(|p| [p[0], p[1]]))
-                    .collect();
-                let maps = heatmap_target(&pts, [h, w], 4.0, sigma);
-                for px in 0..h * w {
-                    let m = (0..TORSO.len())
-                        .map(|j| maps[j * h * w + px])
-                        .fold(0.0, f32::max);
+                let torso = torso_weight(&gt.joints_2d[bi][vi][pi], [h, w], sigma);
+                for (px, &m) in torso.iter().enumerate() {
                     if m > weight[at + px] {
                         weight[at + px] = m;
                         let t = (bi * v + vi) * 2 * h * w + px;
@@ -327,6 +319,39 @@ pub fn facing_term(
     ))
 }
 
+/// Where a person's torso shows in one view `[h * w]`: the largest of Gaussians (`sigma` map pixels) at
+/// the person's visible torso joints (network pixels with visibility, `[j][3]`).
+fn torso_weight(person: &[[f32; 3]], hw: [usize; 2], sigma: f32) -> Vec<f32> {
+    let pts: Vec<Option<[f32; 2]>> = TORSO
+        .iter()
+        .map(|&j| person.get(j).filter(|p| p[2] > 0.5).map(|p| [p[0], p[1]]))
+        .collect();
+    let maps = heatmap_target(&pts, hw, 4.0, sigma);
+    let n = hw[0] * hw[1];
+    (0..n)
+        .map(|px| {
+            (0..TORSO.len())
+                .map(|j| maps[j * n + px])
+                .fold(0.0, f32::max)
+        })
+        .collect()
+}
+
+/// Roots at given world positions, as the decoder takes them (score 1).
+fn exact_roots(items: impl Iterator<Item = Vec<[f64; 3]>>) -> Vec<Vec<Root>> {
+    items
+        .map(|r| {
+            r.into_iter()
+                .map(|position| Root {
+                    position,
+                    score: 1.0,
+                    voxel: [0; 3],
+                })
+                .collect()
+        })
+        .collect()
+}
+
 /// Per annotated person, the angle (degrees) between the facing head's reading at the person's true
 /// root (`facing_readout`) and their heading from the joints. Empty without a facing head.
 pub fn facing_errors_deg(
@@ -344,19 +369,7 @@ pub fn facing_errors_deg(
     if k == 0 {
         return Vec::new();
     }
-    let as_roots: Vec<Vec<Root>> = roots
-        .iter()
-        .map(|r| {
-            r.iter()
-                .map(|&position| Root {
-                    position,
-                    score: 1.0,
-                    voxel: [0; 3],
-                })
-                .collect()
-        })
-        .collect();
-    let (rt, _) = roots_tensor(&as_roots, k, device);
+    let (rt, _) = roots_tensor(&exact_roots(roots.into_iter()), k, device);
     let read: Vec<f32> = facing_readout(facing, grids, &cfg.grid, rt)
         .into_data()
         .try_into_vec::<f32>()
@@ -478,18 +491,7 @@ pub fn stage2_loss(
     let mut slots: Vec<Vec<([f64; 3], usize)>> = Vec::new();
     let out = model.forward_select(batch.images.clone(), &grids, cfg, layer, |det| {
         slots = choose_queries(det, &gt_roots, mode, gate);
-        let roots: Vec<Vec<Root>> = slots
-            .iter()
-            .map(|s| {
-                s.iter()
-                    .map(|&(position, _)| Root {
-                        position,
-                        score: 1.0,
-                        voxel: [0; 3],
-                    })
-                    .collect()
-            })
-            .collect();
+        let roots = exact_roots(slots.iter().map(|s| s.iter().map(|q| q.0).collect()));
         let k = slots.iter().map(Vec::len).max().unwrap_or(0);
         roots_tensor(&roots, k, device)
     });
