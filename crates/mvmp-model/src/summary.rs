@@ -53,19 +53,21 @@ fn conv_macs(ci: usize, co: usize, k: usize, out_pixels: f64) -> f64 {
     (ci * co * k * k) as f64 * out_pixels
 }
 
-/// HRNet multiply-accumulates for an `s x s` input, following [`mvmp_backbone::HRNetConfig`]'s structure.
 /// The facing head per view: two stride-2 3 x 3 convolutions on the image, then two 3 x 3 and a 1 x 1
 /// at stride 4 (see `FacingHead`).
 fn facing_macs(cfg: &ModelConfig) -> f64 {
-    let hidden = crate::facing::HIDDEN as f64;
+    let hidden = crate::facing::HIDDEN;
     let s = cfg.image_size as f64;
     let (half, quarter) = ((s / 2.0).powi(2), (s / 4.0).powi(2));
-    let width = cfg.hrnet_config().width as f64;
-    half * 27.0 * hidden / 2.0
-        + quarter * 9.0 * (hidden / 2.0 * hidden + (hidden + width) * hidden + hidden * hidden)
-        + quarter * hidden * 2.0
+    let width = cfg.hrnet_config().width;
+    conv_macs(3, hidden / 2, 3, half)
+        + conv_macs(hidden / 2, hidden, 3, quarter)
+        + conv_macs(hidden + width, hidden, 3, quarter)
+        + conv_macs(hidden, hidden, 3, quarter)
+        + conv_macs(hidden, 2, 1, quarter)
 }
 
+/// HRNet multiply-accumulates for an `s x s` input, following [`mvmp_backbone::HRNetConfig`]'s structure.
 fn hrnet_macs(cfg: &ModelConfig) -> f64 {
     let h = cfg.hrnet_config();
     let s = cfg.image_size as f64;
