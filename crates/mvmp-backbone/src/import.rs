@@ -39,6 +39,8 @@ pub enum ImportError {
     },
     #[error("{path}: {what}")]
     Format { path: PathBuf, what: String },
+    #[error(transparent)]
+    Geom(#[from] mvmp_geom::GeomError),
 }
 
 /// What an import did.
@@ -207,28 +209,16 @@ pub fn import_dinov2(vit: &mut ViT, path: &Path) -> Result<ImportReport, ImportE
 
 /// Save a module in burn-store's native burnpack format (mvmp key names), atomically.
 pub fn save_native<M: burn::module::Module>(module: &M, path: &Path) -> Result<(), ImportError> {
-    let dir = path
-        .parent()
-        .filter(|p| !p.as_os_str().is_empty())
-        .unwrap_or(Path::new("."));
-    let tmp = dir.join(format!(
-        ".{}.tmp",
-        path.file_name()
-            .and_then(|f| f.to_str())
-            .unwrap_or("weights")
-    ));
-    let mut store = BurnpackStore::from_file(&tmp)
-        .auto_extension(false)
-        .overwrite(true);
-    module
-        .save_into(&mut store)
-        .map_err(|e| ImportError::Format {
-            path: path.into(),
-            what: e.to_string(),
-        })?;
-    std::fs::rename(&tmp, path).map_err(|source| ImportError::Io {
-        path: path.into(),
-        source,
+    mvmp_geom::io::write_atomic_via(path, |tmp| {
+        let mut store = BurnpackStore::from_file(tmp)
+            .auto_extension(false)
+            .overwrite(true);
+        module
+            .save_into(&mut store)
+            .map_err(|e| ImportError::Format {
+                path: path.into(),
+                what: e.to_string(),
+            })
     })
 }
 

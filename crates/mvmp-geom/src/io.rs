@@ -20,25 +20,63 @@ pub fn write_atomic_with(
         path: path.to_path_buf(),
         source,
     };
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d,
-        _ => Path::new("."),
-    };
-    let mut tmp = tempfile::NamedTempFile::new_in(dir).map_err(io_err)?;
+    let mut tmp = tempfile::NamedTempFile::new_in(parent_dir(path)).map_err(io_err)?;
     {
         let mut w = std::io::BufWriter::new(tmp.as_file_mut());
         fill(&mut w).map_err(io_err)?;
         w.flush().map_err(io_err)?;
     }
-    // Temporary files are created private (0600); outputs get the usual 0644.
+    readable(tmp.path()).map_err(io_err)?;
+    tmp.persist(path).map_err(|e| io_err(e.error))?;
+    Ok(())
+}
+
+/// [`write_atomic_with`] for a writer that opens the file itself, given a path (a checkpoint store, an
+/// optimizer's recorder): `fill` writes a temporary dot-file beside `path`, removed if `fill` fails,
+/// which then replaces `path`.
+pub fn write_atomic_via<E: From<GeomError>>(
+    path: &Path,
+    fill: impl FnOnce(&Path) -> Result<(), E>,
+) -> Result<(), E> {
+    let io_err = |source| GeomError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    // The temporary name keeps the destination's extension: writers that add one to a path without
+    // (burn's burnpack writer) would otherwise write beside it.
+    let suffix = path
+        .extension()
+        .map(|e| format!(".{}", e.to_string_lossy()))
+        .unwrap_or_default();
+    let tmp = tempfile::Builder::new()
+        .prefix(".mvmp-partial-")
+        .suffix(&suffix)
+        .tempfile_in(parent_dir(path))
+        .map_err(io_err)?
+        .into_temp_path();
+    fill(&tmp)?;
+    readable(&tmp).map_err(io_err)?;
+    tmp.persist(path).map_err(|e| io_err(e.error))?;
+    Ok(())
+}
+
+/// The directory a file is written in (`.` for a bare name).
+fn parent_dir(path: &Path) -> &Path {
+    match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    }
+}
+
+/// Temporary files are created private (0600); outputs get the usual 0644.
+fn readable(path: &Path) -> std::io::Result<()> {
     #[cfg(unix)]
     {
         use std::os::unix::fs::PermissionsExt;
-        tmp.as_file()
-            .set_permissions(std::fs::Permissions::from_mode(0o644))
-            .map_err(io_err)?;
+        std::fs::set_permissions(path, std::fs::Permissions::from_mode(0o644))?;
     }
-    tmp.persist(path).map_err(|e| io_err(e.error))?;
+    #[cfg(not(unix))]
+    let _ = path;
     Ok(())
 }
 

@@ -1,5 +1,6 @@
-//! Staged output directories: nothing appears at the destination until `finish`, a dropped stage leaves
-//! nothing behind, and finishing into an existing directory replaces namesakes and keeps the rest.
+//! Atomic outputs. Staged directories: nothing appears at the destination until `finish`, a dropped stage
+//! leaves nothing behind, and finishing into an existing directory replaces namesakes and keeps the rest.
+//! Files written through a path: whole or not at all.
 use mvmp_geom::io::StagedDir;
 
 fn names(dir: &std::path::Path) -> Vec<String> {
@@ -69,4 +70,35 @@ fn a_staged_directory_appears_whole_or_not_at_all() {
     let e = s.finish().unwrap_err().to_string();
     assert!(e.contains("file") && e.contains("not a directory"), "{e}");
     assert_eq!(names(root.path()), ["file", "out"]);
+}
+
+#[test]
+fn a_file_written_through_a_path_appears_whole_or_not_at_all() {
+    use mvmp_geom::GeomError;
+    use mvmp_geom::io::write_atomic_via;
+    let dir = tempfile::tempdir().unwrap();
+    let dest = dir.path().join("optim.bpk");
+    // A writer that, like burn's burnpack writer, adds an extension to a path that has none: the
+    // temporary path must already carry the destination's.
+    let write = |p: &std::path::Path, text: &str| -> Result<(), GeomError> {
+        let p = if p.extension().is_none() {
+            p.with_extension("bpk")
+        } else {
+            p.to_path_buf()
+        };
+        std::fs::write(&p, text).map_err(|source| GeomError::Io { path: p, source })
+    };
+    write_atomic_via(&dest, |p| write(p, "first")).unwrap();
+    assert_eq!(std::fs::read_to_string(&dest).unwrap(), "first");
+    // A failing writer leaves the destination as it was and no temporary file behind.
+    let failed = write_atomic_via(&dest, |p| {
+        write(p, "half")?;
+        Err(GeomError::Io {
+            path: p.to_path_buf(),
+            source: std::io::Error::other("disk full"),
+        })
+    });
+    assert!(failed.is_err());
+    assert_eq!(std::fs::read_to_string(&dest).unwrap(), "first");
+    assert_eq!(names(dir.path()), vec!["optim.bpk".to_string()]);
 }

@@ -5,10 +5,10 @@ use std::path::Path;
 use burn::module::Module;
 use burn::tensor::{Device, Tensor};
 
-use mvmp_fusion::{Root, extract_roots};
+use mvmp_fusion::Root;
 use mvmp_geom::rotation::matrix_to_axis_angle;
 use mvmp_geom::{Camera, Letterbox};
-use mvmp_model::{Detection, ModelConfig, MvmpHmr, RigGrids};
+use mvmp_model::{Detection, ModelConfig, MvmpHmr, RigGrids, detect_roots};
 use mvmp_smplx::names::{NUM_BETAS, NUM_EXPRESSION, NUM_JOINTS, NUM_REGRESSED};
 use mvmp_smplx::people::StoredPerson;
 use mvmp_smplx::{BodyModel, SmplxLayer, SmplxParams, regressed_to_full_pose};
@@ -120,13 +120,7 @@ impl Predictor {
     ) -> (Vec<Vec<Root>>, Detection, Vec<RigGrids>) {
         let grids = RigGrids::for_batch(&self.cfg, cameras, letterboxes, &self.device);
         let det = self.model.detect(images, &grids);
-        let roots = extract_roots(
-            det.likelihood.clone(),
-            self.cfg.root_refine.with_offset(det.offset.clone()),
-            &self.cfg.grid,
-            self.cfg.max_people,
-            self.cfg.root_threshold,
-        );
+        let roots = detect_roots(det.likelihood.clone(), det.offset.clone(), &self.cfg);
         (roots, det, grids)
     }
 

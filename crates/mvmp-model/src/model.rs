@@ -256,13 +256,7 @@ impl MvmpHmr {
             offset,
             facing,
         } = self.detect(images, grids);
-        let detections = extract_roots(
-            likelihood.clone().detach(),
-            cfg.root_refine.with_offset(offset.clone().detach()),
-            &cfg.grid,
-            cfg.max_people,
-            cfg.root_threshold,
-        );
+        let detections = detect_roots(likelihood.clone().detach(), offset.clone().detach(), cfg);
         let (roots, present) = select(&detections);
         let kk = roots.dims()[1];
         // The decoder reads the facing head's estimate; the facing loss alone trains the head.
@@ -313,6 +307,18 @@ impl MvmpHmr {
             joints: body.joints.reshape([b, kk, nj, 3]),
         }
     }
+}
+
+/// The roots a detection gives, per batch item, best first: the likelihood's peaks above the threshold
+/// (at most `max_people`), placed within their voxels as `root_refine` says.
+pub fn detect_roots(likelihood: Tensor<5>, offset: Tensor<5>, cfg: &ModelConfig) -> Vec<Vec<Root>> {
+    extract_roots(
+        likelihood,
+        cfg.root_refine.with_offset(offset),
+        &cfg.grid,
+        cfg.max_people,
+        cfg.root_threshold,
+    )
 }
 
 /// Roots `[B, K, 3]` and presence `[B, K]` from per-item root lists (at most `k` each, in order).

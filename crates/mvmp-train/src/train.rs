@@ -763,11 +763,11 @@ impl<'a> Trainer<'a> {
         let _ = model.valid();
         mvmp_backbone::import::save_native(model, &weights)?;
         let opt = dir.join(format!("optim-{name}.bpk"));
-        let tmp = dir.join(format!(".optim-{name}.tmp"));
-        optim
-            .save(&tmp)
-            .map_err(|e| TrainError::file(&opt, e.to_string()))?;
-        std::fs::rename(&tmp, &opt).map_err(|e| TrainError::io(&opt, e))?;
+        mvmp_geom::io::write_atomic_via(&opt, |tmp| {
+            optim
+                .save(tmp)
+                .map_err(|e| TrainError::file(&opt, e.to_string()))
+        })?;
         let c = self.cursor;
         self.run.write_state(&RunState {
             format: STATE_FORMAT.into(),

@@ -358,17 +358,20 @@ pub fn generate(
     }
     let model = load_body_model(&cfg.body_model, config_dir)?;
     let parts = face_parts(&model);
-    let parent = match out.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
-        _ => std::path::PathBuf::from("."),
-    };
-    std::fs::create_dir_all(&parent).map_err(|e| DataError::io(&parent, e))?;
-    let tmp = tempfile_dir(&parent)?;
+    let staged = mvmp_geom::io::StagedDir::new(out)?;
     let results: Vec<Result<SceneOut, DataError>> = (0..cfg.scenes)
         .into_par_iter()
         .map(|s| {
             let poser = Poser::new(&model);
-            make_scene(cfg, s, tmp.path(), &poser, &model.faces, &parts, progress)
+            make_scene(
+                cfg,
+                s,
+                staged.path(),
+                &poser,
+                &model.faces,
+                &parts,
+                progress,
+            )
         })
         .collect();
     let mut summary = SynthSummary {
@@ -396,21 +399,10 @@ pub fn generate(
         },
         scenes: (0..cfg.scenes).map(|s| format!("scene_{s:03}")).collect(),
     };
-    write_json(&tmp.path().join("dataset.json"), &index)?;
+    write_json(&staged.path().join("dataset.json"), &index)?;
     // The synthesis config, resolved, for the record.
     let toml = toml::to_string_pretty(cfg).expect("config serialises");
-    mvmp_geom::io::write_atomic(&tmp.path().join("synth.toml"), toml.as_bytes())?;
-    let tmp_path = tmp.keep();
-    if out.exists() {
-        std::fs::remove_dir(out).map_err(|e| DataError::io(out, e))?;
-    }
-    std::fs::rename(&tmp_path, out).map_err(|e| DataError::io(out, e))?;
+    mvmp_geom::io::write_atomic(&staged.path().join("synth.toml"), toml.as_bytes())?;
+    staged.finish()?;
     Ok(summary)
-}
-
-fn tempfile_dir(parent: &Path) -> Result<tempfile::TempDir, DataError> {
-    tempfile::Builder::new()
-        .prefix(".mvmp-synth-")
-        .tempdir_in(parent)
-        .map_err(|e| DataError::io(parent, e))
 }
