@@ -133,8 +133,14 @@ pub fn check_dataset(root: &Path, deep: bool) -> CheckReport {
             let fdir = dir.join(f);
             let apath = fdir.join("annotation.json");
             r.frames += 1;
-            let ann = match Annotation::read(&apath, rig.len()) {
-                Ok(a) => a,
+            let ann = match Annotation::read_with_problems(&apath, rig.len()) {
+                Ok((a, found)) if found.is_empty() => a,
+                Ok((_, found)) => {
+                    for what in found {
+                        problem(&mut r, &apath, what);
+                    }
+                    continue;
+                }
                 Err(e) => {
                     problem(
                         &mut r,

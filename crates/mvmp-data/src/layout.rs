@@ -157,6 +157,18 @@ impl Annotation {
         Ok(a)
     }
 
+    /// Read an annotation and list every problem [`Annotation::validate`] would stop at the first of
+    /// (an unreadable file or a wrong header is still an error).
+    pub fn read_with_problems(
+        path: &Path,
+        num_views: usize,
+    ) -> Result<(Self, Vec<String>), DataError> {
+        let a: Annotation = read_json(path)?;
+        check_header(path, &a.format, ANNOTATION_FORMAT, a.version)?;
+        let problems = a.problems(num_views);
+        Ok((a, problems))
+    }
+
     /// The people hold `n` joints, what the body model `body_model` outputs (losses and metrics index them
     /// by its layout); `validate` has checked that every person holds as many as the first.
     pub fn check_joints(&self, n: usize, body_model: &str) -> Result<(), String> {
@@ -171,88 +183,119 @@ impl Annotation {
 
     /// Consistency of counts and values; errors name the key path and the value.
     pub fn validate(&self, path: &Path, num_views: usize) -> Result<(), DataError> {
-        let err = |what: String| DataError::file(path, what);
+        match self.problems(num_views).into_iter().next() {
+            Some(what) => Err(DataError::file(path, what)),
+            None => Ok(()),
+        }
+    }
+
+    /// Every problem of the annotation against a rig of `num_views` cameras, in file order (empty when
+    /// it is valid): `data check` lists them all, readers stop at the first.
+    pub fn problems(&self, num_views: usize) -> Vec<String> {
+        let mut out = Vec::new();
         if self.images.len() != num_views {
-            return Err(err(format!(
+            out.push(format!(
                 "key `images` lists {} images, the rig has {num_views} cameras",
                 self.images.len()
-            )));
+            ));
         }
         for (key, list) in [("depth", &self.depth), ("masks", &self.masks)] {
             if let Some(l) = list
                 && l.len() != num_views
             {
-                return Err(err(format!(
+                out.push(format!(
                     "key `{key}` lists {} files, the rig has {num_views} cameras",
                     l.len()
-                )));
+                ));
             }
         }
-        use mvmp_smplx::names::{EXTRA_VERTEX_JOINTS, NUM_JOINTS, NUM_JOINTS_WITH_LANDMARKS};
-        let without_landmarks = NUM_JOINTS + EXTRA_VERTEX_JOINTS.len();
+        // People are compared with the first only when its count is one the layout allows.
+        let first = self
+            .people
+            .first()
+            .map(|p| p.joints_3d.len())
+            .filter(|n| joint_counts().contains(n));
         for (i, p) in self.people.iter().enumerate() {
-            // The joint counts a body layer outputs; downstream code indexes joints by these layouts.
-            let n = p.joints_3d.len();
-            if ![NUM_JOINTS_WITH_LANDMARKS, without_landmarks, NUM_JOINTS].contains(&n) {
-                return Err(err(format!(
-                    "people[{i}].joints_3d has {n} joints: the layout holds {NUM_JOINTS_WITH_LANDMARKS} \
-                     ({without_landmarks} for a body model without face landmarks, {NUM_JOINTS} for one \
-                     with fewer vertices than SMPL-X)"
-                )));
-            }
-            if let Some(first) = self.people.first()
-                && first.joints_3d.len() != n
-            {
-                return Err(err(format!(
-                    "people[{i}].joints_3d has {n} joints, people[0].joints_3d has {}",
-                    first.joints_3d.len()
-                )));
-            }
-            p.smplx
-                .validate(&format!("people[{i}].smplx"))
-                .map_err(|e| err(e.to_string().trim_start_matches("parameters: ").into()))?;
-            let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
-            if !finite(&p.pelvis) {
-                return Err(err(format!(
-                    "people[{i}].pelvis = {:?} is not finite",
-                    p.pelvis
-                )));
-            }
-            if let Some(k) = p.joints_3d.iter().position(|j| !finite(j)) {
-                return Err(err(format!(
-                    "people[{i}].joints_3d[{k}] = {:?} is not finite",
-                    p.joints_3d[k]
-                )));
-            }
-            if p.views.len() != num_views {
-                return Err(err(format!(
-                    "people[{i}].views has {} entries, the rig has {num_views} cameras",
-                    p.views.len()
-                )));
-            }
-            for (v, pv) in p.views.iter().enumerate() {
-                if pv.joints_2d.len() != p.joints_3d.len() {
-                    return Err(err(format!(
-                        "people[{i}].views[{v}].joints_2d has {} joints, joints_3d has {}",
-                        pv.joints_2d.len(),
-                        p.joints_3d.len()
-                    )));
-                }
-                if let Some(k) = pv.joints_2d.iter().position(|j| !finite(j)) {
-                    return Err(err(format!(
-                        "people[{i}].views[{v}].joints_2d[{k}] = {:?} is not finite",
-                        pv.joints_2d[k]
-                    )));
-                }
-                if pv.visible_pixels > pv.silhouette_pixels {
-                    return Err(err(format!(
-                        "people[{i}].views[{v}]: visible_pixels {} exceeds silhouette_pixels {}",
-                        pv.visible_pixels, pv.silhouette_pixels
-                    )));
-                }
-            }
+            person_problems(i, p, first, num_views, &mut out);
         }
-        Ok(())
+        out
+    }
+}
+
+/// The joint counts a body layer outputs (with face landmarks, without, the LBS joints alone);
+/// downstream code indexes joints by these layouts.
+fn joint_counts() -> [usize; 3] {
+    use mvmp_smplx::names::{EXTRA_VERTEX_JOINTS, NUM_JOINTS, NUM_JOINTS_WITH_LANDMARKS};
+    [
+        NUM_JOINTS_WITH_LANDMARKS,
+        NUM_JOINTS + EXTRA_VERTEX_JOINTS.len(),
+        NUM_JOINTS,
+    ]
+}
+
+/// The problems of `people[i]`: its joint counts (one of the layouts, the same as the first person's),
+/// its SMPL-X parameters, finite positions, one entry per camera.
+fn person_problems(
+    i: usize,
+    p: &Person,
+    first: Option<usize>,
+    num_views: usize,
+    out: &mut Vec<String>,
+) {
+    let n = p.joints_3d.len();
+    let counts_before = out.len();
+    let [with_landmarks, without_landmarks, lbs] = joint_counts();
+    if !joint_counts().contains(&n) {
+        out.push(format!(
+            "people[{i}].joints_3d has {n} joints: the layout holds {with_landmarks} \
+             ({without_landmarks} for a body model without face landmarks, {lbs} for one \
+             with fewer vertices than SMPL-X)"
+        ));
+    } else if let Some(f) = first.filter(|&f| f != n) {
+        out.push(format!(
+            "people[{i}].joints_3d has {n} joints, people[0].joints_3d has {f}"
+        ));
+    }
+    // The 2D joints are compared with the 3D ones only when those have a count the layout allows.
+    let count_ok = out.len() == counts_before;
+    if let Err(e) = p.smplx.validate(&format!("people[{i}].smplx")) {
+        out.push(e.to_string().trim_start_matches("parameters: ").into());
+    }
+    let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
+    if !finite(&p.pelvis) {
+        out.push(format!("people[{i}].pelvis = {:?} is not finite", p.pelvis));
+    }
+    if let Some(k) = p.joints_3d.iter().position(|j| !finite(j)) {
+        out.push(format!(
+            "people[{i}].joints_3d[{k}] = {:?} is not finite",
+            p.joints_3d[k]
+        ));
+    }
+    if p.views.len() != num_views {
+        out.push(format!(
+            "people[{i}].views has {} entries, the rig has {num_views} cameras",
+            p.views.len()
+        ));
+    }
+    for (v, pv) in p.views.iter().enumerate() {
+        if count_ok && pv.joints_2d.len() != n {
+            out.push(format!(
+                "people[{i}].views[{v}].joints_2d has {} joints, joints_3d has {n}",
+                pv.joints_2d.len()
+            ));
+        }
+        if let Some(k) = pv.joints_2d.iter().position(|j| !finite(j)) {
+            out.push(format!(
+                "people[{i}].views[{v}].joints_2d[{k}] = {:?} is not finite",
+                pv.joints_2d[k]
+            ));
+        }
+        if pv.visible_pixels > pv.silhouette_pixels {
+            out.push(format!(
+                "people[{i}].views[{v}]: visible_pixels {} exceeds silhouette_pixels {}",
+                pv.visible_pixels, pv.silhouette_pixels
+            ));
+        }
     }
 }
 

@@ -507,6 +507,47 @@ fn joints_of_another_body_model_are_named_by_the_check_and_the_loader() {
     assert!(ds.load(if bad == 0 { 1 } else { 0 }).is_ok());
 }
 
+/// An annotation with three problems in two people: the check lists each, naming the key and value; a
+/// loader stops at the first.
+#[test]
+fn the_check_lists_every_problem_of_an_annotation() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().join("ds");
+    copy_tree(dataset(), &root);
+    let ann = root.join("scene_001/frame_000000/annotation.json");
+    let mut a: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&ann).unwrap()).unwrap();
+    let people = a["people"].as_array_mut().unwrap();
+    for i in [0, 2] {
+        let v = &mut people[i]["views"][1];
+        v["visible_pixels"] = serde_json::json!(v["silhouette_pixels"].as_u64().unwrap() + 7);
+    }
+    people[2]["views"][0]["joints_2d"]
+        .as_array_mut()
+        .unwrap()
+        .truncate(5);
+    std::fs::write(&ann, serde_json::to_string(&a).unwrap()).unwrap();
+    let problems: Vec<String> = check_dataset(&root, false)
+        .problems
+        .iter()
+        .map(|p| format!("{}: {}", p.path.display(), p.what))
+        .collect();
+    assert_eq!(problems.len(), 3, "{problems:#?}");
+    let at = |key: &str| {
+        problems
+            .iter()
+            .any(|p| p.contains("scene_001/frame_000000/annotation.json") && p.contains(key))
+    };
+    assert!(at("people[0].views[1]: visible_pixels"), "{problems:#?}");
+    assert!(
+        at("people[2].views[0].joints_2d has 5 joints"),
+        "{problems:#?}"
+    );
+    assert!(at("people[2].views[1]: visible_pixels"), "{problems:#?}");
+    let e = Annotation::read(&ann, 3).unwrap_err().to_string();
+    assert!(e.contains("people[0].views[1]: visible_pixels"), "{e}");
+}
+
 #[test]
 fn batches_with_vertices_load_in_several_workers() {
     use burn::data::dataloader::DataLoaderBuilder;
