@@ -42,6 +42,9 @@ pub struct StepRecord {
     pub global_step: u64,
     pub lr: f64,
     pub seconds: f64,
+    /// Where those seconds went: `load` (images and batch), `forward` (the loss), `backward`, `grad_norm`
+    /// (the per-module norms) and `optimizer`, in that order.
+    pub phases: Vec<(&'static str, f64)>,
     /// Weighted terms and their total.
     pub terms: Vec<(String, f32)>,
     pub total: f32,
@@ -66,6 +69,7 @@ impl StepRecord {
         for (k, v) in &self.terms {
             line[k] = json!(v);
         }
+        line["phase_seconds"] = self.phases.iter().map(|(k, v)| (*k, json!(v))).collect();
         line["grad_norm"] = self
             .grad_norm
             .iter()
@@ -616,12 +620,14 @@ impl<'a> Trainer<'a> {
         chunk: &[usize],
     ) -> Result<(MvmpHmr, StepRecord), TrainError> {
         let t0 = Instant::now();
+        let mut clock = PhaseClock::new();
         let Cursor { stage, epoch, .. } = self.cursor;
         let items = chunk
             .par_iter()
             .map(|&i| self.data.load(i))
             .collect::<Result<Vec<_>, _>>()?;
         let batch = self.batcher.batch(items, &self.ad);
+        clock.lap("load");
         let (cfg, ad) = (self.cfg, &self.ad);
         let loss_of = |model: &MvmpHmr| match stage {
             Stage::Detection => stage1_loss(model, &batch, self.model_cfg, &cfg.loss, ad),
@@ -643,14 +649,20 @@ impl<'a> Trainer<'a> {
                 "global_step": self.cursor.global, "terms": terms,
             }))?;
         }
+        clock.restart(); // the optional per-term diagnostics are not part of a step's phases
         let loss = loss_of(&model);
+        // The terms are read back here, so the forward has run when the clock reads.
         let terms = self.finite_terms(&loss)?;
+        clock.lap("forward");
         let grads = loss.total.backward();
+        clock.lap("backward");
         let grad_norm = crate::diagnostics::module_grad_norms(&model, &grads);
+        clock.lap("grad_norm");
         let grads = GradientsParams::from_grads(grads, &model);
         let spe = self.steps_per_epoch();
         let lr = sc.lr_at(epoch * spe + bi, sc.epochs * spe);
         let model = optim.step(lr, model, grads);
+        clock.lap("optimizer");
         self.cursor.global += 1;
         self.cursor.step_in_epoch = bi + 1;
         let rec = StepRecord {
@@ -661,6 +673,7 @@ impl<'a> Trainer<'a> {
             global_step: self.cursor.global,
             lr,
             seconds: t0.elapsed().as_secs_f64(),
+            phases: clock.laps,
             total: terms.iter().map(|t| t.1).sum(),
             terms,
             queries: loss.queries,
@@ -782,6 +795,31 @@ impl<'a> Trainer<'a> {
         })?;
         prune_checkpoints(&dir, &weights, &opt, self.cfg.keep_checkpoints)?;
         Ok(weights)
+    }
+}
+
+/// Wall time per phase of a step.
+struct PhaseClock {
+    at: Instant,
+    laps: Vec<(&'static str, f64)>,
+}
+
+impl PhaseClock {
+    fn new() -> Self {
+        PhaseClock {
+            at: Instant::now(),
+            laps: Vec::new(),
+        }
+    }
+
+    /// Record the time since the last lap (or restart) as `name`.
+    fn lap(&mut self, name: &'static str) {
+        self.laps.push((name, self.at.elapsed().as_secs_f64()));
+        self.at = Instant::now();
+    }
+
+    fn restart(&mut self) {
+        self.at = Instant::now();
     }
 }
 

@@ -296,6 +296,18 @@ fn an_interrupted_run_resumes_to_the_same_weights_and_log() {
         } else {
             assert!(g("vit") > 0.0 && g("decoder") > 0.0, "{v}");
         }
+        // The step's time split into its phases, within the step's own time.
+        let phases = v["phase_seconds"].as_object().unwrap();
+        let mut names: Vec<&str> = phases.keys().map(String::as_str).collect();
+        names.sort_unstable();
+        assert_eq!(
+            names,
+            ["backward", "forward", "grad_norm", "load", "optimizer"],
+            "{v}"
+        );
+        let split: f64 = phases.values().map(|x| x.as_f64().unwrap()).sum();
+        assert!(phases.values().all(|x| x.as_f64().unwrap() >= 0.0), "{v}");
+        assert!(split <= v["seconds"].as_f64().unwrap() + 1e-6, "{v}");
     }
     assert!(log.contains("\"root_recall\""), "stage 1 validation");
     assert!(log.contains("\"recall_500\""), "stage 2 validation");
