@@ -328,6 +328,23 @@ fn copy_tree(from: &Path, to: &Path) {
     }
 }
 
+/// Rewrite the annotation at `path` through `edit`.
+fn edit_annotation(path: &Path, edit: impl FnOnce(&mut serde_json::Value)) {
+    let mut a: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
+    edit(&mut a);
+    std::fs::write(path, serde_json::to_string(&a).unwrap()).unwrap();
+}
+
+/// `data check`'s problems as "path: what" lines.
+fn check_messages(root: &Path, deep: bool) -> Vec<String> {
+    check_dataset(root, deep)
+        .problems
+        .iter()
+        .map(|p| format!("{}: {}", p.path.display(), p.what))
+        .collect()
+}
+
 #[test]
 fn broken_datasets_give_errors_that_name_the_file() {
     let good = check_dataset(dataset(), true);
@@ -367,12 +384,7 @@ fn broken_datasets_give_errors_that_name_the_file() {
     )
     .unwrap();
 
-    let r = check_dataset(&root, false);
-    let msgs: Vec<String> = r
-        .problems
-        .iter()
-        .map(|p| format!("{}: {}", p.path.display(), p.what))
-        .collect();
+    let msgs = check_messages(&root, false);
     let has = |needle: &str, file: &str| {
         assert!(
             msgs.iter().any(|m| m.contains(needle) && m.contains(file)),
@@ -411,23 +423,13 @@ fn deep_checks_decode_images_and_joint_counts_are_checked() {
     let png = root.join("scene_001/frame_000000/view_00.png");
     let bytes = std::fs::read(&png).unwrap();
     std::fs::write(&png, &bytes[..200]).unwrap();
-    let ann = root.join("scene_002/frame_000001/annotation.json");
-    let mut a: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&ann).unwrap()).unwrap();
-    a["people"][0]["joints_3d"]
-        .as_array_mut()
-        .unwrap()
-        .truncate(10);
-    std::fs::write(&ann, serde_json::to_string(&a).unwrap()).unwrap();
-
-    let msgs = |deep: bool| -> Vec<String> {
-        check_dataset(&root, deep)
-            .problems
-            .iter()
-            .map(|p| format!("{}: {}", p.path.display(), p.what))
-            .collect()
-    };
-    let (plain, deep) = (msgs(false), msgs(true));
+    edit_annotation(&root.join("scene_002/frame_000001/annotation.json"), |a| {
+        a["people"][0]["joints_3d"]
+            .as_array_mut()
+            .unwrap()
+            .truncate(10)
+    });
+    let (plain, deep) = (check_messages(&root, false), check_messages(&root, true));
     let joints = |m: &Vec<String>| {
         m.iter().any(|s| {
             s.contains("scene_002/frame_000001/annotation.json")
@@ -469,21 +471,15 @@ fn joints_of_another_body_model_are_named_by_the_check_and_the_loader() {
     let dir = tempfile::tempdir().unwrap();
     let root = dir.path().join("ds");
     copy_tree(dataset(), &root);
-    let ann = root.join("scene_000/frame_000001/annotation.json");
-    let mut a: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&ann).unwrap()).unwrap();
-    for p in a["people"].as_array_mut().unwrap() {
-        p["joints_3d"].as_array_mut().unwrap().truncate(76);
-        for v in p["views"].as_array_mut().unwrap() {
-            v["joints_2d"].as_array_mut().unwrap().truncate(76);
+    edit_annotation(&root.join("scene_000/frame_000001/annotation.json"), |a| {
+        for p in a["people"].as_array_mut().unwrap() {
+            p["joints_3d"].as_array_mut().unwrap().truncate(76);
+            for v in p["views"].as_array_mut().unwrap() {
+                v["joints_2d"].as_array_mut().unwrap().truncate(76);
+            }
         }
-    }
-    std::fs::write(&ann, serde_json::to_string(&a).unwrap()).unwrap();
-    let problems: Vec<String> = check_dataset(&root, false)
-        .problems
-        .iter()
-        .map(|p| format!("{}: {}", p.path.display(), p.what))
-        .collect();
+    });
+    let problems = check_messages(&root, false);
     assert_eq!(problems.len(), 1, "{problems:#?}");
     assert!(
         problems[0].contains("scene_000/frame_000001/annotation.json")
@@ -515,23 +511,18 @@ fn the_check_lists_every_problem_of_an_annotation() {
     let root = dir.path().join("ds");
     copy_tree(dataset(), &root);
     let ann = root.join("scene_001/frame_000000/annotation.json");
-    let mut a: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&ann).unwrap()).unwrap();
-    let people = a["people"].as_array_mut().unwrap();
-    for i in [0, 2] {
-        let v = &mut people[i]["views"][1];
-        v["visible_pixels"] = serde_json::json!(v["silhouette_pixels"].as_u64().unwrap() + 7);
-    }
-    people[2]["views"][0]["joints_2d"]
-        .as_array_mut()
-        .unwrap()
-        .truncate(5);
-    std::fs::write(&ann, serde_json::to_string(&a).unwrap()).unwrap();
-    let problems: Vec<String> = check_dataset(&root, false)
-        .problems
-        .iter()
-        .map(|p| format!("{}: {}", p.path.display(), p.what))
-        .collect();
+    edit_annotation(&ann, |a| {
+        let people = a["people"].as_array_mut().unwrap();
+        for i in [0, 2] {
+            let v = &mut people[i]["views"][1];
+            v["visible_pixels"] = serde_json::json!(v["silhouette_pixels"].as_u64().unwrap() + 7);
+        }
+        people[2]["views"][0]["joints_2d"]
+            .as_array_mut()
+            .unwrap()
+            .truncate(5);
+    });
+    let problems = check_messages(&root, false);
     assert_eq!(problems.len(), 3, "{problems:#?}");
     let at = |key: &str| {
         problems
