@@ -11,6 +11,7 @@ use mvmp_data::sources::SourceFormat;
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
+mod bench_train;
 mod body;
 mod data;
 mod device;
@@ -337,6 +338,22 @@ enum BenchCommand {
         #[arg(long, default_value = "out/learn")]
         out: PathBuf,
     },
+    /// Seconds per training step of each stage and their split (load, forward, backward, gradient
+    /// norms, optimizer), from short runs in a temporary directory.
+    Train {
+        /// Training config (default: the demo's, on a synthetic set made for the benchmark).
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Dataset root (overrides the config's `data`).
+        #[arg(long)]
+        data: Option<PathBuf>,
+        /// Timed steps per stage (after 2 warm-up steps).
+        #[arg(long, default_value_t = 10, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=100000))]
+        steps: usize,
+        /// One-frame scenes of the synthetic set made without --config and --data.
+        #[arg(long, default_value_t = 48, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(3..=10000))]
+        scenes: usize,
+    },
     /// Per-stage forward times of a model config (batch 1) and the fraction of GEMM speed each reaches.
     Model {
         #[arg(long)]
@@ -533,6 +550,20 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             views,
             iters,
         }) => model::bench(&config, views, iters, &device),
+        Command::Bench(BenchCommand::Train {
+            config,
+            data,
+            steps,
+            scenes,
+        }) => bench_train::bench_train(
+            &bench_train::BenchTrainArgs {
+                config: config.as_deref(),
+                data: data.as_deref(),
+                steps,
+                scenes,
+            },
+            &device,
+        ),
         Command::Bench(BenchCommand::Learn {
             minutes,
             scenes,

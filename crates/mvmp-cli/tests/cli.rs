@@ -1108,6 +1108,41 @@ fn data_check_h36m_lists_subjects_and_names_missing_images() {
     );
 }
 
+/// The training benchmark on a tiny synthetic set: one row per stage, one timed step each, every phase
+/// within the step's seconds; a config without data is refused naming it.
+#[test]
+fn the_training_benchmark_splits_each_stage() {
+    let o = mvmp(&["bench", "train", "--steps", "1", "--scenes", "3"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = String::from_utf8(o.stdout).unwrap();
+    let rows: Vec<Vec<f64>> = out
+        .lines()
+        .skip(2)
+        .map(|l| l.split_whitespace().map(|x| x.parse().unwrap()).collect())
+        .collect();
+    assert_eq!(rows.len(), 2, "{out}");
+    for (stage, r) in rows.iter().enumerate() {
+        assert_eq!((r[0], r[1], r.len()), ((stage + 1) as f64, 1.0, 8), "{out}");
+        let phases: f64 = r[3..].iter().sum();
+        assert!(r[2] > 0.0 && phases <= r[2] + 2e-3, "{out}");
+    }
+    assert!(out.lines().nth(1).unwrap().contains("backward"), "{out}");
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("t.toml");
+    let configs = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs");
+    let train = std::fs::read_to_string(configs.join("train/tiny.toml")).unwrap();
+    let model = configs.join("model/tiny.toml");
+    let train = train.replace(
+        "\"../model/tiny.toml\"",
+        &format!("{:?}", model.to_str().unwrap()),
+    );
+    std::fs::write(&cfg, train).unwrap();
+    expect_error(
+        &["bench", "train", "--config", cfg.to_str().unwrap()],
+        &["t.toml", "no training data"],
+    );
+}
+
 /// The learning benchmark end to end at a tiny scale: two variants trained for a few seconds each, the
 /// report with its table and directions, the comparison picture; an unknown variant is named.
 #[test]

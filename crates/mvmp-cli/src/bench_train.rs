@@ -1,0 +1,156 @@
+//! `mvmp bench train`: seconds per training step of a config, per stage, and where they go (the phases
+//! every step logs in `metrics.jsonl`: load, forward, backward, gradient norms, optimizer). Each stage
+//! trains on its own in a temporary run (the other stage set to 0 epochs), stopped after the warm-up and
+//! the timed steps; nothing is left behind.
+use std::path::Path;
+
+use anyhow::{Context, Result};
+use burn::tensor::Device;
+use mvmp_geom::io::write_atomic;
+use mvmp_train::{RunDir, TrainConfig, TrainOptions};
+use serde_json::Value;
+
+use crate::run::{DEMO_MODEL, DEMO_SYNTH, DEMO_TRAIN};
+
+/// Steps of each stage run before the timed ones (allocations, caches, autotuning).
+const WARM_UP: usize = 2;
+const PHASES: [&str; 5] = ["load", "forward", "backward", "grad_norm", "optimizer"];
+
+pub struct BenchTrainArgs<'a> {
+    /// A training config (default: the demo's on a synthetic set made for the run).
+    pub config: Option<&'a Path>,
+    /// The dataset (default: the config's own).
+    pub data: Option<&'a Path>,
+    /// Timed steps per stage.
+    pub steps: usize,
+    /// One-frame scenes of the synthetic set made when no config is given.
+    pub scenes: usize,
+}
+
+pub fn bench_train(args: &BenchTrainArgs, device: &Device) -> Result<()> {
+    let tmp = tempfile::tempdir().context("creating a temporary directory")?;
+    let (config, data) = match args.config {
+        Some(c) => (c.to_path_buf(), args.data.map(Path::to_path_buf)),
+        None => demo_setup(tmp.path(), args)?,
+    };
+    let (cfg, model) = TrainConfig::read(&config)?;
+    anyhow::ensure!(
+        data.is_some() || cfg.data.is_some() || !cfg.sources.is_empty(),
+        "training config {}: no training data: set `data` or add [[sources]], or pass --data DIR",
+        config.display()
+    );
+    let name = match args.config {
+        Some(c) => c.display().to_string(),
+        None => "the demo's configs".into(),
+    };
+    println!(
+        "{name}: median seconds per step over {} steps after {WARM_UP} warm-up steps, batch {}, {} views",
+        args.steps, cfg.batch_size, cfg.train_views
+    );
+    let header: Vec<String> = PHASES.iter().map(|p| format!("{p:>5}")).collect();
+    println!("stage  steps  s/step  {}", header.join("  "));
+    for stage in [1u8, 2] {
+        let mut c = cfg.clone();
+        // Only this stage trains, and validation (at epoch ends) reads one frame.
+        let other = if stage == 1 {
+            &mut c.stage2
+        } else {
+            &mut c.stage1
+        };
+        other.epochs = 0;
+        c.val_frames = 1;
+        let run_dir = tmp.path().join(format!("stage{stage}"));
+        let run = RunDir::create(&run_dir, &c, &model, data.as_deref())?;
+        let (run, c, m) = RunDir::open(&run.root)?;
+        let opts = TrainOptions {
+            device: device.clone(),
+            stop: Default::default(),
+            stop_after_steps: Some((WARM_UP + args.steps) as u64),
+            stop_after_time: None,
+        };
+        eprintln!("stage {stage}: {} steps", WARM_UP + args.steps);
+        mvmp_train::train(&run, &c, &m, &opts, &mut mvmp_train::Quiet)?;
+        println!("{}", row(stage, &run.metrics_path())?);
+    }
+    Ok(())
+}
+
+/// The demo's configs and synthetic set (with `scenes` scenes) under `dir`: (training config, dataset).
+fn demo_setup(
+    dir: &Path,
+    args: &BenchTrainArgs,
+) -> Result<(std::path::PathBuf, Option<std::path::PathBuf>)> {
+    let synth = DEMO_SYNTH.replace("\nscenes = 48\n", &format!("\nscenes = {}\n", args.scenes));
+    anyhow::ensure!(
+        synth.contains(&format!("\nscenes = {}\n", args.scenes)),
+        "the embedded synthesis config has no `scenes = 48` line"
+    );
+    write_atomic(&dir.join("synth.toml"), synth.as_bytes())?;
+    write_atomic(&dir.join("model.toml"), DEMO_MODEL.as_bytes())?;
+    let train = DEMO_TRAIN.replace("\"../model/tiny.toml\"", "\"model.toml\"");
+    write_atomic(&dir.join("train.toml"), train.as_bytes())?;
+    let data = match args.data {
+        Some(d) => d.to_path_buf(),
+        None => {
+            // Standard output carries the table alone.
+            let d = dir.join("data");
+            let cfg = mvmp_data::synth::SynthConfig::read(&dir.join("synth.toml"))?;
+            eprintln!("synthesising {} scenes", cfg.scenes);
+            mvmp_data::synth::generate(&cfg, &d, dir, &|| {})?;
+            d
+        }
+    };
+    Ok((dir.join("train.toml"), Some(data)))
+}
+
+/// One stage's line of the table: the medians of the steps after the warm-up in its log.
+fn row(stage: u8, log: &Path) -> Result<String> {
+    let text =
+        std::fs::read_to_string(log).with_context(|| format!("reading {}", log.display()))?;
+    let steps: Vec<Value> = text
+        .lines()
+        .filter_map(|l| serde_json::from_str::<Value>(l).ok())
+        .filter(|v| v["kind"] == "step")
+        .skip(WARM_UP)
+        .collect();
+    anyhow::ensure!(
+        !steps.is_empty(),
+        "stage {stage}: no step after the warm-up in {} (too few training frames?)",
+        log.display()
+    );
+    let med = |f: &dyn Fn(&Value) -> Option<f64>| median(steps.iter().filter_map(f).collect());
+    let mut line = format!(
+        "{stage:>5}  {:>5}  {:>6.3}",
+        steps.len(),
+        med(&|v| v["seconds"].as_f64())
+    );
+    for p in PHASES {
+        let width = p.len().max(5);
+        let m = med(&|v| v["phase_seconds"][p].as_f64());
+        line += &format!("  {m:>width$.3}");
+    }
+    Ok(line)
+}
+
+fn median(mut x: Vec<f64>) -> f64 {
+    if x.is_empty() {
+        return f64::NAN;
+    }
+    x.sort_by(f64::total_cmp);
+    let n = x.len();
+    if n % 2 == 1 {
+        x[n / 2]
+    } else {
+        0.5 * (x[n / 2 - 1] + x[n / 2])
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn median_of_odd_and_even_counts() {
+        assert_eq!(super::median(vec![3.0, 1.0, 2.0]), 2.0);
+        assert_eq!(super::median(vec![4.0, 1.0, 2.0, 3.0]), 2.5);
+        assert!(super::median(vec![]).is_nan());
+    }
+}
