@@ -33,12 +33,17 @@ pub fn bench_train(args: &BenchTrainArgs, device: &Device) -> Result<()> {
         Some(c) => (c.to_path_buf(), args.data.map(Path::to_path_buf)),
         None => demo_setup(tmp.path(), args)?,
     };
-    let (cfg, model) = TrainConfig::read(&config)?;
+    let (mut cfg, model) = TrainConfig::read(&config)?;
+    if let Some(d) = &data {
+        cfg.data = Some(d.to_string_lossy().into_owned());
+    }
     anyhow::ensure!(
-        data.is_some() || cfg.data.is_some() || !cfg.sources.is_empty(),
+        cfg.data.is_some() || !cfg.sources.is_empty(),
         "training config {}: no training data: set `data` or add [[sources]], or pass --data DIR",
         config.display()
     );
+    // Every source opened (files, splits, cameras) before anything is printed.
+    mvmp_train::open_training_set(&cfg, &model, &config)?;
     let name = match args.config {
         Some(c) => c.display().to_string(),
         None => "the demo's configs".into(),
@@ -60,7 +65,7 @@ pub fn bench_train(args: &BenchTrainArgs, device: &Device) -> Result<()> {
         other.epochs = 0;
         c.val_frames = 1;
         let run_dir = tmp.path().join(format!("stage{stage}"));
-        let run = RunDir::create(&run_dir, &c, &model, data.as_deref())?;
+        let run = RunDir::create(&run_dir, &c, &model, None)?;
         let (run, c, m) = RunDir::open(&run.root)?;
         let opts = TrainOptions {
             device: device.clone(),
