@@ -6,11 +6,10 @@ use std::path::Path;
 
 use anyhow::{Context, Result};
 use burn::tensor::Device;
-use mvmp_geom::io::write_atomic;
 use mvmp_train::{RunDir, TrainConfig, TrainOptions};
 use serde_json::Value;
 
-use crate::run::{DEMO_MODEL, DEMO_SYNTH, DEMO_TRAIN};
+use crate::run::write_demo_configs;
 
 /// Steps of each stage run before the timed ones (allocations, caches, autotuning).
 const WARM_UP: usize = 2;
@@ -85,15 +84,7 @@ fn demo_setup(
     dir: &Path,
     args: &BenchTrainArgs,
 ) -> Result<(std::path::PathBuf, Option<std::path::PathBuf>)> {
-    let synth = DEMO_SYNTH.replace("\nscenes = 48\n", &format!("\nscenes = {}\n", args.scenes));
-    anyhow::ensure!(
-        synth.contains(&format!("\nscenes = {}\n", args.scenes)),
-        "the embedded synthesis config has no `scenes = 48` line"
-    );
-    write_atomic(&dir.join("synth.toml"), synth.as_bytes())?;
-    write_atomic(&dir.join("model.toml"), DEMO_MODEL.as_bytes())?;
-    let train = DEMO_TRAIN.replace("\"../model/tiny.toml\"", "\"model.toml\"");
-    write_atomic(&dir.join("train.toml"), train.as_bytes())?;
+    write_demo_configs(dir, args.scenes)?;
     let data = match args.data {
         Some(d) => d.to_path_buf(),
         None => {

@@ -18,7 +18,7 @@ use mvmp_model::config::PrimaryJoint;
 use mvmp_train::TrainConfig;
 use mvmp_train::curves::{Curves, write_png};
 
-use crate::run::{DEMO_MODEL, DEMO_SYNTH, DEMO_TRAIN, EvalArgs, Source, eval, table};
+use crate::run::{EvalArgs, Source, eval, table, write_demo_configs};
 
 /// One configuration of the comparison: a name and its change to the demo's tiny configs.
 struct Variant {
@@ -167,15 +167,7 @@ fn bench_into(args: &LearnArgs, device: &Device) -> Result<()> {
     let variants = select(args.variants)?;
     let cfg_dir = out.join("configs");
     std::fs::create_dir_all(&cfg_dir).with_context(|| format!("creating {}", cfg_dir.display()))?;
-    let synth = DEMO_SYNTH.replace("\nscenes = 48\n", &format!("\nscenes = {}\n", args.scenes));
-    anyhow::ensure!(
-        synth.contains(&format!("\nscenes = {}\n", args.scenes)),
-        "the embedded synthesis config has no `scenes = 48` line"
-    );
-    write_atomic(&cfg_dir.join("synth.toml"), synth.as_bytes())?;
-    write_atomic(&cfg_dir.join("model.toml"), DEMO_MODEL.as_bytes())?;
-    let train = DEMO_TRAIN.replace("\"../model/tiny.toml\"", "\"model.toml\"");
-    write_atomic(&cfg_dir.join("train.toml"), train.as_bytes())?;
+    write_demo_configs(&cfg_dir, args.scenes)?;
     let data = out.join("data");
     eprintln!(
         "synthetic dataset ({} scenes) -> {}",

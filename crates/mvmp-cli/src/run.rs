@@ -488,6 +488,21 @@ pub const DEMO_SYNTH: &str = include_str!("../../../configs/synth/tiny.toml");
 pub const DEMO_MODEL: &str = include_str!("../../../configs/model/tiny.toml");
 pub const DEMO_TRAIN: &str = include_str!("../../../configs/train/tiny.toml");
 
+/// The demo's synthesis (with `scenes` one-frame scenes), model and training configs written into `dir`
+/// as `synth.toml`, `model.toml` and `train.toml` (the training config pointing at the model beside it).
+pub fn write_demo_configs(dir: &Path, scenes: usize) -> Result<()> {
+    let synth = DEMO_SYNTH.replace("\nscenes = 48\n", &format!("\nscenes = {scenes}\n"));
+    anyhow::ensure!(
+        synth.contains(&format!("\nscenes = {scenes}\n")),
+        "the embedded synthesis config has no `scenes = 48` line"
+    );
+    write_atomic(&dir.join("synth.toml"), synth.as_bytes())?;
+    write_atomic(&dir.join("model.toml"), DEMO_MODEL.as_bytes())?;
+    let train = DEMO_TRAIN.replace("\"../model/tiny.toml\"", "\"model.toml\"");
+    write_atomic(&dir.join("train.toml"), train.as_bytes())?;
+    Ok(())
+}
+
 /// `mvmp demo`: synthesise, train both stages, evaluate on held-out scenes beside two references, infer.
 pub fn demo(out: &Path, seed: u64, device: &Device) -> Result<()> {
     let t0 = std::time::Instant::now();
