@@ -2,7 +2,7 @@
 //! with the `wgpu` feature, wgpu (a GPU, or lavapipe's software Vulkan on a machine without one) give the
 //! same numbers within float32 tolerances: rotation conversions; long reductions; the SMPL-X forward at batch 30 and its
 //! gradient in pose and betas; HRNet (conv, batch norm, upsampling) and the ViT (attention, layer norm,
-//! GELU); view projection and mean/max fusion (grid sampling); the RootNet (3D convolutions, pooling),
+//! GELU); the tiled attention and its backward; view projection and mean/max fusion (grid sampling); the RootNet (3D convolutions, pooling),
 //! 3D NMS and root extraction; one Human Transformer Block; the whole model's forward; one training step
 //! (the stage-2 loss and the gradient norm of every parameter tensor).
 //!
@@ -341,6 +341,48 @@ fn transformer_block(other: &Device, r: &mut Report) {
     r.check("Human Transformer Block", &keep(a), &keep(b));
 }
 
+/// The tiled attention on `other` against burn's plain attention on flex, and strictly (1e-5) against the
+/// plain attention on `other` itself: output and the gradients of q, k and v, with tiles that do not
+/// divide the tokens and fewer queries than keys.
+fn tiled_attention(other: &Device, r: &mut Report) {
+    use mvmp::kernels::{attention, plain_attention};
+    let (nq, nk, d) = (37, 29, 8);
+    let run = |device: &Device, tiled: bool| -> Vec<Vec<f32>> {
+        let ad = device.clone().autodiff();
+        let input = |seed, n| t(values(2 * 3 * n * d, seed, 1.0), [2, 3, n, d], &ad);
+        let (q, k, v) = (input(21, nq), input(22, nk), input(23, nk));
+        let (q, k, v) = (q.require_grad(), k.require_grad(), v.require_grad());
+        let scale = 1.0 / (d as f64).sqrt();
+        let out = if tiled {
+            attention(q.clone(), k.clone(), v.clone(), scale, 8)
+        } else {
+            plain_attention(q.clone(), k.clone(), v.clone(), scale)
+        };
+        let grads = (out.clone() * input(24, nq)).sum().backward();
+        let mut all = vec![host(out.detach())];
+        all.extend([q, k, v].map(|x| host(x.grad(&grads).expect("a gradient"))));
+        all
+    };
+    let (reference, tiled, plain) = (
+        run(&Device::flex(), false),
+        run(other, true),
+        run(other, false),
+    );
+    for (i, name) in ["output", "dq", "dk", "dv"].iter().enumerate() {
+        r.check(
+            &format!("tiled attention: {name}"),
+            &reference[i],
+            &tiled[i],
+        );
+        let same_device = rel_diff(&plain[i], &tiled[i]);
+        assert!(
+            same_device < 1e-5,
+            "{}: tiled attention {name} differs from plain by {same_device:e}",
+            r.backend
+        );
+    }
+}
+
 /// A small synthetic dataset (3 views, 160 x 120) in a temporary directory.
 fn dataset(dir: &Path) -> std::path::PathBuf {
     let out = dir.join("ds");
@@ -473,6 +515,7 @@ fn suite(other: &Device, backend: &'static str, tol: f32) {
     fusion(other, &mut r);
     rootnet(other, &mut r);
     transformer_block(other, &mut r);
+    tiled_attention(other, &mut r);
     model_and_training_step(other, &mut r);
     r.finish();
 }

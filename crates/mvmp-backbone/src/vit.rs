@@ -13,7 +13,7 @@ use burn::config::Config;
 use burn::module::{Module, Param};
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::{Initializer, LayerNorm, LayerNormConfig, Linear, LinearConfig};
-use burn::tensor::activation::{gelu, softmax};
+use burn::tensor::activation::gelu;
 use burn::tensor::{Device, Tensor, TensorData};
 
 pub const PATCH: usize = 14;
@@ -31,6 +31,10 @@ pub struct ViTConfig {
     pub mlp_ratio: f64,
     #[config(default = 1e-6)]
     pub norm_eps: f64,
+    /// Side of the score tiles of attention (`mvmp_kernels::attention`); 0 computes the whole score
+    /// matrix with burn's ops, which autodiff keeps per block for the backward.
+    #[config(default = "mvmp_kernels::DEFAULT_BLOCK")]
+    pub attention_tile: usize,
 }
 
 impl ViTConfig {
@@ -88,6 +92,7 @@ impl ViTConfig {
                         qkv: LinearConfig::new(c, 3 * c).init(device),
                         proj: LinearConfig::new(c, c).init(device),
                         heads: self.heads,
+                        tile: self.attention_tile,
                     },
                     ls1: LayerScale {
                         gamma: Param::from_tensor(Tensor::ones([c], device)),
@@ -148,6 +153,8 @@ pub struct Attention {
     pub qkv: Linear,
     pub proj: Linear,
     pub heads: usize,
+    /// See [`ViTConfig::attention_tile`].
+    pub tile: usize,
 }
 
 impl Attention {
@@ -164,9 +171,19 @@ impl Attention {
         let q = qkv.clone().narrow(0, 0, 1).reshape([b, h, n, d]);
         let k = qkv.clone().narrow(0, 1, 1).reshape([b, h, n, d]);
         let v = qkv.narrow(0, 2, 1).reshape([b, h, n, d]);
-        let att = softmax(q.matmul(k.swap_dims(2, 3)) / (d as f64).sqrt(), 3); // [B, h, N, N]
-        let out = att.matmul(v).swap_dims(1, 2).reshape([b, n, c]);
+        let out = attend(q, k, v, self.tile)
+            .swap_dims(1, 2)
+            .reshape([b, n, c]);
         self.proj.forward(out)
+    }
+}
+
+/// `softmax(q k^T / sqrt(d)) v` over `[B, h, N, d]`, tiled when `tile` > 0.
+pub(crate) fn attend(q: Tensor<4>, k: Tensor<4>, v: Tensor<4>, tile: usize) -> Tensor<4> {
+    let scale = 1.0 / (q.dims()[3] as f64).sqrt();
+    match tile {
+        0 => mvmp_kernels::plain_attention(q, k, v, scale),
+        t => mvmp_kernels::attention(q, k, v, scale, t),
     }
 }
 

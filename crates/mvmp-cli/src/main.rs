@@ -7,10 +7,12 @@ use mvmp_data::sources::SourceFormat;
 
 /// mimalloc keeps freed pages: burn allocates a fresh buffer for every op's output, and with the system
 /// allocator each large one page-faults anew (measured: the SMPL-X skinning GEMM took 12.1 ms with the
-/// system allocator, 4.1 ms with mimalloc).
+/// system allocator, 4.1 ms with mimalloc). Counted, for the memory figures of `bench attention`.
 #[global_allocator]
-static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+static GLOBAL: alloc::Counting<mimalloc::MiMalloc> = alloc::Counting::new(mimalloc::MiMalloc);
 
+mod alloc;
+mod bench_attention;
 mod bench_train;
 mod body;
 mod data;
@@ -298,6 +300,25 @@ enum BodyCommand {
 
 #[derive(Subcommand)]
 enum BenchCommand {
+    /// Seconds and peak extra memory of one attention forward and backward: the tiled operation training
+    /// uses beside burn's plain ops (whose backward keeps every head's N x N probabilities), over token
+    /// counts. The default is one ViT-L/14 block's attention at the paper's 1288 x 1288 (8465 tokens).
+    Attention {
+        /// Comma-separated token counts.
+        #[arg(long, value_delimiter = ',', default_values_t = [1024, 2048, 4096, 8465], value_parser = at_least_one())]
+        tokens: Vec<usize>,
+        #[arg(long, default_value_t = 16, value_parser = at_least_one())]
+        heads: usize,
+        #[arg(long, default_value_t = 64, value_parser = at_least_one())]
+        head_dim: usize,
+        /// Side of the score tiles.
+        #[arg(long, default_value_t = mvmp_kernels::DEFAULT_BLOCK, value_parser = at_least_one())]
+        tile: usize,
+        /// Run the plain path only up to this many tokens (16 heads at 8465 tokens hold 4.6 GB of
+        /// probabilities, several times over in the backward).
+        #[arg(long, default_value_t = 4096)]
+        plain_up_to: usize,
+    },
     /// Median wall time of the SMPL-X forward.
     Smplx {
         /// Bodies per forward (at most 4096: each holds 10475 posed vertices and the packed features).
@@ -550,6 +571,26 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             views,
             iters,
         }) => model::bench(&config, views, iters, &device),
+        Command::Bench(BenchCommand::Attention {
+            tokens,
+            heads,
+            head_dim,
+            tile,
+            plain_up_to,
+        }) => bench_attention::bench_attention(
+            &bench_attention::AttentionArgs {
+                tokens: &tokens,
+                heads,
+                head_dim,
+                tile,
+                plain_up_to,
+                host: matches!(
+                    cli.device.split(':').next(),
+                    Some("cpu" | "flex" | "ndarray")
+                ),
+            },
+            &device,
+        ),
         Command::Bench(BenchCommand::Train {
             config,
             data,

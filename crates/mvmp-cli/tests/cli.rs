@@ -1143,6 +1143,49 @@ fn the_training_benchmark_splits_each_stage() {
     );
 }
 
+/// The attention benchmark: one row per token count; burn's plain attention grows with the square of
+/// the tokens (its backward keeps the probabilities), the tiled one far less; a zero count is refused.
+#[test]
+fn the_attention_benchmark_shows_the_tiled_memory_growing_slower() {
+    let args = [
+        "bench",
+        "attention",
+        "--tokens",
+        "256,512",
+        "--heads",
+        "4",
+        "--head-dim",
+        "16",
+        "--tile",
+        "64",
+    ];
+    let o = mvmp(&args);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = String::from_utf8(o.stdout).unwrap();
+    let rows: Vec<Vec<f64>> = out
+        .lines()
+        .skip(2)
+        .map(|l| l.split_whitespace().map(|x| x.parse().unwrap()).collect())
+        .collect();
+    assert_eq!(rows.len(), 2, "{out}");
+    let [small, large] = [&rows[0], &rows[1]];
+    assert_eq!((small[0], large[0]), (256.0, 512.0), "{out}");
+    // Columns: tokens, tiled s, tiled MiB, plain s, plain MiB.
+    assert!(
+        large[4] > 3.0 * small[4],
+        "plain memory should grow about 4x: {out}"
+    );
+    assert!(
+        large[2] < 3.0 * small[2] && large[2] < large[4] / 2.0,
+        "{out}"
+    );
+    let mut zero = args.to_vec();
+    zero[3] = "256,0";
+    let o = mvmp(&zero);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(stderr(&o).contains("--tokens"), "{}", stderr(&o));
+}
+
 /// The learning benchmark end to end at a tiny scale: two variants trained for a few seconds each, the
 /// report with its table and directions, the comparison picture; an unknown variant is named.
 #[test]

@@ -40,6 +40,10 @@ pub struct DecoderConfig {
     /// to its query through `heading_proj`; false (the paper) reads none.
     #[config(default = false)]
     pub heading: bool,
+    /// Side of the score tiles of cross-attention (`mvmp_kernels::attention`); 0 computes the whole score
+    /// matrix with burn's ops.
+    #[config(default = "mvmp_kernels::DEFAULT_BLOCK")]
+    pub attention_tile: usize,
 }
 
 #[derive(Module, Debug)]
@@ -51,10 +55,40 @@ pub struct HumanTransformerBlock {
     pub norm_ffn: LayerNorm,
     pub fc1: Linear,
     pub fc2: Linear,
+    /// See [`DecoderConfig::attention_tile`].
+    pub tile: usize,
+}
+
+/// burn's multi-head attention of `query [B, K, D]` to `context [B, P, D]` through `mha`'s projections,
+/// with the scores computed in tiles of side `tile` (0: burn's own forward). No mask: every token counts.
+fn cross_attend(
+    mha: &MultiHeadAttention,
+    query: Tensor<3>,
+    context: Tensor<3>,
+    tile: usize,
+) -> Tensor<3> {
+    if tile == 0 {
+        return mha
+            .forward(MhaInput::new(query, context.clone(), context))
+            .context;
+    }
+    let [b, k, d] = query.dims();
+    let (h, dk) = (mha.n_heads, mha.d_k);
+    let heads = |x: Tensor<3>, lin: &burn::nn::Linear| {
+        let n = x.dims()[1];
+        lin.forward(x).reshape([b, n, h, dk]).swap_dims(1, 2)
+    };
+    let (q, kk, v) = (
+        heads(query, &mha.query),
+        heads(context.clone(), &mha.key),
+        heads(context, &mha.value),
+    );
+    let out = mvmp_kernels::attention(q, kk, v, 1.0 / (dk as f64).sqrt(), tile);
+    mha.output.forward(out.swap_dims(1, 2).reshape([b, k, d]))
 }
 
 impl HumanTransformerBlock {
-    fn new(dim: usize, heads: usize, ffn: usize, device: &Device) -> Self {
+    fn new(dim: usize, heads: usize, ffn: usize, tile: usize, device: &Device) -> Self {
         let mha = || {
             MultiHeadAttentionConfig::new(dim, heads)
                 .with_dropout(0.0)
@@ -68,6 +102,7 @@ impl HumanTransformerBlock {
             norm_ffn: LayerNormConfig::new(dim).init(device),
             fc1: LinearConfig::new(dim, dim * ffn).init(device),
             fc2: LinearConfig::new(dim * ffn, dim).init(device),
+            tile,
         }
     }
 
@@ -79,10 +114,7 @@ impl HumanTransformerBlock {
             .forward(MhaInput::new(h.clone(), h.clone(), h).mask_pad(padding))
             .context;
         let h = self.norm_ca.forward(q.clone());
-        let q = q + self
-            .cross_attn
-            .forward(MhaInput::new(h, tokens.clone(), tokens))
-            .context;
+        let q = q + cross_attend(&self.cross_attn, h, tokens, self.tile);
         let h = self.norm_ffn.forward(q.clone());
         q + self.fc2.forward(gelu(self.fc1.forward(h)))
     }
@@ -209,7 +241,10 @@ impl DecoderConfig {
             pos_proj: LinearConfig::new(6 * POS_FREQS, d).init(device),
             blocks: if self.use_htb {
                 (0..self.depth)
-                    .map(|_| HumanTransformerBlock::new(d, self.heads, self.ffn_ratio, device))
+                    .map(|_| {
+                        let tile = self.attention_tile;
+                        HumanTransformerBlock::new(d, self.heads, self.ffn_ratio, tile, device)
+                    })
                     .collect()
             } else {
                 Vec::new()

@@ -176,3 +176,61 @@ fn root_encoding_matches_the_voxel_encoding_at_voxel_centres() {
         }
     }
 }
+
+/// Every parameter's gradient, in visiting order.
+fn param_grads<M: Module>(m: &M, grads: &burn::tensor::Gradients) -> Vec<Vec<f32>> {
+    struct Collect<'a>(&'a burn::tensor::Gradients, Vec<Vec<f32>>);
+    impl ModuleVisitor for Collect<'_> {
+        fn visit_float<const D: usize>(&mut self, p: &Param<Tensor<D>>) {
+            if let Some(g) = p.val().grad(self.0) {
+                self.1.push(vals(g));
+            }
+        }
+    }
+    let mut c = Collect(grads, Vec::new());
+    m.visit(&mut c);
+    c.1
+}
+
+/// Cross-attention in tiles (`mvmp_kernels::attention`, 7 tiles of 40 over 256 tokens) gives burn's
+/// multi-head attention: the same outputs and the same gradient of every parameter.
+#[test]
+fn tiled_cross_attention_equals_burns_attention() {
+    let d = Device::flex().autodiff();
+    let whole = DecoderConfig::new(8)
+        .with_dim(32)
+        .with_heads(4)
+        .with_attention_tile(0)
+        .init(&d);
+    let mut tiled = whole.clone();
+    for b in &mut tiled.blocks {
+        b.tile = 40;
+    }
+    let run = |dec: &Decoder| {
+        let (vol, roots, present, g) = inputs(&d, [1.5, 1.5, 1.0]);
+        let out = dec.forward(vol, &g, roots, present);
+        let loss = out.rot6d.clone().powi_scalar(2).sum() + out.betas.clone().sum();
+        let grads = loss.backward();
+        (vals(out.rot6d.detach()), param_grads(dec, &grads))
+    };
+    let ((ra, ga), (rb, gb)) = (run(&whole), run(&tiled));
+    let worst = |a: &[f32], b: &[f32]| {
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f32::max)
+    };
+    assert!(
+        worst(&ra, &rb) < 1e-5,
+        "rot6d differs by {}",
+        worst(&ra, &rb)
+    );
+    assert_eq!(ga.len(), gb.len());
+    for (i, (a, b)) in ga.iter().zip(&gb).enumerate() {
+        assert!(
+            worst(a, b) < 1e-5,
+            "parameter {i}: gradient differs by {}",
+            worst(a, b)
+        );
+    }
+}

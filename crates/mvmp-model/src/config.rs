@@ -109,6 +109,10 @@ pub struct ModelConfig {
     pub facing: bool,
     /// Body model: `standin:SEED` or a path to an SMPLX_*.npz.
     pub body_model: String,
+    /// Side of the score tiles of the ViT's and the decoder's attention: autodiff keeps each row's
+    /// softmax statistics instead of the `[heads, N, N]` probabilities, and the backward recomputes the
+    /// scores tile by tile (`mvmp_kernels::attention`). 0 computes the whole score matrix with burn's ops.
+    pub attention_tile: usize,
 }
 
 /// The most people a config may decode per scene: 1000 slots of 10475 vertices are 126 MB of meshes per
@@ -143,6 +147,7 @@ impl Default for ModelConfig {
             },
             facing: false,
             body_model: "standin:0".into(),
+            attention_tile: mvmp_kernels::DEFAULT_BLOCK,
         }
     }
 }

@@ -125,7 +125,7 @@ pub struct MvmpOutput {
 
 impl ModelConfig {
     pub fn init(&self, device: &Device) -> MvmpHmr {
-        let vit = self.vit();
+        let vit = self.vit().with_attention_tile(self.attention_tile);
         MvmpHmr {
             reduce: Conv2dConfig::new([vit.embed_dim, self.feature_channels], [1, 1]).init(device),
             vit: vit.init(device),
@@ -141,6 +141,7 @@ impl ModelConfig {
                 .with_pool(self.decoder.pool)
                 .with_use_htb(self.decoder.use_htb)
                 .with_heading(self.facing)
+                .with_attention_tile(self.attention_tile)
                 .init(device),
             deformable: (self.fusion == FusionMode::Deformable)
                 .then(|| DeformableFusionConfig::new().init(device)),

@@ -1,0 +1,265 @@
+//! Memory-efficient attention: `softmax(q k^T * scale) v` computed over tiles of queries and keys, so
+//! that the `[N, N]` score matrix never exists whole.
+//!
+//! The forward keeps a running maximum and sum per query row while it walks the key tiles (the online
+//! softmax) and stores only the output and each row's log-sum-exp. The backward recomputes each tile's
+//! scores from `q`, `k` and that log-sum-exp (the probabilities are `exp(s - lse)`), so what autodiff
+//! keeps grows linearly in the tokens: `q`, `k`, `v`, the output and one number per query row.
+//! burn's own attention keeps the probabilities of every head, `[B, H, N, N]`, for its backward.
+//!
+//! Backward of one tile (`p` the probabilities, `do` the output gradient, `delta = rowsum(do * o)`):
+//! `dv += p^T do`, `dp = do v^T`, `ds = p * (dp - delta) * scale`, `dq += ds k`, `dk += ds^T q`.
+
+// burn-ndarray is deprecated but still a `--device` the CLI offers: the operation is registered for it.
+#![allow(deprecated)]
+
+#[cfg(feature = "wgpu")]
+use burn::backend::Cube;
+use burn::backend::NdArray;
+use burn::backend::autodiff::checkpoint::base::Checkpointer;
+use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
+use burn::backend::autodiff::grads::Gradients;
+use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+use burn::backend::tensor::FloatTensor;
+use burn::backend::{Autodiff, Backend, Dispatch, Flex, TensorMetadata, backend_extension};
+use burn::tensor::{Slice, Tensor};
+use std::ops::Range;
+
+/// Rows and columns of one score tile. 512 x 512 keeps a tile of 16 heads at 16 MiB, small beside the
+/// activations around it and large enough that each matmul stays efficient.
+pub const DEFAULT_BLOCK: usize = 512;
+
+/// Attention with the tiled forward and, under autodiff, the recomputing backward.
+///
+/// `q [B, H, Nq, D]`, `k [B, H, Nk, D]`, `v [B, H, Nk, Dv]` -> `[B, H, Nq, Dv]`; `block` is the side of
+/// a score tile (queries and keys). Panics when there are no keys (the softmax of nothing).
+pub fn attention(q: Tensor<4>, k: Tensor<4>, v: Tensor<4>, scale: f64, block: usize) -> Tensor<4> {
+    assert!(k.dims()[2] > 0, "attention over zero keys");
+    assert!(block > 0, "attention tiles need a positive side");
+    if q.dims()[2] == 0 {
+        return plain_attention(q, k, v, scale);
+    }
+    let out = <Dispatch as AttentionBackend>::tiled_attention(
+        q.into_dispatch(),
+        k.into_dispatch(),
+        v.into_dispatch(),
+        scale,
+        block,
+    );
+    Tensor::from_dispatch(out)
+}
+
+/// burn's attention as plain tensor ops, `softmax(q k^T * scale) v`: the reference the tiled operation
+/// is tested against, and what training uses when tiling is off.
+pub fn plain_attention(q: Tensor<4>, k: Tensor<4>, v: Tensor<4>, scale: f64) -> Tensor<4> {
+    let scores = q.matmul(k.swap_dims(2, 3)) * scale;
+    burn::tensor::activation::softmax(scores, 3).matmul(v)
+}
+
+/// The backend side of [`attention`]. Each backend runs the same tiled forward, written in its own
+/// float ops; autodiff adds the recomputing backward.
+#[backend_extension(Flex, NdArray, Cube: cfg(feature = "wgpu"), Autodiff)]
+pub trait AttentionBackend: Backend {
+    fn tiled_attention(
+        q: FloatTensor<Self>,
+        k: FloatTensor<Self>,
+        v: FloatTensor<Self>,
+        scale: f64,
+        block: usize,
+    ) -> FloatTensor<Self> {
+        forward::<Self>(q, k, v, scale, block).0
+    }
+}
+
+impl AttentionBackend for Flex {}
+impl AttentionBackend for NdArray {}
+#[cfg(feature = "wgpu")]
+impl AttentionBackend for Cube {}
+
+impl<B: Backend + AttentionBackend, C: CheckpointStrategy> AttentionBackend for Autodiff<B, C> {
+    fn tiled_attention(
+        q: FloatTensor<Self>,
+        k: FloatTensor<Self>,
+        v: FloatTensor<Self>,
+        scale: f64,
+        block: usize,
+    ) -> FloatTensor<Self> {
+        let guards = [q.node(), k.node(), v.node()];
+        let (q, k, v) = (q.into_primitive(), k.into_primitive(), v.into_primitive());
+        let (out, lse) = forward::<B>(q.clone(), k.clone(), v.clone(), scale, block);
+        // Compute-bound: a checkpointing strategy keeps this state rather than rerunning the tiles.
+        match TiledBackward
+            .prepare::<C>(guards)
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => {
+                let state = Saved {
+                    q,
+                    k,
+                    v,
+                    out: out.clone(),
+                    lse,
+                    scale,
+                    block,
+                };
+                prep.finish(state, out)
+            }
+            OpsKind::UnTracked(prep) => prep.finish(out),
+        }
+    }
+}
+
+#[derive(Debug)]
+struct TiledBackward;
+
+/// What the backward needs: the inputs, the output and each query row's log-sum-exp `[B, H, Nq, 1]`.
+#[derive(Debug, Clone)]
+struct Saved<B: Backend> {
+    q: FloatTensor<B>,
+    k: FloatTensor<B>,
+    v: FloatTensor<B>,
+    out: FloatTensor<B>,
+    lse: FloatTensor<B>,
+    scale: f64,
+    block: usize,
+}
+
+impl<B: Backend> Backward<B, 3> for TiledBackward {
+    type State = Saved<B>;
+
+    fn backward(self, ops: Ops<Self::State, 3>, grads: &mut Gradients, _: &mut Checkpointer) {
+        let [node_q, node_k, node_v] = ops.parents;
+        let grad = grads.consume::<B>(&ops.node);
+        let [dq, dk, dv] = backward::<B>(ops.state, grad);
+        for (node, g) in [(node_q, dq), (node_k, dk), (node_v, dv)] {
+            if let Some(node) = node {
+                grads.register::<B>(node.id, g);
+            }
+        }
+    }
+}
+
+/// Rows `range` of dimension `dim` of a 4D tensor.
+fn rows<B: Backend>(t: &FloatTensor<B>, dim: usize, range: Range<usize>) -> FloatTensor<B> {
+    let mut slices = [
+        Slice::from(..),
+        Slice::from(..),
+        Slice::from(..),
+        Slice::from(..),
+    ];
+    slices[dim] = Slice::from(range);
+    B::float_slice(t.clone(), &slices)
+}
+
+/// The tile ranges of `n` rows.
+fn tiles(n: usize, block: usize) -> impl Iterator<Item = Range<usize>> {
+    (0..n).step_by(block).map(move |s| s..(s + block).min(n))
+}
+
+fn add_into<B: Backend>(acc: &mut Option<FloatTensor<B>>, x: FloatTensor<B>) {
+    *acc = Some(match acc.take() {
+        Some(a) => B::float_add(a, x),
+        None => x,
+    });
+}
+
+/// The tiled forward: the output `[B, H, Nq, Dv]` and each query row's log-sum-exp `[B, H, Nq, 1]`.
+fn forward<B: Backend>(
+    q: FloatTensor<B>,
+    k: FloatTensor<B>,
+    v: FloatTensor<B>,
+    scale: f64,
+    block: usize,
+) -> (FloatTensor<B>, FloatTensor<B>) {
+    let (nq, nk) = (q.shape()[2], k.shape()[2]);
+    let kt = B::float_swap_dims(k, 2, 3); // [B, H, D, Nk]
+    let (mut outs, mut lses) = (Vec::new(), Vec::new());
+    for qr in tiles(nq, block) {
+        let qb = B::float_mul_scalar(rows::<B>(&q, 2, qr), scale.into());
+        // Running row maximum `m`, sum `l` of exp(s - m), and output sum `acc` scaled by exp(-m).
+        let mut run: Option<(FloatTensor<B>, FloatTensor<B>, FloatTensor<B>)> = None;
+        for kr in tiles(nk, block) {
+            let s = B::float_matmul(qb.clone(), rows::<B>(&kt, 3, kr.clone()));
+            let vb = rows::<B>(&v, 2, kr);
+            let tile_max = B::float_max_dim(s.clone(), 3);
+            run = Some(match run {
+                None => {
+                    let p = B::float_exp(B::float_sub(s, tile_max.clone()));
+                    (
+                        tile_max,
+                        B::float_sum_dim(p.clone(), 3),
+                        B::float_matmul(p, vb),
+                    )
+                }
+                Some((m, l, acc)) => {
+                    let m_new = B::float_max_dim(B::float_cat(vec![m.clone(), tile_max], 3), 3);
+                    let alpha = B::float_exp(B::float_sub(m, m_new.clone()));
+                    let p = B::float_exp(B::float_sub(s, m_new.clone()));
+                    let l = B::float_add(
+                        B::float_mul(l, alpha.clone()),
+                        B::float_sum_dim(p.clone(), 3),
+                    );
+                    let acc = B::float_add(B::float_mul(acc, alpha), B::float_matmul(p, vb));
+                    (m_new, l, acc)
+                }
+            });
+        }
+        let (m, l, acc) = run.expect("at least one key tile");
+        outs.push(B::float_div(acc, l.clone()));
+        lses.push(B::float_add(m, B::float_log(l)));
+    }
+    (B::float_cat(outs, 2), B::float_cat(lses, 2))
+}
+
+/// The recomputing backward: gradients of `q`, `k`, `v` from the output gradient `dout`.
+fn backward<B: Backend>(s: Saved<B>, dout: FloatTensor<B>) -> [FloatTensor<B>; 3] {
+    let (nq, nk) = (s.q.shape()[2], s.k.shape()[2]);
+    let delta = B::float_sum_dim(B::float_mul(dout.clone(), s.out), 3); // [B, H, Nq, 1]
+    let kt = B::float_swap_dims(s.k.clone(), 2, 3);
+    let vt = B::float_swap_dims(s.v.clone(), 2, 3);
+    let key_tiles: Vec<_> = tiles(nk, s.block).collect();
+    let mut dk: Vec<Option<FloatTensor<B>>> = vec![None; key_tiles.len()];
+    let mut dv: Vec<Option<FloatTensor<B>>> = vec![None; key_tiles.len()];
+    let mut dq = Vec::new();
+    for qr in tiles(nq, s.block) {
+        let qb = rows::<B>(&s.q, 2, qr.clone());
+        let qs = B::float_mul_scalar(qb.clone(), s.scale.into());
+        let (dob, lse, dl) = (
+            rows::<B>(&dout, 2, qr.clone()),
+            rows::<B>(&s.lse, 2, qr.clone()),
+            rows::<B>(&delta, 2, qr),
+        );
+        let mut dqb = None;
+        for (j, kr) in key_tiles.iter().enumerate() {
+            let scores = B::float_matmul(qs.clone(), rows::<B>(&kt, 3, kr.clone()));
+            let p = B::float_exp(B::float_sub(scores, lse.clone())); // [B, H, bq, bk]
+            let pt = B::float_swap_dims(p.clone(), 2, 3);
+            add_into::<B>(&mut dv[j], B::float_matmul(pt, dob.clone()));
+            let dp = B::float_matmul(dob.clone(), rows::<B>(&vt, 3, kr.clone()));
+            let ds = B::float_mul_scalar(
+                B::float_mul(p, B::float_sub(dp, dl.clone())),
+                s.scale.into(),
+            );
+            add_into::<B>(
+                &mut dqb,
+                B::float_matmul(ds.clone(), rows::<B>(&s.k, 2, kr.clone())),
+            );
+            add_into::<B>(
+                &mut dk[j],
+                B::float_matmul(B::float_swap_dims(ds, 2, 3), qb.clone()),
+            );
+        }
+        dq.push(dqb.expect("at least one key tile"));
+    }
+    let cat = |parts: Vec<Option<FloatTensor<B>>>| {
+        B::float_cat(
+            parts
+                .into_iter()
+                .map(|p| p.expect("every key tile met a query tile"))
+                .collect(),
+            2,
+        )
+    };
+    [B::float_cat(dq, 2), cat(dk), cat(dv)]
+}

@@ -1,0 +1,10 @@
+//! Tensor operations that carry their own backward pass, registered with burn as a backend extension:
+//! each backend runs the forward in its own ops, and under autodiff the backward is the one written
+//! here rather than the one burn would derive from the forward's ops.
+
+pub mod attention;
+
+pub use attention::{DEFAULT_BLOCK, attention, plain_attention};
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,137 @@
+//! The tiled attention against burn's plain attention: values and the gradients of q, k and v.
+
+use crate::{attention, plain_attention};
+use burn::tensor::{Device, Distribution, Tensor};
+
+const TOL: f32 = 1e-5;
+
+fn random(dims: [usize; 4], spread: f64, device: &Device) -> Tensor<4> {
+    Tensor::random(dims, Distribution::Normal(0.0, spread), device)
+}
+
+fn max_abs_diff(a: Tensor<4>, b: Tensor<4>) -> f32 {
+    (a - b).abs().max().into_scalar::<f32>()
+}
+
+/// Values and gradients of both paths on one autodiff device; returns the worst difference of each.
+fn compare(device: &Device, nq: usize, nk: usize, block: usize, spread: f64) -> [f32; 4] {
+    let (b, h, d, dv) = (2, 3, 8, 5);
+    let q0 = random([b, h, nq, d], spread, device);
+    let k0 = random([b, h, nk, d], spread, device);
+    let v0 = random([b, h, nk, dv], 1.0, device);
+    // A random weighting of the output makes every output element's gradient different.
+    let w = random([b, h, nq, dv], 1.0, device);
+    let scale = 1.0 / (d as f64).sqrt();
+    let run = |tiled: bool| {
+        let (q, k, v) = (
+            q0.clone().require_grad(),
+            k0.clone().require_grad(),
+            v0.clone().require_grad(),
+        );
+        let out = if tiled {
+            attention(q.clone(), k.clone(), v.clone(), scale, block)
+        } else {
+            plain_attention(q.clone(), k.clone(), v.clone(), scale)
+        };
+        let grads = (out.clone() * w.clone()).sum().backward();
+        let g = |t: &Tensor<4>| t.grad(&grads).expect("a gradient");
+        [out.detach(), g(&q), g(&k), g(&v)]
+    };
+    let (tiled, plain) = (run(true), run(false));
+    let mut worst = [0.0; 4];
+    for (i, (a, b)) in tiled.into_iter().zip(plain).enumerate() {
+        worst[i] = max_abs_diff(a, b);
+    }
+    worst
+}
+
+fn assert_matches(device: Device) {
+    device.seed(7);
+    // One tile, tiles that divide the tokens, tiles that do not, cross-attention (Nq != Nk), and
+    // peaked scores where the running maximum changes from tile to tile.
+    for (nq, nk, block, spread) in [
+        (9, 9, 64, 1.0),
+        (32, 32, 8, 1.0),
+        (37, 29, 8, 1.0),
+        (5, 41, 7, 1.0),
+        (23, 23, 4, 2.0),
+    ] {
+        let worst = compare(&device, nq, nk, block, spread);
+        for (name, w) in ["output", "dq", "dk", "dv"].iter().zip(worst) {
+            assert!(
+                w < TOL,
+                "{name} differs by {w} (nq {nq}, nk {nk}, block {block}, spread {spread})"
+            );
+        }
+    }
+}
+
+#[test]
+fn tiled_attention_equals_plain_attention_on_flex() {
+    assert_matches(Device::flex().autodiff());
+}
+
+#[test]
+#[allow(deprecated)]
+fn tiled_attention_equals_plain_attention_on_ndarray() {
+    assert_matches(Device::ndarray().autodiff());
+}
+
+#[test]
+fn tiled_attention_runs_without_autodiff() {
+    let device = Device::flex();
+    let (q, k, v) = (
+        random([1, 2, 13, 4], 1.0, &device),
+        random([1, 2, 11, 4], 1.0, &device),
+        random([1, 2, 11, 3], 1.0, &device),
+    );
+    let diff = max_abs_diff(
+        attention(q.clone(), k.clone(), v.clone(), 0.5, 4),
+        plain_attention(q, k, v, 0.5),
+    );
+    assert!(diff < TOL, "forward differs by {diff}");
+}
+
+#[test]
+fn zero_queries_give_an_empty_output() {
+    let device = Device::flex();
+    let out = attention(
+        random([1, 2, 0, 4], 1.0, &device),
+        random([1, 2, 3, 4], 1.0, &device),
+        random([1, 2, 3, 5], 1.0, &device),
+        0.5,
+        4,
+    );
+    assert_eq!(out.dims(), [1, 2, 0, 5]);
+}
+
+/// q, k and v as the ViT makes them: views (narrowed, permuted, reshaped) of one projection, whose
+/// gradient gathers all three.
+#[test]
+fn views_of_one_projection_get_their_gradients() {
+    let device = Device::flex().autodiff();
+    device.seed(3);
+    let (b, n, h, d) = (1, 26, 3, 64);
+    let x = Tensor::<3>::random([b, n, 3 * h * d], Distribution::Normal(0.0, 1.0), &device)
+        .require_grad();
+    let w = random([b, h, n, d], 1.0, &device);
+    let run = |tile: Option<usize>| {
+        let qkv = x.clone().reshape([b, n, 3, h, d]).permute([2, 0, 3, 1, 4]);
+        let q = qkv.clone().narrow(0, 0, 1).reshape([b, h, n, d]);
+        let k = qkv.clone().narrow(0, 1, 1).reshape([b, h, n, d]);
+        let v = qkv.narrow(0, 2, 1).reshape([b, h, n, d]);
+        let out = match tile {
+            Some(t) => attention(q, k, v, 0.125, t),
+            None => plain_attention(q, k, v, 0.125),
+        };
+        let g = (out * w.clone()).sum().backward();
+        x.grad(&g).unwrap()
+    };
+    let (a, b2) = (run(Some(8)), run(None));
+    let diff = (a.clone() - b2).abs().max().into_scalar::<f32>();
+    let scale = a.abs().max().into_scalar::<f32>();
+    assert!(
+        diff / scale < TOL,
+        "input gradient differs by {diff} (largest {scale})"
+    );
+}
