@@ -2,7 +2,7 @@
 //! with the `wgpu` feature, wgpu (a GPU, or lavapipe's software Vulkan on a machine without one) give the
 //! same numbers within float32 tolerances: rotation conversions; long reductions; the SMPL-X forward at batch 30 and its
 //! gradient in pose and betas; HRNet (conv, batch norm, upsampling) and the ViT (attention, layer norm,
-//! GELU); the tiled attention and its backward; view projection and mean/max fusion (grid sampling); the RootNet (3D convolutions, pooling),
+//! GELU); the tiled attention and its backward; a ViT block recomputed in its backward; view projection and mean/max fusion (grid sampling); the RootNet (3D convolutions, pooling),
 //! 3D NMS and root extraction; one Human Transformer Block; the whole model's forward; one training step
 //! (the stage-2 loss and the gradient norm of every parameter tensor).
 //!
@@ -383,6 +383,44 @@ fn tiled_attention(other: &Device, r: &mut Report) {
     }
 }
 
+/// A ViT block recomputed in its backward (`mvmp::kernels::recompute`) against the same block with its
+/// activations stored, both on `other`: the output and the gradients of the input and of the qkv and fc1
+/// weights. (Across backends the block's gradients differ by up to 3e-4 either way: burn's GELU backward
+/// is not the same on every backend.)
+fn recomputed_block(other: &Device, r: &mut Report) {
+    let ad = other.clone().autodiff();
+    let vit = mvmp::backbone::vit::ViTConfig::new(32, 1, 4)
+        .with_attention_tile(8)
+        .init(&Device::flex().autodiff());
+    let stored = vit.blocks[0].clone().fork(&ad);
+    let mut recomputed = stored.clone();
+    recomputed.recompute = true;
+    let run = |b: &mvmp::backbone::vit::Block| {
+        let x = t(values(2 * 19 * 32, 31, 1.0), [2, 19, 32], &ad).require_grad();
+        let y = b.forward(x.clone());
+        let w = t(values(2 * 19 * 32, 32, 1.0), [2, 19, 32], &ad);
+        let grads = (y.clone() * w).sum().backward();
+        let g = |p: Tensor<2>| host(p.grad(&grads).expect("a gradient"));
+        [
+            host(y.detach()),
+            host(x.grad(&grads).expect("d/dx")),
+            g(b.attn.qkv.weight.val()),
+            g(b.mlp.fc1.weight.val()),
+        ]
+    };
+    let (a, b) = (run(&stored), run(&recomputed));
+    for (i, name) in ["output", "d/dx", "d/d qkv weight", "d/d fc1 weight"]
+        .iter()
+        .enumerate()
+    {
+        r.check(
+            &format!("recomputed ViT block vs stored: {name}"),
+            &a[i],
+            &b[i],
+        );
+    }
+}
+
 /// A small synthetic dataset (3 views, 160 x 120) in a temporary directory.
 fn dataset(dir: &Path) -> std::path::PathBuf {
     let out = dir.join("ds");
@@ -516,6 +554,7 @@ fn suite(other: &Device, backend: &'static str, tol: f32) {
     rootnet(other, &mut r);
     transformer_block(other, &mut r);
     tiled_attention(other, &mut r);
+    recomputed_block(other, &mut r);
     model_and_training_step(other, &mut r);
     r.finish();
 }

@@ -35,6 +35,10 @@ pub struct ViTConfig {
     /// matrix with burn's ops, which autodiff keeps per block for the backward.
     #[config(default = "mvmp_kernels::DEFAULT_BLOCK")]
     pub attention_tile: usize,
+    /// In training, keep only each block's input and recompute the block in the backward
+    /// (`mvmp_kernels::recompute`): a block's activations exist one block at a time.
+    #[config(default = false)]
+    pub block_recompute: bool,
 }
 
 impl ViTConfig {
@@ -104,6 +108,8 @@ impl ViTConfig {
                         fc1: LinearConfig::new(c, hidden).init(device),
                         fc2: LinearConfig::new(hidden, c).init(device),
                     },
+                    recompute: self.block_recompute,
+                    norm_eps: self.norm_eps,
                     ls2: LayerScale {
                         gamma: Param::from_tensor(Tensor::ones([c], device)),
                     },
@@ -213,11 +219,58 @@ pub struct Block {
     pub norm2: LayerNorm,
     pub mlp: Mlp,
     pub ls2: LayerScale,
+    /// See [`ViTConfig::block_recompute`].
+    pub recompute: bool,
+    /// The layer norms' epsilon (burn's `LayerNorm` keeps it private).
+    pub norm_eps: f64,
 }
 
 impl Block {
-    /// Pre-norm: `x += ls1 * attn(norm1 x)`, then `x += ls2 * mlp(norm2 x)`.
+    /// Pre-norm: `x += ls1 * attn(norm1 x)`, then `x += ls2 * mlp(norm2 x)`; recomputed in the backward
+    /// when `recompute` is set and `x` is on an autodiff device.
     pub fn forward(&self, x: Tensor<3>) -> Tensor<3> {
+        if self.recompute
+            && x.is_autodiff()
+            && let Some(params) = self.kernel_params()
+        {
+            let shape = mvmp_kernels::recompute::BlockShape {
+                heads: self.attn.heads,
+                tile: self.attn.tile,
+                eps: self.norm_eps,
+            };
+            return mvmp_kernels::recompute::block(x, params, shape);
+        }
+        self.forward_stored(x)
+    }
+
+    /// The parameters as the recompute kernel takes them; `None` when a bias or norm shift is absent
+    /// (the kernel's block has them all, as DINOv2's does).
+    fn kernel_params(
+        &self,
+    ) -> Option<mvmp_kernels::recompute::BlockParams<burn::backend::Dispatch>> {
+        use mvmp_kernels::recompute::param;
+        let val = |p: &Param<Tensor<1>>| param(p.val());
+        let bias = |l: &Linear| l.bias.as_ref().map(val);
+        Some(mvmp_kernels::recompute::BlockParams {
+            norm1_gamma: val(&self.norm1.gamma),
+            norm1_beta: self.norm1.beta.as_ref().map(val)?,
+            qkv_weight: param(self.attn.qkv.weight.val()),
+            qkv_bias: bias(&self.attn.qkv)?,
+            proj_weight: param(self.attn.proj.weight.val()),
+            proj_bias: bias(&self.attn.proj)?,
+            ls1: val(&self.ls1.gamma),
+            norm2_gamma: val(&self.norm2.gamma),
+            norm2_beta: self.norm2.beta.as_ref().map(val)?,
+            fc1_weight: param(self.mlp.fc1.weight.val()),
+            fc1_bias: bias(&self.mlp.fc1)?,
+            fc2_weight: param(self.mlp.fc2.weight.val()),
+            fc2_bias: bias(&self.mlp.fc2)?,
+            ls2: val(&self.ls2.gamma),
+        })
+    }
+
+    /// The block in burn's ops, its activations kept by autodiff.
+    pub fn forward_stored(&self, x: Tensor<3>) -> Tensor<3> {
         let x = x.clone() + self.ls1.forward(self.attn.forward(self.norm1.forward(x)));
         let m = self
             .mlp

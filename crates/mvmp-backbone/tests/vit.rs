@@ -283,3 +283,62 @@ fn tiled_attention_gives_the_same_features_and_gradients() {
         );
     }
 }
+
+/// Blocks recomputed in the backward (`mvmp_kernels::recompute`) give the stored blocks' features and
+/// the same gradient of every parameter.
+#[test]
+fn recomputed_blocks_give_the_same_features_and_gradients() {
+    use burn::module::ModuleVisitor;
+    struct Collect<'a>(&'a burn::tensor::Gradients, Vec<Vec<f32>>);
+    impl ModuleVisitor for Collect<'_> {
+        fn visit_float<const D: usize>(&mut self, p: &Param<Tensor<D>>) {
+            if let Some(g) = p.val().grad(self.0) {
+                self.1.push(vals(g));
+            }
+        }
+    }
+    let d = Device::flex().autodiff();
+    let stored = ViTConfig::tiny().with_attention_tile(8).init(&d);
+    let mut recomputed = stored.clone();
+    for b in &mut recomputed.blocks {
+        b.recompute = true;
+    }
+    let image: Vec<f32> = (0..2 * 3 * 56 * 70)
+        .map(|i| ((i * 31) % 89) as f32 / 89.0 - 0.5)
+        .collect();
+    let w: Vec<f32> = (0..2 * 192 * 20)
+        .map(|i| ((i * 17) % 37) as f32 / 37.0 - 0.5)
+        .collect();
+    let run = |vit: &mvmp_backbone::vit::ViT| {
+        let x = Tensor::<4>::from_data(TensorData::new(image.clone(), [2, 3, 56, 70]), &d);
+        let f = vit.forward(x);
+        let w = Tensor::<4>::from_data(TensorData::new(w.clone(), [2, 192, 4, 5]), &d);
+        let grads = (f.clone() * w).sum().backward();
+        let mut c = Collect(&grads, Vec::new());
+        vit.visit(&mut c);
+        (vals(f.detach()), c.1)
+    };
+    let ((fa, ga), (fb, gb)) = (run(&stored), run(&recomputed));
+    let worst = |a: &[f32], b: &[f32]| {
+        let scale = a.iter().fold(1e-6f32, |m, x| m.max(x.abs()));
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f32::max)
+            / scale
+    };
+    assert!(
+        worst(&fa, &fb) < 1e-5,
+        "features differ by {}",
+        worst(&fa, &fb)
+    );
+    assert_eq!(ga.len(), gb.len());
+    assert!(ga.len() > 40, "{} gradients", ga.len());
+    for (i, (a, b)) in ga.iter().zip(&gb).enumerate() {
+        assert!(
+            worst(a, b) < 1e-5,
+            "parameter {i}: gradient differs by {}",
+            worst(a, b)
+        );
+    }
+}

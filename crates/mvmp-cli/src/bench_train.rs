@@ -1,7 +1,8 @@
 //! `mvmp bench train`: seconds per training step of a config, per stage, and where they go (the phases
 //! every step logs in `metrics.jsonl`: load, forward, backward, gradient norms, optimizer). Each stage
 //! trains on its own in a temporary run (the other stage set to 0 epochs), stopped after the warm-up and
-//! the timed steps; nothing is left behind.
+//! the timed steps; nothing is left behind. The last column is the peak of host memory allocated while
+//! the stage ran (model, optimizer state, data, steps and the one-frame validation), for CPU devices.
 use std::path::Path;
 
 use anyhow::{Context, Result};
@@ -24,6 +25,8 @@ pub struct BenchTrainArgs<'a> {
     pub steps: usize,
     /// One-frame scenes of the synthetic set made when no config is given.
     pub scenes: usize,
+    /// Whether the device computes in host memory, where the allocator sees it (the peak column).
+    pub host: bool,
 }
 
 pub fn bench_train(args: &BenchTrainArgs, device: &Device) -> Result<()> {
@@ -52,7 +55,7 @@ pub fn bench_train(args: &BenchTrainArgs, device: &Device) -> Result<()> {
         args.steps, cfg.batch_size, cfg.train_views
     );
     let header: Vec<String> = PHASES.iter().map(|p| format!("{p:>5}")).collect();
-    println!("stage  steps  s/step  {}", header.join("  "));
+    println!("stage  steps  s/step  {}  peak MiB", header.join("  "));
     for stage in [1u8, 2] {
         let mut c = cfg.clone();
         // Only this stage trains, and validation (at epoch ends) reads one frame.
@@ -73,8 +76,14 @@ pub fn bench_train(args: &BenchTrainArgs, device: &Device) -> Result<()> {
             stop_after_time: None,
         };
         eprintln!("stage {stage}: {} steps", WARM_UP + args.steps);
+        let base = crate::GLOBAL.reset_peak();
         mvmp_train::train(&run, &c, &m, &opts, &mut mvmp_train::Quiet)?;
-        println!("{}", row(stage, &run.metrics_path())?);
+        let peak = crate::GLOBAL.peak().saturating_sub(base);
+        let peak = match args.host {
+            true => format!("{:.0}", peak as f64 / (1 << 20) as f64),
+            false => "-".into(),
+        };
+        println!("{}  {peak:>8}", row(stage, &run.metrics_path())?);
     }
     Ok(())
 }

@@ -3,6 +3,11 @@
 use anyhow::{Result, bail};
 use burn::tensor::Device;
 
+/// Whether `--device s` computes in host memory (flex, ndarray), where the binary's allocator counts it.
+pub fn is_host(s: &str) -> bool {
+    matches!(s.split(':').next(), Some("cpu" | "flex" | "ndarray"))
+}
+
 pub fn parse(s: &str) -> Result<Device> {
     let (name, index) = match s.split_once(':') {
         Some((n, i)) => (n, Some(i)),

@@ -584,10 +584,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 head_dim,
                 tile,
                 plain_up_to,
-                host: matches!(
-                    cli.device.split(':').next(),
-                    Some("cpu" | "flex" | "ndarray")
-                ),
+                host: device::is_host(&cli.device),
             },
             &device,
         ),
@@ -602,6 +599,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 data: data.as_deref(),
                 steps,
                 scenes,
+                host: device::is_host(&cli.device),
             },
             &device,
         ),

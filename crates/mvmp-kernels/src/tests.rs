@@ -135,3 +135,138 @@ fn views_of_one_projection_get_their_gradients() {
         "input gradient differs by {diff} (largest {scale})"
     );
 }
+
+mod recompute {
+    use super::{TOL, random};
+    use crate::recompute::{BlockParams, BlockShape, block, param};
+    use burn::tensor::activation::gelu;
+    use burn::tensor::module::{layer_norm, linear};
+    use burn::tensor::{Device, Distribution, Tensor};
+
+    const C: usize = 12;
+    const HIDDEN: usize = 20;
+    const HEADS: usize = 3;
+    const EPS: f64 = 1e-6;
+
+    /// The 14 parameters in `BlockParams`' order, with their shapes.
+    fn params(device: &Device) -> Vec<Tensor<2>> {
+        let shapes = [
+            [1, C],
+            [1, C],
+            [C, 3 * C],
+            [1, 3 * C],
+            [C, C],
+            [1, C],
+            [1, C],
+            [1, C],
+            [1, C],
+            [C, HIDDEN],
+            [1, HIDDEN],
+            [HIDDEN, C],
+            [1, C],
+            [1, C],
+        ];
+        shapes
+            .iter()
+            .map(|&s| Tensor::random(s, Distribution::Normal(0.0, 0.5), device).require_grad())
+            .collect()
+    }
+
+    fn row(t: &Tensor<2>) -> Tensor<1> {
+        t.clone().squeeze_dim(0)
+    }
+
+    /// The block in burn's tensor ops: the reference.
+    fn reference(x: Tensor<3>, p: &[Tensor<2>]) -> Tensor<3> {
+        let [b, n, _] = x.dims();
+        let d = C / HEADS;
+        let h = layer_norm(x.clone(), row(&p[0]), Some(row(&p[1])), EPS);
+        let qkv = linear(h, p[2].clone(), Some(row(&p[3])))
+            .reshape([b, n, 3, HEADS, d])
+            .permute([2, 0, 3, 1, 4]);
+        let part = |i| qkv.clone().narrow(0, i, 1).reshape([b, HEADS, n, d]);
+        let att = crate::plain_attention(part(0), part(1), part(2), 1.0 / (d as f64).sqrt());
+        let att = att.swap_dims(1, 2).reshape([b, n, C]);
+        let x = x + linear(att, p[4].clone(), Some(row(&p[5]))) * p[6].clone().unsqueeze::<3>();
+        let h = layer_norm(x.clone(), row(&p[7]), Some(row(&p[8])), EPS);
+        let m = linear(
+            gelu(linear(h, p[9].clone(), Some(row(&p[10])))),
+            p[11].clone(),
+            Some(row(&p[12])),
+        );
+        x + m * p[13].clone().unsqueeze::<3>()
+    }
+
+    fn recomputed(x: Tensor<3>, p: &[Tensor<2>], tile: usize) -> Tensor<3> {
+        let r = |i: usize| param(row(&p[i]));
+        let params = BlockParams {
+            norm1_gamma: r(0),
+            norm1_beta: r(1),
+            qkv_weight: param(p[2].clone()),
+            qkv_bias: r(3),
+            proj_weight: param(p[4].clone()),
+            proj_bias: r(5),
+            ls1: r(6),
+            norm2_gamma: r(7),
+            norm2_beta: r(8),
+            fc1_weight: param(p[9].clone()),
+            fc1_bias: r(10),
+            fc2_weight: param(p[11].clone()),
+            fc2_bias: r(12),
+            ls2: r(13),
+        };
+        block(
+            x,
+            params,
+            BlockShape {
+                heads: HEADS,
+                tile,
+                eps: EPS,
+            },
+        )
+    }
+
+    fn largest_difference(device: Device) -> f32 {
+        device.seed(11);
+        let x = random([2, 19, C, 1], 1.0, &device)
+            .squeeze_dim::<3>(3)
+            .require_grad();
+        let p = params(&device);
+        let w = random([2, 19, C, 1], 1.0, &device).squeeze_dim::<3>(3);
+        let run = |recompute: bool| {
+            let out = if recompute {
+                recomputed(x.clone(), &p, 8)
+            } else {
+                reference(x.clone(), &p)
+            };
+            let grads = (out.clone() * w.clone()).sum().backward();
+            let mut all = vec![out.detach().flatten::<1>(0, 2)];
+            all.push(x.grad(&grads).expect("d/dx").flatten::<1>(0, 2));
+            all.extend(
+                p.iter()
+                    .map(|t| t.grad(&grads).expect("d/dparam").flatten::<1>(0, 1)),
+            );
+            all
+        };
+        let (a, b) = (run(true), run(false));
+        a.into_iter()
+            .zip(b)
+            .map(|(a, b)| (a - b).abs().max().into_scalar::<f32>())
+            .fold(0.0, f32::max)
+    }
+
+    /// The recomputed block equals the block in burn's ops: output, and the gradients of the input and of
+    /// all 14 parameters.
+    #[test]
+    fn a_recomputed_block_has_the_gradients_of_the_stored_one_on_flex() {
+        let worst = largest_difference(Device::flex().autodiff());
+        assert!(worst < TOL, "differs by {worst}");
+    }
+
+    #[test]
+    #[allow(deprecated)]
+    fn a_recomputed_block_has_the_gradients_of_the_stored_one_on_ndarray() {
+        let worst = largest_difference(Device::ndarray().autodiff());
+        assert!(worst < TOL, "differs by {worst}");
+    }
+}

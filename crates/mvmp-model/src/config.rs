@@ -113,6 +113,10 @@ pub struct ModelConfig {
     /// softmax statistics instead of the `[heads, N, N]` probabilities, and the backward recomputes the
     /// scores tile by tile (`mvmp_kernels::attention`). 0 computes the whole score matrix with burn's ops.
     pub attention_tile: usize,
+    /// In training, keep only each ViT block's input and recompute the block in its backward
+    /// (`mvmp_kernels::recompute`): the ViT's activations exist one block at a time, for one more forward
+    /// of the ViT per step. Inference is unchanged.
+    pub block_recompute: bool,
 }
 
 /// The most people a config may decode per scene: 1000 slots of 10475 vertices are 126 MB of meshes per
@@ -148,6 +152,7 @@ impl Default for ModelConfig {
             facing: false,
             body_model: "standin:0".into(),
             attention_tile: mvmp_kernels::DEFAULT_BLOCK,
+            block_recompute: false,
         }
     }
 }

@@ -125,7 +125,10 @@ pub struct MvmpOutput {
 
 impl ModelConfig {
     pub fn init(&self, device: &Device) -> MvmpHmr {
-        let vit = self.vit().with_attention_tile(self.attention_tile);
+        let vit = self
+            .vit()
+            .with_attention_tile(self.attention_tile)
+            .with_block_recompute(self.block_recompute);
         MvmpHmr {
             reduce: Conv2dConfig::new([vit.embed_dim, self.feature_channels], [1, 1]).init(device),
             vit: vit.init(device),
