@@ -132,6 +132,24 @@ fn v2v_macs(cfg: &ModelConfig) -> f64 {
 }
 
 /// Summarise a configuration with `views` views (batch 1). Builds the model on `device`.
+/// The ViT attention's largest tensor: the whole score matrix of one block, or one tile of it when
+/// attention runs in tiles (`attention_tile`).
+fn vit_attention(cfg: &ModelConfig, v: f64, heads: f64, n: f64) -> (String, usize) {
+    match cfg.attention_tile {
+        0 => (
+            "ViT attention of one block [V, heads, N, N]".into(),
+            (v * heads * n * n * 4.0) as usize,
+        ),
+        t => {
+            let side = (t as f64).min(n);
+            (
+                format!("ViT attention score tile [V, heads, {t}, {t}]"),
+                (v * heads * side * side * 4.0) as usize,
+            )
+        }
+    }
+}
+
 pub fn summarize(cfg: &ModelConfig, views: usize, device: &Device) -> Summary {
     let net = cfg.init(device);
     let vit = cfg.vit();
@@ -202,10 +220,7 @@ pub fn summarize(cfg: &ModelConfig, views: usize, device: &Device) -> Summary {
             b(v * 3.0 * (s * s) as f64),
         ),
         ("ViT tokens of one block [V, N, C]".into(), b(v * n * c)),
-        (
-            "ViT attention of one block [V, heads, N, N]".into(),
-            b(v * vit.heads as f64 * n * n),
-        ),
+        vit_attention(cfg, v, vit.heads as f64, n),
         ("features [V, Cf, S/14, S/14]".into(), b(v * cf * (n - 1.0))),
         ("heatmaps [V, J, S/4, S/4]".into(), b(v * j * hs * hs)),
         ("fused volume [Cf, X, Y, Z]".into(), b(cf * p)),
@@ -216,10 +231,16 @@ pub fn summarize(cfg: &ModelConfig, views: usize, device: &Device) -> Summary {
             b(j * 343.0 * p),
         ),
         ("decoder tokens [P/pool^3, D]".into(), b(tokens * d)),
-        (
-            "cross-attention weights [heads, K, P/pool^3]".into(),
-            b(cfg.decoder.heads as f64 * k * tokens),
-        ),
+        match cfg.attention_tile {
+            0 => (
+                "cross-attention weights [heads, K, P/pool^3]".into(),
+                b(cfg.decoder.heads as f64 * k * tokens),
+            ),
+            t => (
+                format!("cross-attention score tile [heads, K, {t}]"),
+                b(cfg.decoder.heads as f64 * k.min(t as f64) * tokens.min(t as f64)),
+            ),
+        },
         ("meshes [K, 10475, 3]".into(), b(k * 10475.0 * 3.0)),
     ];
     Summary { rows, activations }
