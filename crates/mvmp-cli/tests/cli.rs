@@ -1108,6 +1108,14 @@ fn data_check_h36m_lists_subjects_and_names_missing_images() {
     );
 }
 
+/// The numbers of a benchmark's table: every line after its title and header.
+fn table_rows(out: &str) -> Vec<Vec<f64>> {
+    out.lines()
+        .skip(2)
+        .map(|l| l.split_whitespace().map(|x| x.parse().unwrap()).collect())
+        .collect()
+}
+
 /// The training benchmark on a tiny synthetic set: one row per stage, one timed step each, every phase
 /// within the step's seconds; a config without data is refused naming it.
 #[test]
@@ -1115,11 +1123,7 @@ fn the_training_benchmark_splits_each_stage() {
     let o = mvmp(&["bench", "train", "--steps", "1", "--scenes", "3"]);
     assert!(o.status.success(), "{}", stderr(&o));
     let out = String::from_utf8(o.stdout).unwrap();
-    let rows: Vec<Vec<f64>> = out
-        .lines()
-        .skip(2)
-        .map(|l| l.split_whitespace().map(|x| x.parse().unwrap()).collect())
-        .collect();
+    let rows = table_rows(&out);
     assert_eq!(rows.len(), 2, "{out}");
     for (stage, r) in rows.iter().enumerate() {
         assert_eq!((r[0], r[1], r.len()), ((stage + 1) as f64, 1.0, 9), "{out}");
@@ -1164,11 +1168,7 @@ fn the_attention_benchmark_shows_the_tiled_memory_growing_slower() {
     let o = mvmp(&args);
     assert!(o.status.success(), "{}", stderr(&o));
     let out = String::from_utf8(o.stdout).unwrap();
-    let rows: Vec<Vec<f64>> = out
-        .lines()
-        .skip(2)
-        .map(|l| l.split_whitespace().map(|x| x.parse().unwrap()).collect())
-        .collect();
+    let rows = table_rows(&out);
     assert_eq!(rows.len(), 2, "{out}");
     let [small, large] = [&rows[0], &rows[1]];
     assert_eq!((small[0], large[0]), (256.0, 512.0), "{out}");
