@@ -375,7 +375,8 @@ enum BenchCommand {
         #[arg(long, default_value_t = 48, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(3..=10000))]
         scenes: usize,
     },
-    /// Per-stage forward times of a model config (batch 1) and the fraction of GEMM speed each reaches.
+    /// Per-stage forward times of a model config (batch 1) and the fraction of GEMM speed each reaches;
+    /// with --backward, forward and backward.
     Model {
         #[arg(long)]
         config: PathBuf,
@@ -383,6 +384,9 @@ enum BenchCommand {
         views: usize,
         #[arg(long, default_value_t = 3)]
         iters: usize,
+        /// Time each stage's forward and backward (on the autodiff device; what a training step runs).
+        #[arg(long)]
+        backward: bool,
     },
 }
 
@@ -570,7 +574,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             config,
             views,
             iters,
-        }) => model::bench(&config, views, iters, &device),
+            backward,
+        }) => model::bench(&config, views, iters, backward, &device),
         Command::Bench(BenchCommand::Attention {
             tokens,
             heads,

@@ -62,6 +62,25 @@ pub fn summary(config: &Path, views: usize) -> Result<()> {
     Ok(())
 }
 
+/// A stage's input: cut from the stage before it, and tracked when the backward is timed.
+fn leaf<const D: usize>(t: Tensor<D>, backward: bool) -> Tensor<D> {
+    match backward {
+        true => t.detach().require_grad(),
+        false => t,
+    }
+}
+
+/// `y`, after the backward of its sum when `backward` is set (waited for on the device).
+fn with_backward<const D: usize>(y: Tensor<D>, backward: bool, device: &Device) -> Tensor<D> {
+    if backward {
+        let grads = y.clone().sum().backward();
+        // An asynchronous backend has only queued the backward's kernels.
+        let _ = device.sync();
+        drop(grads);
+    }
+    y
+}
+
 fn sync<const D: usize>(t: &Tensor<D>) {
     let _ = t.clone().sum().into_scalar::<f32>();
 }
@@ -175,12 +194,26 @@ pub fn bench_fusion(config: &Path, views: usize, iters: usize, device: &Device) 
     Ok(())
 }
 
-pub fn bench(config: &Path, views: usize, iters: usize, device: &Device) -> Result<()> {
+/// With `backward`, every stage runs on the autodiff device, and each timing is its forward and the
+/// backward of the sum of its output: into its parameters and, from fusion on, into its input (which is
+/// what training back-propagates into), with each stage's input a leaf of its own.
+pub fn bench(
+    config: &Path,
+    views: usize,
+    iters: usize,
+    backward: bool,
+    device: &Device,
+) -> Result<()> {
     let cfg = ModelConfig::read(config)?;
     if views == 0 || iters == 0 {
         bail!("--views and --iters must be at least 1");
     }
+    let device = &match backward {
+        true => device.clone().autodiff(),
+        false => device.clone(),
+    };
     let net = cfg.init(device);
+
     let layer = SmplxLayer::new(&mvmp_smplx::standin_model(0), device);
     let s = cfg.image_size;
     let g = &cfg.grid;
@@ -205,20 +238,23 @@ pub fn bench(config: &Path, views: usize, iters: usize, device: &Device) -> Resu
             .map_or(0.0, |r| r.macs)
     };
     let mut rows: Vec<(&str, f64, f64)> = Vec::new();
-    let (feats, t) = time(iters, || net.view_features(x.clone()));
+    let bw4 = |y| with_backward(y, backward, device);
+    let bw5 = |y| with_backward(y, backward, device);
+    let (feats, t) = time(iters, || bw4(net.view_features(x.clone())));
     rows.push(("vit+reduce", t, macs("vit") + macs("reduce")));
-    let (hm, t) = time(iters, || net.hrnet.forward(x.clone()));
+    let (hm, t) = time(iters, || bw4(net.hrnet.forward(x.clone())));
     rows.push(("hrnet", t, macs("hrnet")));
     let [_, cf, h, w] = feats.dims();
-    let feats = feats.reshape([1, views, cf, h, w]);
+    let feats = leaf(feats.reshape([1, views, cf, h, w]), backward);
     let [_, j, hh, hw] = hm.dims();
-    let hm = hm.reshape([1, views, j, hh, hw]);
+    let hm = leaf(hm.reshape([1, views, j, hh, hw]), backward);
     let fg = vec![grids[0].features.clone()];
     let hg = vec![grids[0].heatmaps.clone()];
-    let (vol, t1) = time(iters, || fuse_views(feats.clone(), &fg, cfg.fusion));
-    let (hvol, t2) = time(iters, || fuse_views(hm.clone(), &hg, FusionMode::Mean));
+    let (vol, t1) = time(iters, || bw5(fuse_views(feats.clone(), &fg, cfg.fusion)));
+    let (hvol, t2) = time(iters, || bw5(fuse_views(hm.clone(), &hg, FusionMode::Mean)));
     rows.push(("fusion", t1 + t2, macs("fusion")));
-    let (lik, t) = time(iters, || net.rootnet.forward(hvol.clone()).0);
+    let (vol, hvol) = (leaf(vol, backward), leaf(hvol, backward));
+    let (lik, t) = time(iters, || bw5(net.rootnet.forward(hvol.clone()).0));
     rows.push(("rootnet", t, macs("rootnet")));
     let k = cfg.max_people;
     let t0 = Instant::now();
@@ -237,19 +273,17 @@ pub fn bench(config: &Path, views: usize, iters: usize, device: &Device) -> Resu
     let roots = Tensor::<3>::from_data(TensorData::new(roots, [1, k, 3]), device);
     let present = Tensor::<2, Bool>::from_data(TensorData::new(vec![true; k], [1, k]), device);
     let (rot, t) = time(iters, || {
-        net.decoder
-            .forward(vol.clone(), g, roots.clone(), present.clone())
-            .rot6d
+        let decoded = net
+            .decoder
+            .forward(vol.clone(), g, roots.clone(), present.clone());
+        bw4(decoded.rot6d)
     });
     rows.push(("decoder", t, macs("decoder")));
-    let rotm = mvmp_geom::rotation::rot6d_to_matrix(rot.reshape([k * NUM_REGRESSED, 6])).reshape([
-        k,
-        NUM_REGRESSED,
-        3,
-        3,
-    ]);
+    let rot = rot.detach().reshape([k * NUM_REGRESSED, 6]);
+    let rotm = mvmp_geom::rotation::rot6d_to_matrix(rot).reshape([k, NUM_REGRESSED, 3, 3]);
+    let rotm = leaf(rotm, backward);
     let (_, t) = time(iters, || {
-        layer
+        let posed = layer
             .forward(
                 regressed_to_full_pose(rotm.clone()),
                 Tensor::zeros([k, 10], device),
@@ -257,7 +291,8 @@ pub fn bench(config: &Path, views: usize, iters: usize, device: &Device) -> Resu
                 Tensor::zeros([k, 3], device),
                 Translation::Pelvis,
             )
-            .vertices
+            .vertices;
+        with_backward(posed, backward, device)
     });
     rows.push(("smplx", t, macs("smplx")));
     println!(
@@ -271,13 +306,19 @@ pub fn bench(config: &Path, views: usize, iters: usize, device: &Device) -> Resu
         iters
     );
     println!("sampling grids (once per rig): {:.1} ms", t_grids * 1e3);
+    // A backward computes the gradients of the input and of the weights: twice the forward's work.
+    let (what, work) = match backward {
+        true => ("forward + backward, at 3x the forward's MACs", 3.0),
+        false => ("forward", 1.0),
+    };
+    println!("{what}:");
     println!(
         "{:<11} {:>10} {:>10} {:>12}",
         "stage", "ms", "GFLOP/s", "% of GEMM"
     );
     let mut total = 0.0;
     for (name, t, m) in &rows {
-        let gflops = 2.0 * m / t / 1e9;
+        let gflops = 2.0 * work * m / t / 1e9;
         let pct = if *m > 0.0 {
             format!("{:.0}%", 100.0 * gflops / FLEX_GEMM_GFLOPS)
         } else {

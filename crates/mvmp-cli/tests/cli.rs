@@ -256,6 +256,36 @@ fn model_summary_and_bench_run_and_reject_bad_configs() {
     assert!(String::from_utf8_lossy(&o.stdout).contains("% of GEMM"));
     let o = mvmp(&[
         "bench",
+        "model",
+        "--config",
+        &config("model/tiny.toml"),
+        "--views",
+        "2",
+        "--iters",
+        "1",
+        "--backward",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(out.contains("forward + backward"), "{out}");
+    // Every stage with work has a time.
+    for stage in [
+        "vit+reduce",
+        "hrnet",
+        "fusion",
+        "rootnet",
+        "decoder",
+        "smplx",
+    ] {
+        let line = out
+            .lines()
+            .find(|l| l.starts_with(stage))
+            .unwrap_or_else(|| panic!("{stage}: {out}"));
+        let ms: f64 = line.split_whitespace().nth(1).unwrap().parse().unwrap();
+        assert!(ms > 0.0, "{line}");
+    }
+    let o = mvmp(&[
+        "bench",
         "fusion",
         "--config",
         &config("model/tiny.toml"),
