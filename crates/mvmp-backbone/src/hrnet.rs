@@ -65,6 +65,31 @@ fn conv(ci: usize, co: usize, k: usize, stride: usize, bias: bool, device: &Devi
         .init(device)
 }
 
+/// A 2D convolution; a 1x1 one under autodiff as the matrix product over channels it is, whose backward
+/// is two matrix products. flex's own 1x1 convolution backward is far slower: 13 ms against 0.6 ms for
+/// the product, 16 channels at 56 x 56 over 4 views.
+pub fn conv2d(conv: &Conv2d, x: Tensor<4>) -> Tensor<4> {
+    let pointwise = conv.kernel_size == [1, 1]
+        && conv.stride == [1, 1]
+        && conv.dilation == [1, 1]
+        && conv.groups == 1
+        && matches!(
+            conv.padding,
+            PaddingConfig2d::Valid | PaddingConfig2d::Explicit(0, 0, 0, 0)
+        );
+    if !(pointwise && x.is_autodiff()) {
+        return conv.forward(x);
+    }
+    let [b, ci, h, w] = x.dims();
+    let co = conv.weight.dims()[0];
+    let flat = x.permute([0, 2, 3, 1]).reshape([b * h * w, ci]);
+    let mut y = flat.matmul(conv.weight.val().reshape([co, ci]).transpose());
+    if let Some(bias) = &conv.bias {
+        y = y + bias.val().reshape([1, co]);
+    }
+    y.reshape([b, h, w, co]).permute([0, 3, 1, 2])
+}
+
 fn bn(c: usize, device: &Device) -> BatchNorm {
     BatchNormConfig::new(c).with_momentum(0.1).init(device)
 }
@@ -84,7 +109,7 @@ impl ConvBn {
         }
     }
     fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        self.bn.forward(self.conv.forward(x))
+        self.bn.forward(conv2d(&self.conv, x))
     }
 }
 
@@ -112,9 +137,9 @@ impl Bottleneck {
         }
     }
     fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        let r = relu(self.bn1.forward(self.conv1.forward(x.clone())));
-        let r = relu(self.bn2.forward(self.conv2.forward(r)));
-        let r = self.bn3.forward(self.conv3.forward(r));
+        let r = relu(self.bn1.forward(conv2d(&self.conv1, x.clone())));
+        let r = relu(self.bn2.forward(conv2d(&self.conv2, r)));
+        let r = self.bn3.forward(conv2d(&self.conv3, r));
         let s = match &self.downsample {
             Some(d) => d.forward(x),
             None => x,
@@ -141,8 +166,8 @@ impl BasicBlock {
         }
     }
     fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        let r = relu(self.bn1.forward(self.conv1.forward(x.clone())));
-        relu(self.bn2.forward(self.conv2.forward(r)) + x)
+        let r = relu(self.bn1.forward(conv2d(&self.conv1, x.clone())));
+        relu(self.bn2.forward(conv2d(&self.conv2, r)) + x)
     }
 }
 
@@ -359,14 +384,14 @@ impl HRNetConfig {
 impl HRNet {
     /// `[B, 3, H, W]` -> `[B, J, H/4, W/4]`.
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        self.final_layer.forward(self.features(x))
+        conv2d(&self.final_layer, self.features(x))
     }
 
     /// The highest-resolution branch's output, what the final layer reads: `[B, 3, H, W]` ->
     /// `[B, width, H/4, W/4]`.
     pub fn features(&self, x: Tensor<4>) -> Tensor<4> {
-        let x = relu(self.bn1.forward(self.conv1.forward(x)));
-        let x = relu(self.bn2.forward(self.conv2.forward(x)));
+        let x = relu(self.bn1.forward(conv2d(&self.conv1, x)));
+        let x = relu(self.bn2.forward(conv2d(&self.conv2, x)));
         let x = self.layer1.iter().fold(x, |x, b| b.forward(x));
         let mut xs = self.transition1.forward(&[x]);
         for m in &self.stage2 {
