@@ -242,29 +242,18 @@ fn model_summary_and_bench_run_and_reject_bad_configs() {
     ] {
         assert!(out.contains(needle), "{needle} missing from {out}");
     }
-    let o = mvmp(&[
-        "bench",
-        "model",
-        "--config",
-        &config("model/tiny.toml"),
-        "--views",
-        "2",
-        "--iters",
-        "1",
-    ]);
+    let tiny = config("model/tiny.toml");
+    let bench_model = |extra: &[&str]| {
+        let mut args = vec![
+            "bench", "model", "--config", &tiny, "--views", "2", "--iters", "1",
+        ];
+        args.extend_from_slice(extra);
+        mvmp(&args)
+    };
+    let o = bench_model(&[]);
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(String::from_utf8_lossy(&o.stdout).contains("% of GEMM"));
-    let o = mvmp(&[
-        "bench",
-        "model",
-        "--config",
-        &config("model/tiny.toml"),
-        "--views",
-        "2",
-        "--iters",
-        "1",
-        "--backward",
-    ]);
+    let o = bench_model(&["--backward"]);
     assert!(o.status.success(), "{}", stderr(&o));
     let out = String::from_utf8_lossy(&o.stdout);
     assert!(out.contains("forward + backward"), "{out}");
