@@ -27,7 +27,22 @@ struct Measured {
     peak: usize,
 }
 
+/// Most elements of one `[heads, tokens, head_dim]` tensor (4 GiB of float32): the step holds about eight
+/// of them (q, k, v, the weights, the output and three gradients), so a larger request is refused rather
+/// than left to abort in the allocator.
+const MAX_ELEMENTS: usize = 1 << 30;
+
 pub fn bench_attention(args: &AttentionArgs, device: &Device) -> Result<()> {
+    for &n in args.tokens {
+        let elements = args.heads.saturating_mul(n).saturating_mul(args.head_dim);
+        anyhow::ensure!(
+            elements <= MAX_ELEMENTS,
+            "--tokens {n} with --heads {} and --head-dim {}: {elements} elements per tensor, more than \
+             the {MAX_ELEMENTS} the benchmark allows (about eight such tensors are held at once)",
+            args.heads,
+            args.head_dim
+        );
+    }
     let device = device.clone().autodiff();
     println!(
         "attention forward + backward, batch 1, {} heads of {}, tile {}; memory: peak bytes allocated beyond the inputs{}",

@@ -1200,6 +1200,14 @@ fn the_attention_benchmark_shows_the_tiled_memory_growing_slower() {
         large[2] < 3.0 * small[2] && large[2] < large[4] / 2.0,
         "{out}"
     );
+    let huge = mvmp(&["bench", "attention", "--tokens", "100000000"]);
+    assert_eq!(huge.status.code(), Some(1), "{}", stderr(&huge));
+    assert!(
+        stderr(&huge).contains("--tokens 100000000"),
+        "{}",
+        stderr(&huge)
+    );
+    assert!(huge.stdout.is_empty(), "nothing printed before the refusal");
     let mut zero = args.to_vec();
     zero[3] = "256,0";
     let o = mvmp(&zero);
