@@ -39,37 +39,3 @@ fn reference_parameter_counts() {
     assert!((28_400_000..28_600_000).contains(&w32), "W32: {w32}");
     assert!((63_500_000..63_700_000).contains(&w48), "W48: {w48}");
 }
-
-/// A 1x1 convolution under autodiff as a matrix product (`hrnet::conv2d`) gives burn's convolution:
-/// values and the gradients of input, weight and bias.
-#[test]
-fn a_pointwise_convolution_as_a_matrix_product_is_the_convolution() {
-    use burn::nn::conv::Conv2dConfig;
-    use burn::tensor::Distribution;
-    let d = burn::tensor::Device::flex().autodiff();
-    d.seed(3);
-    let conv = Conv2dConfig::new([5, 7], [1, 1]).init(&d);
-    let x = Tensor::<4>::random([2, 5, 6, 9], Distribution::Normal(0.0, 1.0), &d).require_grad();
-    let w = Tensor::<4>::random([2, 7, 6, 9], Distribution::Normal(0.0, 1.0), &d);
-    let run = |matrix: bool| {
-        let y = match matrix {
-            true => mvmp_backbone::hrnet::conv2d(&conv, x.clone()),
-            false => conv.forward(x.clone()),
-        };
-        let grads = (y.clone() * w.clone()).sum().backward();
-        [
-            y.detach().flatten::<1>(0, 3),
-            x.grad(&grads).unwrap().flatten::<1>(0, 3),
-            conv.weight.val().grad(&grads).unwrap().flatten::<1>(0, 3),
-            conv.bias.as_ref().unwrap().val().grad(&grads).unwrap(),
-        ]
-    };
-    for (i, (a, b)) in run(true).into_iter().zip(run(false)).enumerate() {
-        let scale = b.clone().abs().max().into_scalar::<f32>().max(1e-6);
-        let diff = (a - b).abs().max().into_scalar::<f32>() / scale;
-        assert!(
-            diff < 1e-5,
-            "output/d input/d weight/d bias [{i}] differs by {diff}"
-        );
-    }
-}

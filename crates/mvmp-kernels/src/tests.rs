@@ -270,3 +270,84 @@ mod recompute {
         assert!(worst < TOL, "differs by {worst}");
     }
 }
+
+/// The largest relative difference of each pair: values and gradients from two ways of computing one thing.
+fn assert_close(a: Vec<Tensor<1>>, b: Vec<Tensor<1>>, what: &str) {
+    assert_eq!(a.len(), b.len());
+    for (i, (a, b)) in a.into_iter().zip(b).enumerate() {
+        let scale = b.clone().abs().max().into_scalar::<f32>().max(1e-6);
+        let diff = (a - b).abs().max().into_scalar::<f32>() / scale;
+        assert!(
+            diff < 1e-5,
+            "{what}: output/d input/d weight/d bias [{i}] differs by {diff}"
+        );
+    }
+}
+
+/// 2D convolutions as products equal burn's: values and the gradients of input, weight and bias, for
+/// HRNet's 1x1s, 3x3s and stride-2 3x3s, an uneven padding and a kernel that does not fit the input a
+/// whole number of times.
+#[test]
+fn convolutions_as_products_are_the_convolutions_2d() {
+    use burn::nn::PaddingConfig2d;
+    use burn::nn::conv::Conv2dConfig;
+    let d = Device::flex().autodiff();
+    d.seed(3);
+    for (k, stride, pad, bias) in [
+        (1, 1, (0, 0, 0, 0), true),
+        (3, 1, (1, 1, 1, 1), false),
+        (3, 2, (1, 1, 1, 1), true),
+        (3, 2, (0, 2, 1, 0), false),
+        (2, 3, (0, 0, 0, 0), true),
+    ] {
+        let conv = Conv2dConfig::new([5, 7], [k, k])
+            .with_stride([stride, stride])
+            .with_padding(PaddingConfig2d::Explicit(pad.0, pad.1, pad.2, pad.3))
+            .with_bias(bias)
+            .init(&d);
+        let x =
+            Tensor::<4>::random([2, 5, 6, 9], Distribution::Normal(0.0, 1.0), &d).require_grad();
+        let w = Tensor::<4>::random(conv.forward(x.clone()).dims(), Distribution::Default, &d);
+        let run = |product: bool| {
+            let y = match product {
+                true => crate::conv::conv2d(&conv, x.clone()),
+                false => conv.forward(x.clone()),
+            };
+            let grads = (y.clone() * w.clone()).sum().backward();
+            let mut out = vec![
+                y.detach().flatten::<1>(0, 3),
+                x.grad(&grads).unwrap().flatten::<1>(0, 3),
+                conv.weight.val().grad(&grads).unwrap().flatten::<1>(0, 3),
+            ];
+            out.extend(conv.bias.as_ref().map(|b| b.val().grad(&grads).unwrap()));
+            out
+        };
+        assert_close(
+            run(true),
+            run(false),
+            &format!("kernel {k} stride {stride} pad {pad:?}"),
+        );
+    }
+}
+
+/// Without autodiff, or over the size cap, the convolution is burn's own (the same values).
+#[test]
+fn convolutions_without_autodiff_or_too_large_are_burns() {
+    use burn::nn::conv::Conv2dConfig;
+    let d = Device::flex();
+    let conv = Conv2dConfig::new([2, 3], [3, 3]).init(&d);
+    let x = Tensor::<4>::random([1, 2, 5, 5], Distribution::Default, &d);
+    let diff = (crate::conv::conv2d(&conv, x.clone()) - conv.forward(x))
+        .abs()
+        .max();
+    assert_eq!(diff.into_scalar::<f32>(), 0.0);
+    // 9 taps x 1 channel x 2^21 positions is over the cap: burn's convolution, bit for bit.
+    let a = Device::flex().autodiff();
+    let conv = Conv2dConfig::new([1, 1], [3, 3]).init(&a);
+    let x = Tensor::<4>::random([1, 1, 1 << 11, 1 << 10], Distribution::Default, &a);
+    const { assert!(9 * (1usize << 21) > crate::conv::PRODUCT_MAX_ELEMENTS) };
+    let diff = (crate::conv::conv2d(&conv, x.clone()) - conv.forward(x))
+        .abs()
+        .max();
+    assert_eq!(diff.into_scalar::<f32>(), 0.0);
+}

@@ -12,6 +12,7 @@ use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::tensor::activation::relu;
 use burn::tensor::ops::{GridSampleOptions, GridSamplePaddingMode, InterpolateMode};
 use burn::tensor::{Device, Tensor, TensorData};
+use mvmp_kernels::conv::conv2d;
 
 use mvmp_decoder::trilinear_sample;
 use mvmp_geom::VoxelGrid;
@@ -56,11 +57,11 @@ impl FacingHead {
     }
 
     pub fn forward(&self, image: Tensor<4>, features: Tensor<4>) -> Tensor<4> {
-        let x = relu(self.down1.forward(image));
-        let x = relu(self.down2.forward(x));
-        let x = relu(self.conv1.forward(Tensor::cat(vec![x, features], 1)));
-        let x = relu(self.conv2.forward(x));
-        self.out.forward(x)
+        let x = relu(conv2d(&self.down1, image));
+        let x = relu(conv2d(&self.down2, x));
+        let x = relu(conv2d(&self.conv1, Tensor::cat(vec![x, features], 1)));
+        let x = relu(conv2d(&self.conv2, x));
+        conv2d(&self.out, x)
     }
 }
 

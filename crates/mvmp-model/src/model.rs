@@ -194,7 +194,7 @@ impl MvmpHmr {
         let [b, v, _, s, _] = images.dims();
         let images = images.reshape([b * v, 3, s, s]);
         let x = self.hrnet.features(images.clone());
-        let hm = mvmp_backbone::hrnet::conv2d(&self.hrnet.final_layer, x.clone()); // [B*V, J, S/4, S/4]
+        let hm = mvmp_kernels::conv::conv2d(&self.hrnet.final_layer, x.clone()); // [B*V, J, S/4, S/4]
         let [_, j, hh, hw] = hm.dims();
         let heatmaps = hm.reshape([b, v, j, hh, hw]);
         let facing = self
