@@ -239,6 +239,7 @@ grad_clip = 1.0
 [stage2]
 epochs = 1
 lr = 1e-3
+decoder_lr = 1e-4
 warmup_steps = 2
 final_lr_factor = 0.1
 grad_clip = 1.0

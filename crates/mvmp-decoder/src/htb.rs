@@ -40,6 +40,12 @@ pub struct DecoderConfig {
     /// to its query through `heading_proj`; false (the paper) reads none.
     #[config(default = false)]
     pub heading: bool,
+    /// Layer-normalise the volume's sample at each root before it joins the query. It is C channels beside
+    /// the 338 constant mean parameters and the root's position encoding, and unnormalised it stays too
+    /// small to steer the heads: trained from such queries the decoder gave every person one pose (the
+    /// decoder's learning test). false (the paper) keeps the raw sample.
+    #[config(default = false)]
+    pub query_norm: bool,
     /// Side of the score tiles of cross-attention (`mvmp_kernels::attention`); 0 computes the whole score
     /// matrix with burn's ops.
     #[config(default = "mvmp_kernels::DEFAULT_BLOCK")]
@@ -159,6 +165,8 @@ pub struct Decoder {
     pub offset_head: Head,
     /// Present when the decoder reads a heading per person (see [`Decoder::forward_with`]).
     pub heading_proj: Option<Linear>,
+    /// Present with [`DecoderConfig::query_norm`].
+    pub query_norm: Option<LayerNorm>,
     /// Where the residual heads start: the mean parameters `[PARAM_DIM]` (set from the training data,
     /// kept in checkpoints, never trained).
     pub mean: Param<Tensor<1>>,
@@ -256,6 +264,9 @@ impl DecoderConfig {
             expr_head: Head::new(d, NUM_EXPRESSION, device),
             offset_head: Head::new(d, 3, device),
             heading_proj: self.heading.then(|| LinearConfig::new(2, d).init(device)),
+            query_norm: self
+                .query_norm
+                .then(|| LayerNormConfig::new(self.volume_channels).init(device)),
             mean: constant(mean_params(device)),
             pool: self.pool.max(1),
         }
@@ -306,7 +317,10 @@ impl Decoder {
         let [b, c, nx, ny, nz] = volume.dims();
         let k = roots.dims()[1];
         let device = volume.device();
-        let sampled = trilinear_sample(volume.clone(), roots.clone(), grid); // [B, K, C]
+        let mut sampled = trilinear_sample(volume.clone(), roots.clone(), grid); // [B, K, C]
+        if let Some(norm) = &self.query_norm {
+            sampled = norm.forward(sampled);
+        }
         let mean = self.mean.val().detach().reshape([1, 1, PARAM_DIM]);
         let q_in = Tensor::cat(
             vec![sampled, mean.clone().repeat_dim(0, b).repeat_dim(1, k)],

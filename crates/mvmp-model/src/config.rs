@@ -55,6 +55,9 @@ pub struct DecoderSection {
     pub pool: usize,
     /// false: the VoxelSMPLX baseline (an MLP on the sampled queries, no HTB).
     pub use_htb: bool,
+    /// Layer-normalise each root's volume sample before it joins the query (`DecoderConfig::query_norm`;
+    /// false, the paper, keeps it raw).
+    pub query_norm: bool,
 }
 
 impl Default for DecoderSection {
@@ -67,6 +70,7 @@ impl Default for DecoderSection {
             heads: d.heads,
             pool: d.pool,
             use_htb: d.use_htb,
+            query_norm: d.query_norm,
         }
     }
 }

@@ -143,6 +143,7 @@ impl ModelConfig {
                 .with_heads(self.decoder.heads)
                 .with_pool(self.decoder.pool)
                 .with_use_htb(self.decoder.use_htb)
+                .with_query_norm(self.decoder.query_norm)
                 .with_heading(self.facing)
                 .with_attention_tile(self.attention_tile)
                 .init(device),

@@ -100,6 +100,11 @@ pub struct StageConfig {
     pub epochs: usize,
     /// Adam's peak learning rate.
     pub lr: f64,
+    /// The decoder's peak learning rate, on the same schedule (default: `lr`). A transformer decoder
+    /// trained from scratch at a rate made for the convolutional stages collapses: every person gets the
+    /// same body pose, whatever the queries hold (docs/architecture.md, Training).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub decoder_lr: Option<f64>,
     /// Steps of linear warm-up from 0 to `lr` at the start of the stage (0 = none).
     #[serde(default)]
     pub warmup_steps: usize,
@@ -133,6 +138,13 @@ impl StageConfig {
                 floor + (self.lr - floor) * 0.5 * (1.0 + (std::f64::consts::PI * t).cos())
             }
         }
+    }
+
+    /// The decoder's rate at that step, when it has its own ([`StageConfig::decoder_lr`]): the same
+    /// curve scaled to its peak.
+    pub fn decoder_lr_at(&self, step: usize, total: usize) -> Option<f64> {
+        self.decoder_lr
+            .map(|d| self.lr_at(step, total) * d / self.lr)
     }
 }
 
@@ -276,6 +288,14 @@ impl TrainConfig {
                 return Err(bad(
                     &format!("{name}.lr"),
                     format!("{}: must be positive", s.lr),
+                ));
+            }
+            if let Some(d) = s.decoder_lr
+                && !(d.is_finite() && d > 0.0)
+            {
+                return Err(bad(
+                    &format!("{name}.decoder_lr"),
+                    format!("{d}: must be positive"),
                 ));
             }
             if !(s.final_lr_factor.is_finite() && (0.0..=1.0).contains(&s.final_lr_factor)) {
@@ -424,6 +444,7 @@ mod tests {
         StageConfig {
             epochs: 1,
             lr: 1e-3,
+            decoder_lr: None,
             warmup_steps,
             schedule,
             final_lr_factor: 0.1,
@@ -450,5 +471,12 @@ mod tests {
         assert!(close(k.lr_at(11, 12), 1e-4));
         assert!(close(k.lr_at(6, 12) + k.lr_at(7, 12), 1e-3 + 1e-4));
         assert!((2..11).all(|s| k.lr_at(s + 1, 12) < k.lr_at(s, 12)));
+        // The decoder's own rate follows the same curve at its own peak; without one it has none.
+        assert_eq!(k.decoder_lr_at(5, 12), None);
+        let dk = StageConfig {
+            decoder_lr: Some(2e-4),
+            ..k
+        };
+        assert!((0..12).all(|s| close(dk.decoder_lr_at(s, 12).unwrap(), 0.2 * dk.lr_at(s, 12))));
     }
 }

@@ -41,6 +41,8 @@ pub struct StepRecord {
     pub steps_per_epoch: usize,
     pub global_step: u64,
     pub lr: f64,
+    /// The decoder's rate when it has its own (`decoder_lr` in the stage).
+    pub decoder_lr: Option<f64>,
     pub seconds: f64,
     /// Where those seconds went: `load` (images and batch), `forward` (the loss), `backward`, `grad_norm`
     /// (the per-module norms) and `optimizer`, in that order.
@@ -66,6 +68,9 @@ impl StepRecord {
             "total": self.total, "queries": self.queries, "root_peak": self.root_peak,
             "root_at_gt": self.root_at_gt, "root_background": self.root_background,
         });
+        if let Some(d) = self.decoder_lr {
+            line["decoder_lr"] = json!(d);
+        }
         for (k, v) in &self.terms {
             line[k] = json!(v);
         }
@@ -654,14 +659,21 @@ impl<'a> Trainer<'a> {
         // The terms are read back here, so the forward has run when the clock reads.
         let terms = self.finite_terms(&loss)?;
         clock.lap("forward");
-        let grads = loss.total.backward();
+        let mut grads = loss.total.backward();
         clock.lap("backward");
         let grad_norm = crate::diagnostics::module_grad_norms(&model, &grads);
         clock.lap("grad_norm");
-        let grads = GradientsParams::from_grads(grads, &model);
         let spe = self.steps_per_epoch();
-        let lr = sc.lr_at(epoch * spe + bi, sc.epochs * spe);
-        let model = optim.step(lr, model, grads);
+        let (at, total) = (epoch * spe + bi, sc.epochs * spe);
+        let (lr, decoder_lr) = (sc.lr_at(at, total), sc.decoder_lr_at(at, total));
+        // The decoder's gradients stepped apart at its own rate; Adam's state is per parameter.
+        let decoder_grads =
+            decoder_lr.map(|_| GradientsParams::from_module(&mut grads, &model.decoder));
+        let grads = GradientsParams::from_grads(grads, &model);
+        let mut model = optim.step(lr, model, grads);
+        if let (Some(dlr), Some(g)) = (decoder_lr, decoder_grads) {
+            model = optim.step(dlr, model, g);
+        }
         clock.lap("optimizer");
         self.cursor.global += 1;
         self.cursor.step_in_epoch = bi + 1;
@@ -672,6 +684,7 @@ impl<'a> Trainer<'a> {
             steps_per_epoch: spe,
             global_step: self.cursor.global,
             lr,
+            decoder_lr,
             seconds: t0.elapsed().as_secs_f64(),
             phases: clock.laps,
             total: terms.iter().map(|t| t.1).sum(),
