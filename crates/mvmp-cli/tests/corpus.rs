@@ -433,3 +433,100 @@ fn no_malformed_input_gets_through() {
         failures.join("\n")
     );
 }
+
+/// One defect planted in a body model.
+type Defect = Box<dyn Fn(&mut mvmp_smplx::BodyModel)>;
+
+/// Body-model files: the stand-in written in the official layout with one defect at a time, through
+/// `body forward --model`. Every case must fail naming the file and the array, leaving no output. The
+/// empty model once crashed the forward (`chunk size must be non-zero`); a NaN landmark weight was caught
+/// only after the forward, naming no array.
+#[test]
+fn no_malformed_body_model_gets_through() {
+    use mvmp_smplx::BodyModel;
+    let dir = tempfile::tempdir().unwrap();
+    let p = |n: &str| dir.path().join(n);
+    std::fs::write(p("params.json"), PARAMS).unwrap();
+    let good = mvmp_smplx::standin_model(0);
+    let nan_at = |key: &'static str, f: fn(&mut BodyModel) -> &mut Vec<f32>| {
+        (key, move |m: &mut BodyModel| {
+            let v = f(m);
+            let i = v.len() / 2;
+            v[i] = f32::NAN;
+        })
+    };
+    let mut cases: Vec<(&str, Defect)> = Vec::new();
+    for (key, f) in [
+        nan_at("v_template", |m| &mut m.v_template),
+        nan_at("shapedirs", |m| &mut m.shapedirs),
+        nan_at("posedirs", |m| &mut m.posedirs),
+        nan_at("J_regressor", |m| &mut m.j_regressor),
+        nan_at("weights", |m| &mut m.weights),
+        nan_at("lmk_bary_coords", |m| &mut m.landmarks.as_mut().unwrap().1),
+        nan_at("hands_meanl", |m| &mut m.hands_mean.as_mut().unwrap().0),
+    ] {
+        cases.push((key, Box::new(f)));
+    }
+    cases.push((
+        "v_template",
+        Box::new(|m: &mut BodyModel| {
+            // No vertices at all: every per-vertex array empty alike.
+            let l = m.num_shape_components;
+            m.v_template.clear();
+            m.shapedirs.clear();
+            m.posedirs.clear();
+            m.j_regressor.clear();
+            m.weights.clear();
+            m.faces.clear();
+            m.landmarks = None;
+            m.num_shape_components = l;
+        }),
+    ));
+    cases.push((
+        "f",
+        Box::new(|m: &mut BodyModel| m.faces[3][1] = (m.v_template.len() / 3) as u32),
+    ));
+    cases.push((
+        "kintree_table",
+        Box::new(|m: &mut BodyModel| m.parents[5] = 7),
+    ));
+    cases.push((
+        "lmk_faces_idx",
+        Box::new(|m: &mut BodyModel| {
+            let nf = m.faces.len() as u32;
+            m.landmarks.as_mut().unwrap().0[2] = nf;
+        }),
+    ));
+    let mut failures = Vec::new();
+    for (i, (key, mutate)) in cases.iter().enumerate() {
+        let mut m = good.clone();
+        mutate(&mut m);
+        let file = p(&format!("bad{i}.npz"));
+        m.write_npz(&file).unwrap();
+        let out = p("body");
+        let o = mvmp(&[
+            "body",
+            "forward",
+            "--model",
+            &s(&file),
+            "--params",
+            &s(&p("params.json")),
+            "--out",
+            &s(&out),
+        ]);
+        let text = String::from_utf8_lossy(&o.stderr).into_owned();
+        let name = file.file_name().unwrap().to_string_lossy().into_owned();
+        if o.status.success() {
+            failures.push(format!("{key} defect {i}: accepted"));
+        } else if text.contains("panicked") || o.status.code().is_none() {
+            failures.push(format!("{key} defect {i}: crashed: {text}"));
+        } else if !(text.contains(&name) && text.contains(key)) {
+            failures.push(format!(
+                "{key} defect {i}: names neither file nor array: {text}"
+            ));
+        } else if out.exists() {
+            failures.push(format!("{key} defect {i}: left {}", out.display()));
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}

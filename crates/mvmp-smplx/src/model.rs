@@ -325,12 +325,21 @@ impl BodyModel {
             landmarks,
             hands_mean: hml.zip(hmr).map(|(a, b)| (f32s(&a.data), f32s(&b.data))),
         };
+        let empty = Vec::new();
+        let (hands_l, hands_r) = model
+            .hands_mean
+            .as_ref()
+            .map_or((&empty, &empty), |(l, r)| (l, r));
+        let bary = model.landmarks.as_ref().map_or(&empty, |(_, b)| b);
         for (key, vals) in [
             ("v_template", &model.v_template),
             ("shapedirs", &model.shapedirs),
             ("posedirs", &model.posedirs),
             ("J_regressor", &model.j_regressor),
             ("weights", &model.weights),
+            ("lmk_bary_coords", bary),
+            ("hands_meanl", hands_l),
+            ("hands_meanr", hands_r),
         ] {
             if let Some(i) = vals.iter().position(|x| !x.is_finite()) {
                 return Err(value_err(
