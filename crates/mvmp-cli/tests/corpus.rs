@@ -530,3 +530,160 @@ fn no_malformed_body_model_gets_through() {
     }
     assert!(failures.is_empty(), "{}", failures.join("\n"));
 }
+
+/// A change to one array's shape and values.
+type ArrayDefect = fn(&mut Vec<u64>, &mut Vec<f32>);
+
+/// The arrays of an npz file: name, shape, values.
+type Arrays = Vec<(String, Vec<u64>, Vec<f32>)>;
+
+fn read_arrays(path: &Path) -> Arrays {
+    let mut npz = npyz::npz::NpzArchive::open(path).unwrap();
+    let names: Vec<String> = npz.array_names().map(str::to_string).collect();
+    names
+        .into_iter()
+        .map(|n| {
+            let a = npz.by_name(&n).unwrap().unwrap();
+            let shape = a.shape().to_vec();
+            (n, shape, a.into_vec::<f32>().unwrap())
+        })
+        .collect()
+}
+
+fn write_arrays(path: &Path, arrays: &Arrays) {
+    use npyz::WriterBuilder;
+    let mut w = npyz::npz::NpzWriter::create(path).unwrap();
+    for (name, shape, data) in arrays {
+        let mut out = w
+            .array::<f32>(name, Default::default())
+            .unwrap()
+            .default_dtype()
+            .shape(shape)
+            .begin_nd()
+            .unwrap();
+        out.extend(data.iter().copied()).unwrap();
+        out.finish().unwrap();
+    }
+    w.zip_writer().finish().unwrap();
+}
+
+/// Stored predictions (`people.npz`, infer's layout) through `eval --predictions`: every array of one
+/// frame's file in turn gets a NaN, an infinity, a column or a row too few. Every case must exit non-zero
+/// naming the file and the array.
+#[test]
+fn no_malformed_predictions_get_through() {
+    use mvmp_smplx::SmplxParams;
+    use mvmp_smplx::people::{StoredPerson, write_people_npz};
+    let dir = tempfile::tempdir().unwrap();
+    let p = |n: &str| dir.path().join(n);
+    std::fs::write(p("synth.toml"), SYNTH).unwrap();
+    let o = mvmp(&[
+        "data",
+        "synth",
+        "--config",
+        &s(&p("synth.toml")),
+        "--out",
+        &s(&p("ds")),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // Two people per frame at the scene's middle, for every frame of the dataset.
+    let mut files = Vec::new();
+    for scene in std::fs::read_dir(p("ds")).unwrap().flatten() {
+        if !scene.path().is_dir() {
+            continue;
+        }
+        for frame in std::fs::read_dir(scene.path()).unwrap().flatten() {
+            if !frame.path().join("annotation.json").exists() {
+                continue;
+            }
+            let rel = frame.path().strip_prefix(p("ds")).unwrap().to_path_buf();
+            let out = p("pred").join(&rel);
+            std::fs::create_dir_all(&out).unwrap();
+            let person = |x: f64| StoredPerson {
+                params: SmplxParams {
+                    transl: vec![x, 0.0, 0.9],
+                    ..Default::default()
+                },
+                score: 0.9,
+                pelvis: Some([x, 0.0, 0.9]),
+            };
+            write_people_npz(&out.join("people.npz"), &[person(-0.5), person(0.5)]).unwrap();
+            files.push(out.join("people.npz"));
+        }
+    }
+    files.sort();
+    let eval = [
+        "eval",
+        "--predictions",
+        &s(&p("pred")),
+        "--data",
+        &s(&p("ds")),
+        "--split",
+        "all",
+    ]
+    .map(String::from)
+    .to_vec();
+    let args: Vec<&str> = eval.iter().map(String::as_str).collect();
+    let o = mvmp(&args);
+    assert!(
+        o.status.success(),
+        "the valid predictions: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let file = &files[0];
+    let good = read_arrays(file);
+    let mut failures = Vec::new();
+    let mut n = 0;
+    for (i, (key, shape, _)) in good.iter().enumerate() {
+        let defects: [(&str, ArrayDefect); 4] = [
+            ("NaN", |_, d| {
+                let last = d.len() - 1;
+                d[last] = f32::NAN;
+            }),
+            ("infinity", |_, d| d[0] = f32::INFINITY),
+            ("a column too few", |s, d| {
+                let last = *s.last().unwrap() as usize;
+                *d = d
+                    .chunks(last)
+                    .flat_map(|r| r[..last - 1].to_vec())
+                    .collect();
+                *s.last_mut().unwrap() -= 1;
+            }),
+            ("a row too few", |s, d| {
+                let row = d.len() / s[0] as usize;
+                d.truncate(d.len() - row);
+                s[0] -= 1;
+            }),
+        ];
+        for (what, defect) in defects {
+            // A 1-D array has no column to drop; betas and expression may have fewer than 10.
+            let optional_columns = ["betas", "expression"].contains(&key.as_str());
+            if what == "a column too few" && (shape.len() < 2 || optional_columns) {
+                continue;
+            }
+            let mut arrays = good.clone();
+            let (_, s, d) = &mut arrays[i];
+            defect(s, d);
+            write_arrays(file, &arrays);
+            n += 1;
+            let o = mvmp(&args);
+            let text = String::from_utf8_lossy(&o.stderr).into_owned();
+            if o.status.success() {
+                failures.push(format!("{key} with {what}: accepted"));
+            } else if text.contains("panicked") || o.status.code().is_none() {
+                failures.push(format!("{key} with {what}: crashed: {text}"));
+            } else if !(text.contains("people.npz") && text.contains(key.as_str())) {
+                failures.push(format!(
+                    "{key} with {what}: names neither file nor key: {text}"
+                ));
+            }
+        }
+    }
+    assert!(n >= 40, "{n} cases");
+    assert!(
+        failures.is_empty(),
+        "{} of {n} cases:\n{}",
+        failures.len(),
+        failures.join("\n")
+    );
+}

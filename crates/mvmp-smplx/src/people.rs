@@ -168,7 +168,9 @@ pub fn read_people_npz(path: &Path) -> Result<Vec<StoredPerson>, SmplxError> {
             };
             return Err(npz_err(
                 path,
-                format!("key `{key}` has shape {shape:?}; expected {want} with N = {n}"),
+                format!(
+                    "key `{key}` has shape {shape:?}; expected {want} with N = {n} (the rows of `transl`)"
+                ),
             ));
         }
         let c = shape[1] as usize;
