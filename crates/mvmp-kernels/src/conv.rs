@@ -56,8 +56,13 @@ fn product<const D: usize, const S: usize>(
     let wd = weight.dims();
     let (b, ci, co) = (dims[0], dims[D - 1], wd[0]);
     let k: [usize; S] = std::array::from_fn(|a| wd[a + 1]);
-    let out: [usize; S] =
-        std::array::from_fn(|a| (dims[a + 1] + pad[a].0 + pad[a].1 - k[a]) / stride[a] + 1);
+    // A kernel wider than the padded input has no output position: burn's convolution says so.
+    let span: [Option<usize>; S] =
+        std::array::from_fn(|a| (dims[a + 1] + pad[a].0 + pad[a].1).checked_sub(k[a]));
+    if span.contains(&None) {
+        return None;
+    }
+    let out: [usize; S] = std::array::from_fn(|a| span[a].unwrap_or(0) / stride[a] + 1);
     let (positions, taps) = (out.iter().product::<usize>(), k.iter().product::<usize>());
     if b * positions * taps * ci > PRODUCT_MAX_ELEMENTS {
         return None;
