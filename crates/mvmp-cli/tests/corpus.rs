@@ -23,36 +23,61 @@ struct Case {
     out: Option<PathBuf>,
 }
 
-/// Run a case; a description of what went wrong, if anything.
-fn failure(c: &Case) -> Option<String> {
-    let args: Vec<&str> = c.args.iter().map(String::as_str).collect();
-    let o = mvmp(&args);
+/// What went wrong with a command that had to refuse its input, if anything: it succeeded, crashed,
+/// its message (standard error and output) fails `names`, or it left `out` behind. `what` names the case.
+fn verdict(
+    o: &std::process::Output,
+    what: &str,
+    names: impl Fn(&str) -> bool,
+    out: Option<&Path>,
+) -> Option<String> {
     let text = format!(
         "{}{}",
         String::from_utf8_lossy(&o.stderr),
         String::from_utf8_lossy(&o.stdout)
     );
-    let name = c.file.file_name().unwrap().to_string_lossy().into_owned();
-    // The key's last name (`stage1.lr` -> `lr`, `grid.shape[2]` -> `shape`).
-    let leaf = c.key.rsplit('.').next().unwrap().split('[').next().unwrap();
-    let what = format!("{} = {} in {name}", c.key, c.value);
     if o.status.success() {
         return Some(format!("{what}: accepted"));
     }
     if text.contains("panicked") || o.status.code().is_none() {
         return Some(format!("{what}: crashed: {text}"));
     }
-    if !text.contains(&name) || !(text.contains(leaf) || text.contains("line")) {
+    if !names(&text) {
         return Some(format!(
             "{what}: the message names neither file and key nor line: {text}"
         ));
     }
-    if let Some(out) = &c.out
-        && out.exists()
-    {
-        return Some(format!("{what}: left {}", out.display()));
+    match out {
+        Some(out) if out.exists() => Some(format!("{what}: left {}", out.display())),
+        _ => None,
     }
-    None
+}
+
+/// Run a case; a description of what went wrong, if anything.
+fn failure(c: &Case) -> Option<String> {
+    let args: Vec<&str> = c.args.iter().map(String::as_str).collect();
+    let name = c.file.file_name().unwrap().to_string_lossy().into_owned();
+    // The key's last name (`stage1.lr` -> `lr`, `grid.shape[2]` -> `shape`).
+    let leaf = c.key.rsplit('.').next().unwrap().split('[').next().unwrap();
+    let names = |t: &str| t.contains(&name) && (t.contains(leaf) || t.contains("line"));
+    let what = format!("{} = {} in {name}", c.key, c.value);
+    verdict(&mvmp(&args), &what, names, c.out.as_deref())
+}
+
+/// The corpus's small valid dataset, synthesised into `dir/ds`.
+fn synth_dataset(dir: &Path) -> PathBuf {
+    std::fs::write(dir.join("synth.toml"), SYNTH).unwrap();
+    let ds = dir.join("ds");
+    let o = mvmp(&[
+        "data",
+        "synth",
+        "--config",
+        &s(&dir.join("synth.toml")),
+        "--out",
+        &s(&ds),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    ds
 }
 
 /// Paths of the numeric leaves of a TOML document (`a.b`, `a.c[1]`).
@@ -271,16 +296,7 @@ fn no_malformed_input_gets_through() {
     let dir = tempfile::tempdir().unwrap();
     let p = |n: &str| dir.path().join(n);
     // The valid starting points: a small dataset, the tiny model at a small size, a training config.
-    std::fs::write(p("synth.toml"), SYNTH).unwrap();
-    let o = mvmp(&[
-        "data",
-        "synth",
-        "--config",
-        &s(&p("synth.toml")),
-        "--out",
-        &s(&p("ds")),
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    synth_dataset(dir.path());
     let model = std::fs::read_to_string(
         Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/model/tiny.toml"),
     )
@@ -514,19 +530,9 @@ fn no_malformed_body_model_gets_through() {
             "--out",
             &s(&out),
         ]);
-        let text = String::from_utf8_lossy(&o.stderr).into_owned();
         let name = file.file_name().unwrap().to_string_lossy().into_owned();
-        if o.status.success() {
-            failures.push(format!("{key} defect {i}: accepted"));
-        } else if text.contains("panicked") || o.status.code().is_none() {
-            failures.push(format!("{key} defect {i}: crashed: {text}"));
-        } else if !(text.contains(&name) && text.contains(key)) {
-            failures.push(format!(
-                "{key} defect {i}: names neither file nor array: {text}"
-            ));
-        } else if out.exists() {
-            failures.push(format!("{key} defect {i}: left {}", out.display()));
-        }
+        let names = |t: &str| t.contains(&name) && t.contains(key);
+        failures.extend(verdict(&o, &format!("{key} defect {i}"), names, Some(&out)));
     }
     assert!(failures.is_empty(), "{}", failures.join("\n"));
 }
@@ -576,16 +582,7 @@ fn no_malformed_predictions_get_through() {
     use mvmp_smplx::people::{StoredPerson, write_people_npz};
     let dir = tempfile::tempdir().unwrap();
     let p = |n: &str| dir.path().join(n);
-    std::fs::write(p("synth.toml"), SYNTH).unwrap();
-    let o = mvmp(&[
-        "data",
-        "synth",
-        "--config",
-        &s(&p("synth.toml")),
-        "--out",
-        &s(&p("ds")),
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    synth_dataset(dir.path());
     // Two people per frame at the scene's middle, for every frame of the dataset.
     let mut files = Vec::new();
     for scene in std::fs::read_dir(p("ds")).unwrap().flatten() {
@@ -666,17 +663,13 @@ fn no_malformed_predictions_get_through() {
             defect(s, d);
             write_arrays(file, &arrays);
             n += 1;
-            let o = mvmp(&args);
-            let text = String::from_utf8_lossy(&o.stderr).into_owned();
-            if o.status.success() {
-                failures.push(format!("{key} with {what}: accepted"));
-            } else if text.contains("panicked") || o.status.code().is_none() {
-                failures.push(format!("{key} with {what}: crashed: {text}"));
-            } else if !(text.contains("people.npz") && text.contains(key.as_str())) {
-                failures.push(format!(
-                    "{key} with {what}: names neither file nor key: {text}"
-                ));
-            }
+            let names = |t: &str| t.contains("people.npz") && t.contains(key.as_str());
+            failures.extend(verdict(
+                &mvmp(&args),
+                &format!("{key} with {what}"),
+                names,
+                None,
+            ));
         }
     }
     assert!(n >= 40, "{n} cases");

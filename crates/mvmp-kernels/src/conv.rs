@@ -12,7 +12,7 @@
 use burn::nn::PaddingConfig2d;
 use burn::nn::conv::Conv2d;
 use burn::tensor::ops::PadMode;
-use burn::tensor::{Slice, Tensor};
+use burn::tensor::{Tensor, s};
 
 /// Most tap values (output positions x kernel taps x input channels) of a convolution computed as a
 /// product: 64 MiB of f32.
@@ -21,78 +21,56 @@ pub const PRODUCT_MAX_ELEMENTS: usize = 1 << 24;
 /// `conv.forward(x)`, as a product when training and small enough (see the module's notes).
 pub fn conv2d(conv: &Conv2d, x: Tensor<4>) -> Tensor<4> {
     let pad = match conv.padding {
-        PaddingConfig2d::Valid => Some([(0, 0); 2]),
-        PaddingConfig2d::Explicit(top, left, bottom, right) => Some([(top, bottom), (left, right)]),
+        PaddingConfig2d::Valid => Some([0; 4]),
+        PaddingConfig2d::Explicit(top, left, bottom, right) => Some([top, left, bottom, right]),
         PaddingConfig2d::Same => None,
     };
     let plain = conv.dilation == [1; 2] && conv.groups == 1;
     match pad {
         Some(pad) if plain && x.is_autodiff() => {
-            let [b, ci, h, w] = x.dims();
-            let y = product::<4, 2>(
-                x.clone().permute([0, 2, 3, 1]),
-                [b, h, w, ci],
-                conv.weight.val().permute([0, 2, 3, 1]),
-                conv.bias.as_ref().map(|p| p.val()),
-                conv.stride,
-                pad,
-            );
-            y.map_or_else(|| conv.forward(x), |y| y.permute([0, 3, 1, 2]))
+            product(conv, x.clone(), pad).unwrap_or_else(|| conv.forward(x))
         }
         _ => conv.forward(x),
     }
 }
 
-/// The convolution of channels-last `x` (`dims` = [B, spatial.., C]) with channels-last `weight`
-/// `[Co, k.., C]`: `[B, out spatial.., Co]`, or `None` when its taps would exceed the cap.
-fn product<const D: usize, const S: usize>(
-    x: Tensor<D>,
-    dims: [usize; D],
-    weight: Tensor<D>,
-    bias: Option<Tensor<1>>,
-    stride: [usize; S],
-    pad: [(usize, usize); S],
-) -> Option<Tensor<D>> {
-    let wd = weight.dims();
-    let (b, ci, co) = (dims[0], dims[D - 1], wd[0]);
-    let k: [usize; S] = std::array::from_fn(|a| wd[a + 1]);
-    // A kernel wider than the padded input has no output position: burn's convolution says so.
-    let span: [Option<usize>; S] =
-        std::array::from_fn(|a| (dims[a + 1] + pad[a].0 + pad[a].1).checked_sub(k[a]));
-    if span.contains(&None) {
+/// The convolution as a product, `pad` = (top, left, bottom, right); `None` when the kernel is wider
+/// than the padded input (burn's convolution says so) or its taps would exceed the cap.
+fn product(conv: &Conv2d, x: Tensor<4>, pad: [usize; 4]) -> Option<Tensor<4>> {
+    let [b, ci, h, w] = x.dims();
+    let [top, left, bottom, right] = pad;
+    let ([kh, kw], [sh, sw]) = (conv.kernel_size, conv.stride);
+    let co = conv.weight.dims()[0];
+    let ho = (h + top + bottom).checked_sub(kh)? / sh + 1;
+    let wo = (w + left + right).checked_sub(kw)? / sw + 1;
+    if b * ho * wo * kh * kw * ci > PRODUCT_MAX_ELEMENTS {
         return None;
     }
-    let out: [usize; S] = std::array::from_fn(|a| span[a].unwrap_or(0) / stride[a] + 1);
-    let (positions, taps) = (out.iter().product::<usize>(), k.iter().product::<usize>());
-    if b * positions * taps * ci > PRODUCT_MAX_ELEMENTS {
-        return None;
+    let mut x = x.permute([0, 2, 3, 1]); // [B, H, W, C]
+    if pad != [0; 4] {
+        x = x.pad(
+            [(top, bottom), (left, right), (0, 0)],
+            PadMode::Constant(0.0),
+        );
     }
-    let mut x = x;
-    if pad.iter().any(|&(l, r)| l + r > 0) {
-        let mut pairs = pad.to_vec();
-        pairs.push((0, 0));
-        x = x.pad(pairs, PadMode::Constant(0.0));
-    }
-    let slices: Vec<Tensor<D>> = (0..taps)
+    let (si, sj) = (sh as isize, sw as isize);
+    let taps: Vec<Tensor<4>> = (0..kh * kw)
         .map(|t| {
-            let mut rest = t;
-            let mut ranges = vec![Slice::full(); D];
-            for a in (0..S).rev() {
-                let at = rest % k[a];
-                rest /= k[a];
-                let end = at + stride[a] * (out[a] - 1) + 1;
-                ranges[a + 1] = Slice::new(at as isize, Some(end as isize), stride[a] as isize);
-            }
-            x.clone().slice(ranges.as_slice())
+            let (i, j) = (t / kw, t % kw);
+            x.clone()
+                .slice(s![.., i..i + sh * (ho - 1) + 1; si, j..j + sw * (wo - 1) + 1; sj, ..])
         })
         .collect();
-    let cols = Tensor::cat(slices, D - 1).reshape([b * positions, taps * ci]);
-    let mut y = cols.matmul(weight.reshape([co, taps * ci]).transpose());
-    if let Some(bias) = bias {
-        y = y + bias.reshape([1, co]);
+    let cols = Tensor::cat(taps, 3).reshape([b * ho * wo, kh * kw * ci]);
+    // The weight's taps in the columns' order: [Co, kh, kw, Ci].
+    let weight = conv
+        .weight
+        .val()
+        .permute([0, 2, 3, 1])
+        .reshape([co, kh * kw * ci]);
+    let mut y = cols.matmul(weight.transpose());
+    if let Some(bias) = &conv.bias {
+        y = y + bias.val().reshape([1, co]);
     }
-    let mut shape = [b; D];
-    shape[1..=S].copy_from_slice(&out);
-    shape[D - 1] = co;
-    Some(y.reshape(shape))
+    Some(y.reshape([b, ho, wo, co]).permute([0, 3, 1, 2]))
 }
