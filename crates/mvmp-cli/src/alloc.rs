@@ -26,6 +26,11 @@ impl<A> Counting<A> {
         now
     }
 
+    /// The bytes live now.
+    pub fn live(&self) -> usize {
+        self.live.load(Relaxed)
+    }
+
     /// The most bytes live at once since the last [`Counting::reset_peak`].
     pub fn peak(&self) -> usize {
         self.peak.load(Relaxed)

@@ -23,6 +23,7 @@ mod model;
 mod progress;
 mod run;
 mod train;
+mod training_memory;
 
 /// A flag that must be a positive, finite number of `unit` (metres, minutes).
 fn positive(
@@ -221,6 +222,17 @@ enum ModelCommand {
         /// Views per sample.
         #[arg(long, default_value_t = 5)]
         views: usize,
+        /// Also estimate a training step's peak memory per stage on flex (weights, Adam's moments,
+        /// activations, gradients, the backward's working memory, the body model) from measured steps
+        /// at reduced scale.
+        #[arg(long)]
+        training: bool,
+        /// Samples per training step, for --training.
+        #[arg(long, default_value_t = 1, value_parser = at_least_one())]
+        batch: usize,
+        /// People per sample, for --training (default: the config's max_people).
+        #[arg(long, value_parser = at_least_one())]
+        people: Option<usize>,
     },
 }
 
@@ -343,10 +355,10 @@ enum BenchCommand {
     },
     /// The learning benchmark: the full tiny model and the paper's comparisons (VoxelSMPLX, max and
     /// deformable fusion, without the orientation or density loss, head and spine roots), each trained on
-    /// one synthetic set for the same wall time and scored on its held-out scenes; writes OUT/learning.md
+    /// one synthetic set on one schedule and scored on its held-out scenes; writes OUT/learning.md
     /// (table, the paper's directions) and OUT/curves.png.
     Learn {
-        /// Wall time of each variant's training, minutes (the schedule is sized to it).
+        /// The full model's training time, minutes: the schedule every variant trains is sized to it.
         #[arg(long, default_value_t = 40.0, value_parser = positive("minutes"))]
         minutes: f64,
         /// One-frame scenes of the synthetic set (two thirds train, one third held out).
@@ -464,7 +476,19 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             data::stats(&dir, json, sheet.as_deref())
         }
         Command::Data(DataCommand::Check { format, dir, deep }) => data::check(format, &dir, deep),
-        Command::Model(ModelCommand::Summary { config, views }) => model::summary(&config, views),
+        Command::Model(ModelCommand::Summary {
+            config,
+            views,
+            training,
+            batch,
+            people,
+        }) => {
+            model::summary(&config, views)?;
+            match training {
+                true => model::training_summary(&config, views, batch, people),
+                false => Ok(()),
+            }
+        }
         Command::Import(ImportCommand::Dinov2 { variant, from, out }) => {
             import::dinov2(variant, &from, &out)
         }

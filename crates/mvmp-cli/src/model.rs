@@ -99,9 +99,58 @@ fn time<const D: usize>(iters: usize, mut f: impl FnMut() -> Tensor<D>) -> (Tens
     (out, times[times.len() / 2])
 }
 
+/// The training-memory estimate of `mvmp model summary --training`, printed.
+pub fn training_summary(
+    config: &Path,
+    views: usize,
+    batch: usize,
+    people: Option<usize>,
+) -> Result<()> {
+    let cfg = ModelConfig::read(config)?;
+    let shape = crate::training_memory::Shape {
+        batch,
+        views,
+        people: people.unwrap_or(cfg.max_people),
+    };
+    let e = crate::training_memory::estimate(&cfg, shape)?;
+    let mb = |b: f64| b / 1e6;
+    println!(
+        "training step on flex, batch {batch}, {views} views, {} people per sample (estimate):",
+        shape.people
+    );
+    let line = |what: &str, bytes: f64| println!("  {what:<58} {:>10.1} MB", mb(bytes));
+    line("weights", e.weights);
+    line("body model, its layer, one batch", e.fixed);
+    for s in &e.stages {
+        let n = s.stage.number();
+        line(
+            &format!("stage {n}: Adam's two moments of what it trains"),
+            s.adam,
+        );
+        line(
+            &format!("stage {n}: activations, gradients, backward working memory"),
+            s.step,
+        );
+        line(&format!("stage {n}: peak"), e.total(s));
+    }
+    for s in &e.stages {
+        for (side, g, bytes) in &s.probes {
+            println!(
+                "  stage {} probe: {side} x {side} input, {} x {} x {} grid: {:.1} MB",
+                s.stage.number(),
+                g[0],
+                g[1],
+                g[2],
+                mb(*bytes)
+            );
+        }
+    }
+    Ok(())
+}
+
 /// `views` 1920 x 1080 cameras on a ring around the config's grid, looking at its centre, letterboxed to
 /// the config's input size.
-fn ring_rig(cfg: &ModelConfig, views: usize) -> Result<(Vec<Camera>, Vec<Letterbox>)> {
+pub(crate) fn ring_rig(cfg: &ModelConfig, views: usize) -> Result<(Vec<Camera>, Vec<Letterbox>)> {
     let g = &cfg.grid;
     let cams: Vec<Camera> = (0..views)
         .map(|i| {

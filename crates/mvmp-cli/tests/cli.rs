@@ -1276,3 +1276,47 @@ fn an_unwritable_standard_output_is_an_error_not_a_panic() {
     assert!(err.contains("writing to standard output"), "{err}");
     assert!(!err.contains("panicked"), "{err}");
 }
+
+#[test]
+fn the_training_memory_estimate_grows_from_weights_to_stage_two() {
+    let o = mvmp(&[
+        "model",
+        "summary",
+        "--config",
+        &config("model/tiny.toml"),
+        "--views",
+        "2",
+        "--training",
+        "--people",
+        "2",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = String::from_utf8_lossy(&o.stdout);
+    let mb = |label: &str| -> f64 {
+        let line = out
+            .lines()
+            .find(|l| l.trim_start().starts_with(label))
+            .unwrap_or_else(|| panic!("{label} missing from {out}"));
+        line.split_whitespace()
+            .rev()
+            .nth(1)
+            .unwrap()
+            .parse()
+            .unwrap()
+    };
+    let (weights, s1, s2) = (mb("weights"), mb("stage 1: peak"), mb("stage 2: peak"));
+    // Stage 2 adds the ViT, the decoder, the body layer's forward and the mesh losses to stage 1.
+    assert!(weights > 0.0 && s1 > weights && s2 > s1, "{out}");
+    assert_eq!(out.matches("probe:").count(), 6, "{out}");
+    let o = mvmp(&[
+        "model",
+        "summary",
+        "--config",
+        &config("model/tiny.toml"),
+        "--training",
+        "--people",
+        "0",
+    ]);
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("--people"), "{}", stderr(&o));
+}

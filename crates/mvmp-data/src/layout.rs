@@ -369,6 +369,18 @@ impl DatasetLayout {
     }
 }
 
+/// Whether two body-model references name the same model: the same stand-in seed, or paths to the same
+/// file (each relative to its own base).
+pub fn same_body_model(a: &str, a_base: &Path, b: &str, b_base: &Path) -> bool {
+    let key = |r: &str, base: &Path| match r.strip_prefix("standin:") {
+        Some(seed) => Some(format!("standin:{seed}")),
+        None => std::fs::canonicalize(base.join(r))
+            .ok()
+            .map(|p| p.display().to_string()),
+    };
+    matches!((key(a, a_base), key(b, b_base)), (Some(x), Some(y)) if x == y)
+}
+
 /// Resolve a body-model reference: `standin:SEED` or a path (relative to `base` or absolute).
 pub fn load_body_model(reference: &str, base: &Path) -> Result<mvmp_smplx::BodyModel, DataError> {
     if let Some(seed) = reference.strip_prefix("standin:") {

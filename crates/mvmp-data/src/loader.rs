@@ -387,6 +387,15 @@ impl FrameBatcher {
         }
     }
 
+    /// [`FrameBatcher::with_vertices`] that poses with `layer`, already built from `model` for the device
+    /// the batches go to, instead of building a second copy of it.
+    pub fn with_layer(model: Arc<mvmp_smplx::BodyModel>, layer: mvmp_smplx::SmplxLayer) -> Self {
+        FrameBatcher {
+            body: Some(model),
+            layer: Arc::new(std::sync::Mutex::new(Some(layer))),
+        }
+    }
+
     fn layer(&self, model: &mvmp_smplx::BodyModel, device: &Device) -> mvmp_smplx::SmplxLayer {
         let mut cached = self.layer.lock().unwrap_or_else(|e| e.into_inner());
         match cached.as_ref() {

@@ -599,3 +599,37 @@ fn shipped_synth_configs_validate() {
     std::fs::remove_file(&bad).ok();
     assert!(e.contains("views"), "{e}");
 }
+
+#[test]
+fn a_batcher_given_the_layer_poses_the_same_meshes() {
+    let ds = FrameDataset::open(dataset(), Split::All, ViewChoice::Fixed(vec![0]), 56).unwrap();
+    let layout = DatasetLayout::open(dataset()).unwrap();
+    let body = layout.body_model().unwrap();
+    let device = Device::flex();
+    let layer = mvmp_smplx::SmplxLayer::new(&body, &device);
+    let own = FrameBatcher::with_vertices(body.clone());
+    let shared = FrameBatcher::with_layer(std::sync::Arc::new(body), layer);
+    let vertices = |b: &FrameBatcher| -> Vec<f32> {
+        let batch = b.batch(vec![ds.load(0).unwrap()], &device);
+        batch.vertices.unwrap().into_data().try_into_vec().unwrap()
+    };
+    assert_eq!(vertices(&own), vertices(&shared));
+}
+
+#[test]
+fn body_model_references_are_the_same_model_only_when_they_name_it() {
+    use mvmp_data::layout::same_body_model;
+    let dir = tempfile::tempdir().unwrap();
+    let (a, b) = (dir.path().join("a"), dir.path().join("a/b"));
+    std::fs::create_dir_all(&b).unwrap();
+    std::fs::write(a.join("model.npz"), b"x").unwrap();
+    std::fs::write(b.join("other.npz"), b"x").unwrap();
+    assert!(same_body_model("standin:0", &a, "standin:0", &b));
+    assert!(!same_body_model("standin:0", &a, "standin:1", &a));
+    assert!(!same_body_model("standin:0", &a, "model.npz", &a));
+    // One file named from two bases.
+    assert!(same_body_model("model.npz", &a, "../model.npz", &b));
+    assert!(!same_body_model("model.npz", &a, "other.npz", &b));
+    // A file that is not there is no model at all.
+    assert!(!same_body_model("missing.npz", &a, "missing.npz", &a));
+}

@@ -11,6 +11,7 @@ use burn::nn::{
 };
 use burn::tensor::activation::relu;
 use burn::tensor::{Device, Tensor};
+use std::sync::atomic::{AtomicUsize, Ordering};
 
 use crate::pool::max_pool3d_2;
 
@@ -84,7 +85,7 @@ impl Basic3DBlock {
 
     pub fn forward(&self, x: Tensor<5>) -> Tensor<5> {
         let y = if x.is_autodiff() && self.conv.kernel_size[0] >= 5 {
-            conv_in_slabs(&self.conv, x, SLAB_VOXELS)
+            conv_in_slabs(&self.conv, x, SLAB.load(Ordering::Relaxed))
         } else {
             self.conv.forward(x)
         };
@@ -96,6 +97,15 @@ impl Basic3DBlock {
 /// near 180 MB on flex (about 2.9 KB per voxel for 17 channels in), against 5.2 GB for the paper's
 /// 300 x 300 x 20 grid in one piece.
 pub const SLAB_VOXELS: usize = 1 << 16;
+
+static SLAB: AtomicUsize = AtomicUsize::new(SLAB_VOXELS);
+
+/// Set the slab size of the RootNet's large convolutions in training for the whole process
+/// ([`SLAB_VOXELS`] unless set); returns the previous one. The training-memory estimate measures a model
+/// at a reduced scale with the slabs reduced alike, so that a slab's transient scales as the volume does.
+pub fn set_slab_voxels(voxels: usize) -> usize {
+    SLAB.swap(voxels.max(1), Ordering::Relaxed)
+}
 
 /// A stride-1, "same"-padded 3D convolution computed in slabs along X of at most `max_voxels` output
 /// voxels, each from its input slab with a halo of `k / 2` (zeros beyond the volume), then concatenated.

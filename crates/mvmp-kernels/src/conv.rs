@@ -13,10 +13,20 @@ use burn::nn::PaddingConfig2d;
 use burn::nn::conv::Conv2d;
 use burn::tensor::ops::PadMode;
 use burn::tensor::{Tensor, s};
+use std::sync::atomic::{AtomicUsize, Ordering};
 
 /// Most tap values (output positions x kernel taps x input channels) of a convolution computed as a
 /// product: 64 MiB of f32.
 pub const PRODUCT_MAX_ELEMENTS: usize = 1 << 24;
+
+static PRODUCT_CAP: AtomicUsize = AtomicUsize::new(PRODUCT_MAX_ELEMENTS);
+
+/// Set the cap on a product's tap values for the whole process ([`PRODUCT_MAX_ELEMENTS`] unless set);
+/// returns the previous one. The training-memory estimate measures a model at a reduced scale with the
+/// cap reduced alike, so that each convolution takes the path it takes at full scale.
+pub fn set_product_cap(elements: usize) -> usize {
+    PRODUCT_CAP.swap(elements, Ordering::Relaxed)
+}
 
 /// `conv.forward(x)`, as a product when training and small enough (see the module's notes).
 pub fn conv2d(conv: &Conv2d, x: Tensor<4>) -> Tensor<4> {
@@ -43,7 +53,7 @@ fn product(conv: &Conv2d, x: Tensor<4>, pad: [usize; 4]) -> Option<Tensor<4>> {
     let co = conv.weight.dims()[0];
     let ho = (h + top + bottom).checked_sub(kh)? / sh + 1;
     let wo = (w + left + right).checked_sub(kw)? / sw + 1;
-    if b * ho * wo * kh * kw * ci > PRODUCT_MAX_ELEMENTS {
+    if b * ho * wo * kh * kw * ci > PRODUCT_CAP.load(Ordering::Relaxed) {
         return None;
     }
     let mut x = x.permute([0, 2, 3, 1]); // [B, H, W, C]

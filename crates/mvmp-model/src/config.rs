@@ -86,6 +86,11 @@ pub struct ModelConfig {
     pub feature_channels: usize,
     /// HRNet variant: tiny, hrnet_w32, hrnet_w48.
     pub hrnet: HrnetVariant,
+    /// HRNet and the facing head see the input average-pooled by this factor, so the heatmaps are
+    /// S / (4 x this) on a side. 1 (the default) gives them the ViT's input; VoxelPose's pose network
+    /// reads cameras at half their resolution, and at 1288 x 1288 HRNet-W32's training activations over
+    /// five views are most of a step's memory (README, Training at paper scale).
+    pub hrnet_downsample: u32,
     /// SMPL-X joints whose 2D heatmaps HRNet predicts and the heatmap volume holds.
     pub heatmap_joints: Vec<usize>,
     /// The voxel grid (world metres).
@@ -134,6 +139,7 @@ impl Default for ModelConfig {
             backbone: VitVariant::Tiny,
             feature_channels: 32,
             hrnet: HrnetVariant::Tiny,
+            hrnet_downsample: 1,
             heatmap_joints: (0..22).collect(),
             grid: VoxelGrid {
                 center: [0.0, 0.0, 1.0],
@@ -195,6 +201,16 @@ impl ModelConfig {
         self.backbone.config()
     }
 
+    /// Side of HRNet's input, `image_size / hrnet_downsample`.
+    pub fn hrnet_input(&self) -> u32 {
+        self.image_size / self.hrnet_downsample.max(1)
+    }
+
+    /// Network pixels per heatmap pixel: 4 x `hrnet_downsample`.
+    pub fn heatmap_stride(&self) -> f64 {
+        4.0 * self.hrnet_downsample.max(1) as f64
+    }
+
     pub fn hrnet_config(&self) -> HRNetConfig {
         self.hrnet.config(self.heatmap_joints.len())
     }
@@ -210,6 +226,17 @@ impl ModelConfig {
                 "image_size",
                 format!(
                     "{}: must be a multiple of 4 of at least 28",
+                    self.image_size
+                ),
+            ));
+        }
+        let k = self.hrnet_downsample;
+        if k == 0 || !self.image_size.is_multiple_of(4 * k) || self.image_size / k < 28 {
+            return Err(bad(
+                "hrnet_downsample",
+                format!(
+                    "{k}: must be at least 1, divide image_size ({}) into a multiple of 4 and leave \
+                     HRNet at least 28 pixels",
                     self.image_size
                 ),
             ));

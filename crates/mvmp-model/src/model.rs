@@ -10,6 +10,8 @@
 //! ```
 use burn::module::Module;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
+use burn::tensor::module::avg_pool2d;
+use burn::tensor::ops::AvgPoolOptions;
 use burn::tensor::{Bool, Device, Tensor, TensorData};
 
 use crate::ModelConfig;
@@ -68,14 +70,17 @@ impl RigGrids {
                 [f, f],
                 device,
             ),
-            heatmaps: SamplingGrid::new(
-                &cfg.grid,
-                cameras,
-                letterboxes,
-                4.0,
-                [s / 4, s / 4],
-                device,
-            ),
+            heatmaps: {
+                let h = cfg.hrnet_input() as usize / 4;
+                SamplingGrid::new(
+                    &cfg.grid,
+                    cameras,
+                    letterboxes,
+                    cfg.heatmap_stride(),
+                    [h, h],
+                    device,
+                )
+            },
             centres: cameras.iter().map(|c| c.centre().into()).collect(),
         }
     }
@@ -193,7 +198,12 @@ impl MvmpHmr {
     /// The detection branch alone: HRNet heatmaps, their mean fusion and the RootNet.
     pub fn detect(&self, images: Tensor<5>, grids: &[RigGrids]) -> Detection {
         let [b, v, _, s, _] = images.dims();
-        let images = images.reshape([b * v, 3, s, s]);
+        let mut images = images.reshape([b * v, 3, s, s]);
+        // The grids say what size the heatmaps must be (`hrnet_downsample` in the config).
+        let k = s / (4 * grids[0].heatmaps.map_hw[0]);
+        if k > 1 {
+            images = avg_pool2d(images, AvgPoolOptions::new([k, k]));
+        }
         let x = self.hrnet.features(images.clone());
         let hm = mvmp_kernels::conv::conv2d(&self.hrnet.final_layer, x.clone()); // [B*V, J, S/4, S/4]
         let [_, j, hh, hw] = hm.dims();

@@ -57,7 +57,7 @@ fn conv_macs(ci: usize, co: usize, k: usize, out_pixels: f64) -> f64 {
 /// at stride 4 (see `FacingHead`).
 fn facing_macs(cfg: &ModelConfig) -> f64 {
     let hidden = crate::facing::HIDDEN;
-    let s = cfg.image_size as f64;
+    let s = cfg.hrnet_input() as f64;
     let (half, quarter) = ((s / 2.0).powi(2), (s / 4.0).powi(2));
     let width = cfg.hrnet_config().width;
     conv_macs(3, hidden / 2, 3, half)
@@ -70,7 +70,7 @@ fn facing_macs(cfg: &ModelConfig) -> f64 {
 /// HRNet multiply-accumulates for an `s x s` input, following [`mvmp_backbone::HRNetConfig`]'s structure.
 fn hrnet_macs(cfg: &ModelConfig) -> f64 {
     let h = cfg.hrnet_config();
-    let s = cfg.image_size as f64;
+    let s = cfg.hrnet_input() as f64;
     let px = |stride: f64| (s / stride).ceil().powi(2);
     let mut m = conv_macs(3, h.stem, 3, px(2.0)) + conv_macs(h.stem, h.stem, 3, px(4.0));
     let l1 = h.planes * 4;
@@ -212,7 +212,7 @@ pub fn summarize(cfg: &ModelConfig, views: usize, device: &Device) -> Summary {
         })
         .collect();
     let b = |x: f64| (x * 4.0) as usize;
-    let hs = (s / 4) as f64;
+    let hs = (cfg.hrnet_input() / 4) as f64;
     let v2v_w0 = (16.0 * cfg.rootnet_width).round().max(2.0);
     let activations = vec![
         (
@@ -222,7 +222,7 @@ pub fn summarize(cfg: &ModelConfig, views: usize, device: &Device) -> Summary {
         ("ViT tokens of one block [V, N, C]".into(), b(v * n * c)),
         vit_attention(cfg, v, vit.heads as f64, n),
         ("features [V, Cf, S/14, S/14]".into(), b(v * cf * (n - 1.0))),
-        ("heatmaps [V, J, S/4, S/4]".into(), b(v * j * hs * hs)),
+        (format!("heatmaps [V, J, {hs}, {hs}]"), b(v * j * hs * hs)),
         ("fused volume [Cf, X, Y, Z]".into(), b(cf * p)),
         ("heatmap volume [J, X, Y, Z]".into(), b(j * p)),
         ("V2V first activation [16w, X, Y, Z]".into(), b(v2v_w0 * p)),

@@ -375,3 +375,48 @@ fn turn_to_heading_makes_the_upright_default_face_the_heading() {
         );
     }
 }
+
+/// With `hrnet_downsample = 2` HRNet and the facing head read the input average-pooled 2 x 2: the
+/// heatmaps are S/8 on a side, equal to HRNet's maps of the pooled images, and the heatmap grid samples
+/// them at 8 network pixels per map pixel.
+#[test]
+fn a_downsampled_hrnet_reads_the_pooled_input() {
+    let mut cfg = small_config();
+    cfg.facing = true;
+    cfg.hrnet_downsample = 2;
+    cfg.validate().unwrap();
+    let d = Device::flex();
+    let net = cfg.init(&d);
+    let cams = rig();
+    let lbs: Vec<Letterbox> = cams
+        .iter()
+        .map(|c| Letterbox::new(c.width, c.height, 64).unwrap())
+        .collect();
+    let grids = vec![RigGrids::new(&cfg, &cams, &lbs, &d)];
+    assert_eq!(grids[0].heatmaps.map_hw, [8, 8]);
+    assert_eq!(grids[0].heatmaps.stride, 8.0);
+    let det = net.detect(images(&d), &grids);
+    assert_eq!(det.heatmaps.dims(), [1, 2, 17, 8, 8]);
+    assert_eq!(det.facing.unwrap().dims(), [1, 2, 2, 8, 8]);
+    // By hand: each 2 x 2 block's mean, then HRNet.
+    let x: Vec<f32> = images(&d).into_data().try_into_vec().unwrap();
+    let pooled: Vec<f32> = (0..2 * 3 * 32 * 32)
+        .map(|i| {
+            let (plane, y, xx) = (i / 1024, i / 32 % 32, i % 32);
+            let at = |dy: usize, dx: usize| x[plane * 4096 + (2 * y + dy) * 64 + 2 * xx + dx];
+            (at(0, 0) + at(0, 1) + at(1, 0) + at(1, 1)) / 4.0
+        })
+        .collect();
+    let pooled = Tensor::<4>::from_data(TensorData::new(pooled, [2, 3, 32, 32]), &d);
+    let want = net
+        .hrnet
+        .final_layer
+        .forward(net.hrnet.features(pooled))
+        .reshape([1, 2, 17, 8, 8]);
+    let diff = (det.heatmaps - want).abs().max().into_scalar::<f32>();
+    assert!(diff < 1e-5, "{diff}");
+    let mut bad = small_config();
+    bad.hrnet_downsample = 3;
+    let e = bad.validate().unwrap_err().to_string();
+    assert!(e.contains("hrnet_downsample"), "{e}");
+}

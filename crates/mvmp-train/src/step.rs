@@ -219,7 +219,7 @@ pub fn heatmap_term(
                         (vis > 0.5).then_some([u, vv])
                     })
                     .collect();
-                let one = heatmap_target(&pts, [h, w], 4.0, sigma);
+                let one = heatmap_target(&pts, [h, w], cfg.heatmap_stride() as f32, sigma);
                 for (m, x) in map.iter_mut().zip(one) {
                     *m = m.max(x);
                 }
@@ -283,6 +283,8 @@ pub fn facing_term(
 ) -> Option<Tensor<1>> {
     let facing = det.facing.clone()?;
     let [b, v, _, h, w] = facing.dims();
+    // Network pixels per map pixel (4, or more when HRNet reads a pooled input).
+    let stride = batch.images.dims()[3] as f32 / w as f32;
     let mut target = vec![0f32; b * v * 2 * h * w];
     let mut weight = vec![0f32; b * v * h * w];
     for bi in 0..b {
@@ -295,7 +297,7 @@ pub fn facing_term(
                 else {
                     continue;
                 };
-                let torso = torso_weight(&gt.joints_2d[bi][vi][pi], [h, w], sigma);
+                let torso = torso_weight(&gt.joints_2d[bi][vi][pi], [h, w], stride, sigma);
                 for (px, &m) in torso.iter().enumerate() {
                     if m > weight[at + px] {
                         weight[at + px] = m;
@@ -319,14 +321,15 @@ pub fn facing_term(
     ))
 }
 
-/// Where a person's torso shows in one view `[h * w]`: the largest of Gaussians (`sigma` map pixels) at
-/// the person's visible torso joints (network pixels with visibility, `[j][3]`).
-fn torso_weight(person: &[[f32; 3]], hw: [usize; 2], sigma: f32) -> Vec<f32> {
+/// Where a person's torso shows in one view `[h * w]` of `stride` network pixels per map pixel: the
+/// largest of Gaussians (`sigma` map pixels) at the person's visible torso joints (network pixels with
+/// visibility, `[j][3]`).
+fn torso_weight(person: &[[f32; 3]], hw: [usize; 2], stride: f32, sigma: f32) -> Vec<f32> {
     let pts: Vec<Option<[f32; 2]>> = TORSO
         .iter()
         .map(|&j| person.get(j).filter(|p| p[2] > 0.5).map(|p| [p[0], p[1]]))
         .collect();
-    let maps = heatmap_target(&pts, hw, 4.0, sigma);
+    let maps = heatmap_target(&pts, hw, stride, sigma);
     let n = hw[0] * hw[1];
     (0..n)
         .map(|px| {

@@ -397,6 +397,35 @@ struct Cursor {
 
 /// A training run in progress: the data, the devices, the body layers and the run directory it writes,
 /// with the cursor. The model itself flows through the methods by value (the optimizer consumes it).
+/// The batcher that poses the ground truth: with the body model of the (first) MVMP-HMR source, whose
+/// people have meshes (joint-annotated people have none). When that is the model's own body model it
+/// shares the model's layer rather than holding a second copy.
+fn gt_batcher(
+    data: &TrainingSet,
+    body: &Arc<BodyModel>,
+    layer: &SmplxLayer,
+    model_cfg: &ModelConfig,
+    run_root: &Path,
+) -> Result<FrameBatcher, TrainError> {
+    let source = data.parts.iter().find_map(|p| match p {
+        SourceDataset::Mvmp(d) => Some(d.layout()),
+        SourceDataset::Joints(_) => None,
+    });
+    Ok(match source {
+        Some(l)
+            if !mvmp_data::layout::same_body_model(
+                &l.index.body_model,
+                &l.root,
+                &model_cfg.body_model,
+                run_root,
+            ) =>
+        {
+            FrameBatcher::with_vertices(l.body_model()?)
+        }
+        _ => FrameBatcher::with_layer(body.clone(), layer.clone()),
+    })
+}
+
 struct Trainer<'a> {
     run: &'a RunDir,
     cfg: &'a TrainConfig,
@@ -405,10 +434,10 @@ struct Trainer<'a> {
     started: Instant,
     plain: Device,
     ad: Device,
-    body: BodyModel,
-    /// The body layer of the stage-2 loss (autodiff device) and of validation (plain device).
+    body: Arc<BodyModel>,
+    /// The body layer of the stage-2 loss (autodiff device). Validation builds its own on the plain
+    /// device and drops it, so that it is not held through the training steps' peak.
     layer: SmplxLayer,
-    val_layer: SmplxLayer,
     data: TrainingSet,
     batcher: FrameBatcher,
     val_source: Option<SourceSpec>,
@@ -459,13 +488,9 @@ impl<'a> Trainer<'a> {
         check_validation_source(cfg)?;
         // Ground-truth meshes are posed with the body model of the (first) MVMP-HMR source; joint-annotated
         // people have none.
-        let gt_body = match data.parts.iter().find_map(|p| match p {
-            SourceDataset::Mvmp(d) => Some(d),
-            SourceDataset::Joints(_) => None,
-        }) {
-            Some(d) => d.layout().body_model()?,
-            None => body.clone(),
-        };
+        let body = Arc::new(body);
+        let layer = SmplxLayer::new(&body, &ad);
+        let batcher = gt_batcher(&data, &body, &layer, model_cfg, &run.root)?;
         if state.is_none() {
             model = start_at_data_mean(model, &data, &ad)?;
         }
@@ -475,13 +500,12 @@ impl<'a> Trainer<'a> {
             model_cfg,
             opts,
             started,
-            layer: SmplxLayer::new(&body, &ad),
-            val_layer: SmplxLayer::new(&body, &plain),
+            layer,
             plain,
             ad,
             body,
             data,
-            batcher: FrameBatcher::with_vertices(gt_body),
+            batcher,
             val_source: cfg.validation_source(),
             cursor,
             resume_optim,
@@ -741,7 +765,6 @@ impl<'a> Trainer<'a> {
                 self.model_cfg,
                 self.cfg,
                 &self.body,
-                &self.val_layer,
                 src,
                 stage,
                 &self.plain,
@@ -874,18 +897,11 @@ fn validate(
     model_cfg: &ModelConfig,
     cfg: &TrainConfig,
     body: &mvmp_smplx::BodyModel,
-    layer: &SmplxLayer,
     source: &SourceSpec,
     stage: Stage,
     device: &Device,
 ) -> Result<Vec<(String, f64)>, TrainError> {
-    let pred = Predictor::with_layer(
-        model.valid(),
-        model_cfg.clone(),
-        body.clone(),
-        layer.clone(),
-        device,
-    );
+    let pred = Predictor::new(model.valid(), model_cfg.clone(), body.clone(), device);
     if source.format != SourceFormat::Mvmp {
         return validate_joints(&pred, cfg, source, stage);
     }
