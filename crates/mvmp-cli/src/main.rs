@@ -97,10 +97,10 @@ enum Command {
         #[arg(long, default_value = "test")]
         split: String,
         /// Views per frame (the first N cameras; default: the run's test_views).
-        #[arg(long, value_parser = at_least_one())]
+        #[arg(long, allow_negative_numbers = true, value_parser = at_least_one())]
         views: Option<usize>,
         /// Score only the first N frames (0 = all).
-        #[arg(long, default_value_t = 0)]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
         frames: usize,
         /// Matching gate on pelvis distance (metres).
         #[arg(long, default_value_t = mvmp_eval::DEFAULT_GATE, value_parser = positive("metres"), allow_negative_numbers = true)]
@@ -124,7 +124,7 @@ enum Command {
         #[arg(long, default_value = "mvmp")]
         format: SourceFormat,
         /// Keep every N-th frame (panoptic: default the split's stride; h36m: default 5, i.e. 10 Hz).
-        #[arg(long)]
+        #[arg(long, allow_negative_numbers = true)]
         stride: Option<usize>,
         /// Panoptic and h36m: SMPL-X pseudo-ground-truth fits, DIR/<sequence>/<frame>/people.npz (infer's
         /// layout; <sequence> is S9/<action> for h36m, <frame> the 8-digit Panoptic index or the 6-digit
@@ -157,7 +157,7 @@ enum Command {
         #[arg(long, default_value = "out/demo")]
         out: PathBuf,
         /// Training seed (initial weights, frame order, view draws); the dataset stays the same.
-        #[arg(long, default_value_t = 0)]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
         seed: u64,
     },
     /// Train MVMP-HMR (stage 1: HRNet + RootNet; stage 2: the whole model), or resume a run.
@@ -175,7 +175,7 @@ enum Command {
         #[arg(long)]
         resume: Option<PathBuf>,
         /// Stop with a checkpoint once the run has made this many optimizer steps.
-        #[arg(long)]
+        #[arg(long, allow_negative_numbers = true, value_parser = clap::builder::RangedU64ValueParser::<u64>::new().range(1..))]
         stop_after_steps: Option<u64>,
         /// Stop with a checkpoint once this call has trained this many minutes (wall time; the step in
         /// flight finishes first). `--resume` continues such a run.
@@ -203,7 +203,7 @@ enum ImportCommand {
         #[arg(long, default_value = "hrnet_w32")]
         variant: mvmp_backbone::HrnetVariant,
         /// Heatmap joints of the checkpoint's head (17 for COCO).
-        #[arg(long, default_value_t = 17)]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 17)]
         joints: usize,
         #[arg(long)]
         from: PathBuf,
@@ -220,7 +220,7 @@ enum ModelCommand {
         #[arg(long)]
         config: PathBuf,
         /// Views per sample.
-        #[arg(long, default_value_t = 5)]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 5, value_parser = at_least_one())]
         views: usize,
         /// Also estimate a training step's peak memory per stage on flex (weights, Adam's moments,
         /// activations, gradients, the backward's working memory, the body model) from measured steps
@@ -228,10 +228,10 @@ enum ModelCommand {
         #[arg(long)]
         training: bool,
         /// Samples per training step, for --training.
-        #[arg(long, default_value_t = 1, value_parser = at_least_one())]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 1, value_parser = at_least_one())]
         batch: usize,
         /// People per sample, for --training (default: the config's max_people).
-        #[arg(long, value_parser = at_least_one())]
+        #[arg(long, allow_negative_numbers = true, value_parser = at_least_one())]
         people: Option<usize>,
     },
 }
@@ -279,7 +279,7 @@ enum BodyCommand {
         #[arg(long)]
         out: PathBuf,
         /// Generator seed.
-        #[arg(long, default_value_t = 0)]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
         seed: u64,
     },
     /// Pose bodies: write output.npz / output.json (vertices, joints) and one OBJ and PLY per body.
@@ -305,7 +305,7 @@ enum BodyCommand {
         #[arg(long)]
         out: PathBuf,
         /// Image width and height in pixels.
-        #[arg(long, default_value_t = 512)]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 512, value_parser = clap::builder::RangedU64ValueParser::<u32>::new().range(1..=8192))]
         size: u32,
     },
 }
@@ -317,29 +317,29 @@ enum BenchCommand {
     /// counts. The default is one ViT-L/14 block's attention at the paper's 1288 x 1288 (8465 tokens).
     Attention {
         /// Comma-separated token counts.
-        #[arg(long, value_delimiter = ',', default_values_t = [1024, 2048, 4096, 8465], value_parser = at_least_one())]
+        #[arg(long, allow_negative_numbers = true, value_delimiter = ',', default_values_t = [1024, 2048, 4096, 8465], value_parser = at_least_one())]
         tokens: Vec<usize>,
-        #[arg(long, default_value_t = 16, value_parser = at_least_one())]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 16, value_parser = at_least_one())]
         heads: usize,
-        #[arg(long, default_value_t = 64, value_parser = at_least_one())]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 64, value_parser = at_least_one())]
         head_dim: usize,
         /// Side of the score tiles.
-        #[arg(long, default_value_t = mvmp_kernels::DEFAULT_BLOCK, value_parser = at_least_one())]
+        #[arg(long, allow_negative_numbers = true, default_value_t = mvmp_kernels::DEFAULT_BLOCK, value_parser = at_least_one())]
         tile: usize,
         /// Run the plain path only up to this many tokens (16 heads at 8465 tokens hold 4.6 GB of
         /// probabilities, several times over in the backward).
-        #[arg(long, default_value_t = 4096)]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 4096)]
         plain_up_to: usize,
     },
     /// Median wall time of the SMPL-X forward.
     Smplx {
         /// Bodies per forward (at most 4096: each holds 10475 posed vertices and the packed features).
-        #[arg(long, default_value_t = 30, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=4096))]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 30, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=4096))]
         batch: usize,
         #[arg(long)]
         model: Option<PathBuf>,
         /// Timed repetitions after the warm-up.
-        #[arg(long, default_value_t = 20)]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 20, value_parser = at_least_one())]
         iters: usize,
     },
     /// Projection and fusion at a model config's scale (its grid, input size, channels): the sampling
@@ -347,10 +347,10 @@ enum BenchCommand {
     Fusion {
         #[arg(long)]
         config: PathBuf,
-        #[arg(long, default_value_t = 5)]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 5, value_parser = at_least_one())]
         views: usize,
         /// Timed repetitions after the warm-up.
-        #[arg(long, default_value_t = 5)]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 5, value_parser = at_least_one())]
         iters: usize,
     },
     /// The learning benchmark: the full tiny model and the paper's comparisons (VoxelSMPLX, max and
@@ -359,10 +359,10 @@ enum BenchCommand {
     /// (table, the paper's directions) and OUT/curves.png.
     Learn {
         /// The full model's training time, minutes: the schedule every variant trains is sized to it.
-        #[arg(long, default_value_t = 40.0, value_parser = positive("minutes"))]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 40.0, value_parser = positive("minutes"))]
         minutes: f64,
         /// One-frame scenes of the synthetic set (two thirds train, one third held out).
-        #[arg(long, default_value_t = 96, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(3..=10000))]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 96, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(3..=10000))]
         scenes: usize,
         /// Comma-separated variants (default: all): full, voxelsmplx, fusion_max, fusion_deformable,
         /// no_orientation, no_density, root_head, root_spine.
@@ -381,10 +381,10 @@ enum BenchCommand {
         #[arg(long)]
         data: Option<PathBuf>,
         /// Timed steps per stage (after 2 warm-up steps).
-        #[arg(long, default_value_t = 10, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=100000))]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 10, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=100000))]
         steps: usize,
         /// One-frame scenes of the synthetic set made without --config and --data.
-        #[arg(long, default_value_t = 48, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(3..=10000))]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 48, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(3..=10000))]
         scenes: usize,
     },
     /// Per-stage forward times of a model config (batch 1) and the fraction of GEMM speed each reaches;
@@ -392,9 +392,9 @@ enum BenchCommand {
     Model {
         #[arg(long)]
         config: PathBuf,
-        #[arg(long, default_value_t = 4)]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 4, value_parser = at_least_one())]
         views: usize,
-        #[arg(long, default_value_t = 3)]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 3, value_parser = at_least_one())]
         iters: usize,
         /// Time each stage's forward and backward (on the autodiff device; what a training step runs).
         #[arg(long)]

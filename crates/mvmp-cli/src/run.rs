@@ -187,6 +187,12 @@ pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, s
     };
     let layout = mvmp_data::DatasetLayout::open(args.data)?;
     let min_views = layout.scenes.iter().map(|s| s.rig.len()).min().unwrap_or(0);
+    if let Some(v) = args.views.filter(|&v| v > min_views) {
+        anyhow::bail!(
+            "--views {v}: {} has scenes with only {min_views} cameras",
+            args.data.display()
+        );
+    }
     let (ev, source, views): (Evaluator, serde_json::Value, usize) = match args.source {
         Source::Run(run_dir) => {
             let (run, cfg, _) = RunDir::open(run_dir)?;

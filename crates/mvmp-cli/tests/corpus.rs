@@ -226,6 +226,18 @@ fn run_all(cases: Vec<(Case, String)>, failures: &mut Vec<String>) -> usize {
     n
 }
 
+/// The tiny model at 56 px on a 4 m grid: what the corpus's commands read and train.
+fn small_model() -> String {
+    std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/model/tiny.toml"),
+    )
+    .unwrap()
+    .replace("image_size = 224", "image_size = 56")
+    .replace("size = [8.0, 8.0, 2.0]", "size = [4.0, 4.0, 2.0]")
+    .replace("shape = [32, 32, 8]", "shape = [8, 8, 4]")
+    .replace("dim = 128", "dim = 16")
+}
+
 fn s(p: &Path) -> String {
     p.to_string_lossy().into_owned()
 }
@@ -297,18 +309,12 @@ fn no_malformed_input_gets_through() {
     let p = |n: &str| dir.path().join(n);
     // The valid starting points: a small dataset, the tiny model at a small size, a training config.
     synth_dataset(dir.path());
-    let model = std::fs::read_to_string(
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs/model/tiny.toml"),
-    )
-    .unwrap()
-    .replace("image_size = 224", "image_size = 56")
-    .replace("size = [8.0, 8.0, 2.0]", "size = [4.0, 4.0, 2.0]")
-    .replace("shape = [32, 32, 8]", "shape = [8, 8, 4]")
-    .replace("dim = 128", "dim = 16");
+    let model = small_model();
     std::fs::write(p("model.toml"), &model).unwrap();
+    // Top-level keys go before the first table.
     std::fs::write(
         p("train.toml"),
-        TRAIN.to_string() + &format!("data = {:?}\n", s(&p("ds"))),
+        format!("data = {:?}\n", s(&p("ds"))) + TRAIN,
     )
     .unwrap();
     std::fs::write(p("params.json"), PARAMS).unwrap();
@@ -318,6 +324,18 @@ fn no_malformed_input_gets_through() {
             "model config",
         ),
         (vec!["data", "check", &s(&p("ds"))], "dataset"),
+        (
+            vec![
+                "train",
+                "--config",
+                &s(&p("train.toml")),
+                "--out",
+                &s(&p("run")),
+                "--stop-after-steps",
+                "1",
+            ],
+            "training config",
+        ),
         (
             vec![
                 "body",
@@ -338,6 +356,7 @@ fn no_malformed_input_gets_through() {
         );
     }
     std::fs::remove_dir_all(p("body")).unwrap();
+    std::fs::remove_dir_all(p("run")).unwrap();
 
     let floats = [
         toml::Value::Float(f64::NAN),
@@ -679,4 +698,366 @@ fn no_malformed_predictions_get_through() {
         failures.len(),
         failures.join("\n")
     );
+}
+
+/// A PNG of `w` x `h` grey pixels.
+fn png(w: u32, h: u32) -> Vec<u8> {
+    let mut bytes = Vec::new();
+    image::RgbImage::from_pixel(w, h, image::Rgb([128, 128, 128]))
+        .write_to(
+            &mut std::io::Cursor::new(&mut bytes),
+            image::ImageFormat::Png,
+        )
+        .unwrap();
+    bytes
+}
+
+/// `args` as owned strings.
+fn owned(args: &[&str]) -> Vec<String> {
+    args.iter().map(|a| a.to_string()).collect()
+}
+
+/// Images, rigs, run directories and command-line numbers: a broken view image through `infer`, `eval
+/// --save-predictions` and `data check --deep`; every number of a rig through `infer`; broken weights
+/// and a broken `state.json` through `eval --run` and `train --resume`; and bad numbers for every numeric
+/// flag. Each must exit non-zero without a panic, name the file (and key) or the flag, and leave no
+/// output behind.
+#[test]
+fn no_malformed_image_rig_run_or_flag_gets_through() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = |n: &str| dir.path().join(n);
+    let ds = synth_dataset(dir.path());
+    std::fs::write(p("model.toml"), small_model()).unwrap();
+    let train = format!("data = {:?}\n", s(&ds)) + TRAIN;
+    std::fs::write(p("train.toml"), train).unwrap();
+    let run = p("run");
+    let o = mvmp(&[
+        "train",
+        "--config",
+        &s(&p("train.toml")),
+        "--out",
+        &s(&run),
+        "--stop-after-steps",
+        "1",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let frame = ds.join("scene_000/frame_000000");
+    let rig = ds.join("scene_000/cameras.json");
+    let views = [frame.join("view_00.png"), frame.join("view_01.png")];
+    let infer = owned(&[
+        "infer",
+        "--run",
+        &s(&run),
+        "--rig",
+        &s(&rig),
+        "--images",
+        &s(&views[0]),
+        &s(&views[1]),
+        "--out",
+        &s(&p("infer")),
+    ]);
+    let eval = |extra: &[&str]| {
+        let mut a = owned(&[
+            "eval",
+            "--run",
+            &s(&run),
+            "--data",
+            &s(&ds),
+            "--split",
+            "all",
+        ]);
+        a.extend(owned(extra));
+        a
+    };
+    let save = eval(&["--save-predictions", &s(&p("pred"))]);
+    for args in [&infer, &save] {
+        let o = mvmp(&args.iter().map(String::as_str).collect::<Vec<_>>());
+        assert!(
+            o.status.success(),
+            "{args:?}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+    }
+    std::fs::remove_dir_all(p("infer")).unwrap();
+    std::fs::remove_dir_all(p("pred")).unwrap();
+    let mut failures = Vec::new();
+    let mut n = 0;
+    let mut check =
+        |args: &[String], what: &str, names: &dyn Fn(&str) -> bool, out: Option<PathBuf>| {
+            n += 1;
+            let o = mvmp(&args.iter().map(String::as_str).collect::<Vec<_>>());
+            failures.extend(verdict(&o, what, names, out.as_deref()));
+            if let Some(out) = out.filter(|o| o.exists()) {
+                std::fs::remove_dir_all(out).unwrap();
+            }
+        };
+
+    // A view image, broken five ways.
+    let good = std::fs::read(&views[0]).unwrap();
+    let deep = owned(&["data", "check", "--deep", &s(&ds)]);
+    for (what, bytes) in [
+        ("empty", Vec::new()),
+        ("cut after its header", good[..40].to_vec()),
+        ("cut in half", good[..good.len() / 2].to_vec()),
+        ("not an image", b"not an image ".repeat(20)),
+        ("of another size", png(10, 10)),
+    ] {
+        std::fs::write(&views[0], bytes).unwrap();
+        let names = |t: &str| t.contains("view_00.png");
+        for (args, out) in [
+            (&infer, Some(p("infer"))),
+            (&save, Some(p("pred"))),
+            (&deep, None),
+        ] {
+            check(
+                args,
+                &format!("view_00.png {what} via {}", args[0]),
+                &names,
+                out,
+            );
+        }
+    }
+    std::fs::write(&views[0], &good).unwrap();
+
+    // Every number of the rig through `infer`. A camera 1e30 m away once made the top-down picture
+    // overflow while counting its 1 m grid lines.
+    let json_values = [
+        serde_json::Value::Null,
+        serde_json::json!("x"),
+        serde_json::json!([]),
+        serde_json::json!(-1e30),
+    ];
+    let rig_text = std::fs::read_to_string(&rig).unwrap();
+    for (case, text) in json_cases(&rig, &json_values, &infer) {
+        std::fs::write(&rig, text).unwrap();
+        let leaf = case
+            .key
+            .rsplit('.')
+            .next()
+            .unwrap()
+            .split('[')
+            .next()
+            .unwrap()
+            .to_string();
+        let names =
+            move |t: &str| t.contains("cameras.json") && (t.contains(&leaf) || t.contains("line"));
+        let what = format!("{} = {} in cameras.json via infer", case.key, case.value);
+        check(&case.args, &what, &names, Some(p("infer")));
+    }
+    std::fs::write(&rig, rig_text).unwrap();
+
+    // The run's model weights (not the optimizer's, which eval does not read), broken; then its state through `train --resume` (on a copy each time, so that
+    // an accepted case cannot change the run the next one reads).
+    let weights: Vec<PathBuf> = std::fs::read_dir(run.join("checkpoints"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|x| x == "bpk"))
+        .filter(|p| {
+            !p.file_name()
+                .unwrap()
+                .to_string_lossy()
+                .starts_with("optim")
+        })
+        .collect();
+    assert!(!weights.is_empty());
+    for w in &weights {
+        let good = std::fs::read(w).unwrap();
+        let name = w.file_name().unwrap().to_string_lossy().into_owned();
+        for (what, bytes) in [
+            ("empty", Vec::new()),
+            ("cut in half", good[..good.len() / 2].to_vec()),
+        ] {
+            std::fs::write(w, bytes).unwrap();
+            let names = |t: &str| t.contains(&name);
+            check(
+                &save,
+                &format!("{name} {what} via eval"),
+                &names,
+                Some(p("pred")),
+            );
+        }
+        std::fs::write(w, good).unwrap();
+    }
+    let copy = p("resumed");
+    let resume = owned(&["train", "--resume", &s(&copy), "--stop-after-steps", "2"]);
+    let state_values = [
+        serde_json::Value::Null,
+        serde_json::json!("x"),
+        serde_json::json!(-1),
+    ];
+    for (case, text) in json_cases(&run.join("state.json"), &state_values, &resume) {
+        copy_dir(&run, &copy);
+        std::fs::write(copy.join("state.json"), text).unwrap();
+        let leaf = case
+            .key
+            .rsplit('.')
+            .next()
+            .unwrap()
+            .split('[')
+            .next()
+            .unwrap()
+            .to_string();
+        let names = move |t: &str| t.contains("state.json") && t.contains(&leaf);
+        let what = format!(
+            "{} = {} in state.json via train --resume",
+            case.key, case.value
+        );
+        check(&case.args, &what, &names, None);
+        std::fs::remove_dir_all(&copy).unwrap();
+    }
+
+    // Numbers on the command line: each must be refused naming its flag.
+    let tiny = s(&p("model.toml"));
+    let flags: Vec<(Vec<String>, &str)> = vec![
+        (eval(&["--views", "0"]), "--views"),
+        (eval(&["--views", "1000000"]), "--views"),
+        (eval(&["--frames", "-1"]), "--frames"),
+        (eval(&["--gate", "nan"]), "--gate"),
+        (eval(&["--gate", "-1"]), "--gate"),
+        (eval(&["--gate", "inf"]), "--gate"),
+        (
+            owned(&["model", "summary", "--config", &tiny, "--views", "0"]),
+            "--views",
+        ),
+        (
+            owned(&[
+                "model",
+                "summary",
+                "--config",
+                &tiny,
+                "--training",
+                "--batch",
+                "0",
+            ]),
+            "--batch",
+        ),
+        (
+            owned(&["bench", "model", "--config", &tiny, "--iters", "0"]),
+            "--iters",
+        ),
+        (
+            owned(&["bench", "model", "--config", &tiny, "--views", "0"]),
+            "--views",
+        ),
+        (
+            owned(&["bench", "fusion", "--config", &tiny, "--views", "0"]),
+            "--views",
+        ),
+        (
+            owned(&["bench", "fusion", "--config", &tiny, "--iters", "0"]),
+            "--iters",
+        ),
+        (owned(&["bench", "smplx", "--batch", "0"]), "--batch"),
+        (
+            owned(&["bench", "smplx", "--batch", "18446744073709551615"]),
+            "--batch",
+        ),
+        (owned(&["bench", "smplx", "--iters", "0"]), "--iters"),
+        (owned(&["bench", "attention", "--tokens", "0"]), "--tokens"),
+        (owned(&["bench", "attention", "--heads", "0"]), "--heads"),
+        (
+            owned(&["bench", "attention", "--head-dim", "0"]),
+            "--head-dim",
+        ),
+        (owned(&["bench", "attention", "--tile", "0"]), "--tile"),
+        (owned(&["bench", "train", "--steps", "0"]), "--steps"),
+        (owned(&["bench", "train", "--scenes", "0"]), "--scenes"),
+        (
+            owned(&[
+                "bench",
+                "learn",
+                "--minutes",
+                "nan",
+                "--out",
+                &s(&p("learn")),
+            ]),
+            "--minutes",
+        ),
+        (
+            owned(&["bench", "learn", "--minutes", "0", "--out", &s(&p("learn"))]),
+            "--minutes",
+        ),
+        (
+            owned(&["bench", "learn", "--scenes", "0", "--out", &s(&p("learn"))]),
+            "--scenes",
+        ),
+        (
+            owned(&["body", "render", "--size", "0", "--out", &s(&p("r.png"))]),
+            "--size",
+        ),
+        (
+            owned(&[
+                "body",
+                "render",
+                "--size",
+                "1000000",
+                "--out",
+                &s(&p("r.png")),
+            ]),
+            "--size",
+        ),
+        (
+            owned(&["demo", "--seed", "-1", "--out", &s(&p("demo"))]),
+            "--seed",
+        ),
+        (
+            owned(&[
+                "train",
+                "--config",
+                &s(&p("train.toml")),
+                "--out",
+                &s(&p("run2")),
+                "--stop-after-steps",
+                "0",
+            ]),
+            "--stop-after-steps",
+        ),
+        (
+            owned(&[
+                "train",
+                "--config",
+                &s(&p("train.toml")),
+                "--out",
+                &s(&p("run2")),
+                "--stop-after-minutes",
+                "nan",
+            ]),
+            "--stop-after-minutes",
+        ),
+    ];
+    for (args, flag) in flags {
+        let value = args
+            .iter()
+            .skip_while(|a| *a != flag)
+            .nth(1)
+            .cloned()
+            .unwrap();
+        let what = format!("{} {flag} {value}", args[..2].join(" "));
+        let names = |t: &str| t.contains(flag);
+        let out = ["--out"]
+            .iter()
+            .find_map(|f| args.iter().skip_while(|a| a != f).nth(1).map(PathBuf::from));
+        check(&args, &what, &names, out);
+    }
+    assert!(n > 60, "{n} cases");
+    assert!(
+        failures.is_empty(),
+        "{} of {n} cases failed:\n{}",
+        failures.len(),
+        failures.join("\n")
+    );
+}
+
+/// Copy a directory tree.
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        let target = to.join(e.file_name());
+        if e.file_type().unwrap().is_dir() {
+            copy_dir(&e.path(), &target);
+        } else {
+            std::fs::copy(e.path(), target).unwrap();
+        }
+    }
 }

@@ -105,7 +105,7 @@ impl PersonView {
 
 fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T, DataError> {
     let text = std::fs::read_to_string(path).map_err(|e| DataError::io(path, e))?;
-    serde_json::from_str(&text).map_err(|e| DataError::file(path, format!("invalid: {e}")))
+    mvmp_geom::io::parse_json(&text).map_err(|e| DataError::file(path, format!("invalid: {e}")))
 }
 
 fn check_header(path: &Path, format: &str, want: &str, version: u32) -> Result<(), DataError> {

@@ -7,6 +7,14 @@ use crate::GeomError;
 /// Calibration files print rotations with 6-10 digits; 1e-5 accepts those and rejects real errors.
 pub const ROTATION_TOLERANCE: f64 = 1e-5;
 
+/// Farthest a camera centre may be from the world origin (metres): 100 km. Capture rigs span metres to
+/// hundreds of metres; a centre beyond this is a unit mistake or a broken file, and pictures and grids
+/// sized to it would not fit in memory.
+pub const MAX_CENTRE_DISTANCE: f64 = 1e5;
+
+/// Largest magnitude of a lens distortion coefficient: real lenses' k1..k3, p1, p2 are well inside it.
+pub const MAX_DISTORTION: f64 = 1e4;
+
 /// A calibrated camera. `x_cam = R x_world + t` (metres); pixels follow
 /// `u = fx*xd + skew*yd + cx`, `v = fy*yd + cy` with `(xd, yd)` the distorted normalised coordinates.
 #[derive(Debug, Clone, PartialEq)]
@@ -73,7 +81,7 @@ impl Camera {
         let (fx, fy) = (self.k[(0, 0)], self.k[(1, 1)]);
         if fx <= 0.0 || fy <= 0.0 {
             return Err(self.invalid(format!(
-                "focal lengths must be positive, got fx = {fx}, fy = {fy}"
+                "K: focal lengths must be positive, got fx = {fx}, fy = {fy}"
             )));
         }
         let bottom = [self.k[(1, 0)], self.k[(2, 0)], self.k[(2, 1)]];
@@ -100,8 +108,20 @@ impl Camera {
         }
         if self.width == 0 || self.height == 0 {
             return Err(self.invalid(format!(
-                "image size must be positive, got {} x {}",
+                "image size (resolution) must be positive, got {} x {}",
                 self.width, self.height
+            )));
+        }
+        let centre = self.centre().norm();
+        if centre > MAX_CENTRE_DISTANCE {
+            return Err(self.invalid(format!(
+                "R and t put the camera {centre:.3e} m from the origin; a rig's cameras are within \
+                 {MAX_CENTRE_DISTANCE:.0e} m (metres expected)"
+            )));
+        }
+        if let Some(k) = self.dist.iter().find(|k| k.abs() > MAX_DISTORTION) {
+            return Err(self.invalid(format!(
+                "dist holds {k}; lens distortion coefficients are within +-{MAX_DISTORTION:.0e}"
             )));
         }
         Ok(())

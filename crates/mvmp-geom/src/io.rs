@@ -203,3 +203,16 @@ fn swap(stage: &Path, dest: &Path) -> Result<(), GeomError> {
         std::fs::rename(&aside, stage).map_err(io_at(stage))
     }
 }
+
+/// Parse JSON text into `T`; the error names the key path where it failed (`people[0].pelvis[2]`),
+/// then serde's message with its line and column.
+pub fn parse_json<T: serde::de::DeserializeOwned>(text: &str) -> Result<T, String> {
+    let de = &mut serde_json::Deserializer::from_str(text);
+    serde_path_to_error::deserialize(de).map_err(|e| {
+        let key = e.path().to_string();
+        match key.as_str() {
+            "" | "." => e.into_inner().to_string(),
+            _ => format!("key `{key}`: {}", e.into_inner()),
+        }
+    })
+}

@@ -91,7 +91,7 @@ impl Rig {
 
     /// Parse a rig from JSON text; `path` is only used in messages.
     pub fn from_json_str(text: &str, path: &Path) -> Result<Self, GeomError> {
-        let file: RigFile = serde_json::from_str(text)
+        let file: RigFile = crate::io::parse_json(text)
             .map_err(|e| GeomError::file(path, format!("not a valid rig file: {e}")))?;
         if file.format != RIG_FORMAT {
             return Err(GeomError::file(

@@ -146,6 +146,24 @@ fn invalid_cameras_are_rejected() {
     )
     .unwrap_err();
     assert!(e.to_string().contains("image size"), "{e}");
+    // Finite but absurd: a centre 1e30 m away (a unit mistake or a broken file), a lens coefficient of
+    // 1e30. A centre 99 km away and k1 = -500 are still cameras.
+    let at = |t: f64, k1: f64| {
+        Camera::new(
+            "f",
+            k,
+            Matrix3::identity(),
+            Vector3::new(t, 0.0, 0.0),
+            [k1, 0.0, 0.0, 0.0, 0.0],
+            10,
+            10,
+        )
+    };
+    let e = at(1e30, 0.0).unwrap_err();
+    assert!(e.to_string().contains("from the origin"), "{e}");
+    let e = at(0.0, 1e30).unwrap_err();
+    assert!(e.to_string().contains("dist"), "{e}");
+    at(9.9e4, -500.0).unwrap();
 }
 
 #[test]

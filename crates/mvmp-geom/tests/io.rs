@@ -102,3 +102,27 @@ fn a_file_written_through_a_path_appears_whole_or_not_at_all() {
     assert_eq!(std::fs::read_to_string(&dest).unwrap(), "first");
     assert_eq!(names(dir.path()), vec!["optim.bpk".to_string()]);
 }
+
+#[test]
+fn a_json_error_names_the_key_path() {
+    #[derive(serde::Deserialize, Debug)]
+    #[allow(dead_code)]
+    struct Person {
+        pelvis: [f64; 3],
+    }
+    #[derive(serde::Deserialize, Debug)]
+    #[allow(dead_code)]
+    struct Frame {
+        people: Vec<Person>,
+    }
+    let e = mvmp_geom::io::parse_json::<Frame>(
+        r#"{"people": [{"pelvis": [0, 1, 2]}, {"pelvis": [0, null, 2]}]}"#,
+    )
+    .unwrap_err();
+    assert!(
+        e.starts_with("key `people[1].pelvis[1]`: invalid type: null"),
+        "{e}"
+    );
+    let e = mvmp_geom::io::parse_json::<Frame>("{").unwrap_err();
+    assert!(e.contains("line 1"), "{e}");
+}

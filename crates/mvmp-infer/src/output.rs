@@ -92,8 +92,9 @@ pub fn heading(joints: &[[f32; 3]]) -> Option<[f64; 2]> {
     (n > 1e-9).then(|| [o.x / n, o.y / n])
 }
 
-/// A top-down picture (`size` pixels square) of `grid`'s ground area: a 1 m grid, the cameras (grey
-/// squares), each person as a disc at the pelvis with a heading stroke, in the overlay colours.
+/// A top-down picture (`size` pixels square) of `grid`'s ground area: a 1 m grid (coarser when the
+/// cameras stand more than 100 m apart), the cameras (grey squares), each person as a disc at the
+/// pelvis with a heading stroke, in the overlay colours.
 pub fn topdown(
     grid: &VoxelGrid,
     cameras: &[Camera],
@@ -128,14 +129,18 @@ pub fn topdown(
         )
     };
     let grey = Rgb([215, 215, 210]);
-    let (gx0, gx1) = (lo[0].floor() as i64 - 1, hi[0].ceil() as i64 + 1);
-    let (gy0, gy1) = (lo[1].floor() as i64 - 1, hi[1].ceil() as i64 + 1);
-    for gx in gx0..=gx1 {
-        let (a, b) = (to_px(gx as f64, gy0 as f64), to_px(gx as f64, gy1 as f64));
+    // A 1 m grid, or 10 m, 100 m, ... so that at most about 100 lines cross the picture.
+    let step = 10f64.powi((span / 100.0).log10().ceil().max(0.0) as i32);
+    let (gx0, gx1) = ((lo[0] / step).floor() - 1.0, (hi[0] / step).ceil() + 1.0);
+    let (gy0, gy1) = ((lo[1] / step).floor() - 1.0, (hi[1] / step).ceil() + 1.0);
+    for i in 0..=(gx1 - gx0) as usize {
+        let gx = (gx0 + i as f64) * step;
+        let (a, b) = (to_px(gx, gy0 * step), to_px(gx, gy1 * step));
         line(&mut img, a, b, 1.0, grey);
     }
-    for gy in gy0..=gy1 {
-        let (a, b) = (to_px(gx0 as f64, gy as f64), to_px(gx1 as f64, gy as f64));
+    for i in 0..=(gy1 - gy0) as usize {
+        let gy = (gy0 + i as f64) * step;
+        let (a, b) = (to_px(gx0 * step, gy), to_px(gx1 * step, gy));
         line(&mut img, a, b, 1.0, grey);
     }
     // The grid's area.

@@ -117,7 +117,7 @@ impl RunDir {
         }
         let text = std::fs::read_to_string(&path).map_err(|e| TrainError::io(&path, e))?;
         let s: RunState =
-            serde_json::from_str(&text).map_err(|e| TrainError::file(&path, e.to_string()))?;
+            mvmp_geom::io::parse_json(&text).map_err(|e| TrainError::file(&path, e))?;
         if s.format != STATE_FORMAT || s.version != 1 {
             return Err(TrainError::file(
                 &path,
