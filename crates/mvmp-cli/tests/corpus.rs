@@ -502,6 +502,20 @@ fn no_malformed_body_model_gets_through() {
     ] {
         cases.push((key, Box::new(f)));
     }
+    // Finite but absurd: a template of 1e30 m once posed meshes of that size without a word, and a model
+    // in millimetres is a model 1000 times too large.
+    cases.push((
+        "v_template",
+        Box::new(|m: &mut BodyModel| m.v_template[7] = 1e30),
+    ));
+    cases.push((
+        "v_template",
+        Box::new(|m: &mut BodyModel| m.v_template.iter_mut().for_each(|x| *x *= 1000.0)),
+    ));
+    cases.push((
+        "shapedirs",
+        Box::new(|m: &mut BodyModel| m.shapedirs[11] = -1e30),
+    ));
     cases.push((
         "v_template",
         Box::new(|m: &mut BodyModel| {

@@ -16,6 +16,11 @@ use crate::SmplxError;
 use crate::names::{NUM_EXPRESSION, NUM_JOINTS, NUM_POSE_JOINTS, PARENTS};
 use mvmp_geom::io::write_atomic_with;
 
+/// Largest magnitude of any float in a body model: SMPL-X's template spans about 1.8 m, its shape and
+/// pose directions move vertices by centimetres per unit, and its weights, regressor rows and landmark
+/// coordinates lie in [0, 1]. A model in millimetres, or a broken file, exceeds it.
+pub const MAX_MODEL_VALUE: f64 = 10.0;
+
 /// A body model held on the CPU, as in the file (float32).
 #[derive(Debug, Clone, PartialEq)]
 pub struct BodyModel {
@@ -345,6 +350,19 @@ impl BodyModel {
                 return Err(value_err(
                     key,
                     format!("entry {i} is not finite ({})", vals[i]),
+                ));
+            }
+            if let Some(i) = vals
+                .iter()
+                .position(|x| f64::from(x.abs()) > MAX_MODEL_VALUE)
+            {
+                return Err(value_err(
+                    key,
+                    format!(
+                        "entry {i} is {}: beyond +-{MAX_MODEL_VALUE}, which no body model in metres \
+                         holds",
+                        vals[i]
+                    ),
                 ));
             }
         }
