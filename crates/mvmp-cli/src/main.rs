@@ -2,6 +2,7 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use burn::tensor::Device;
 use clap::{Parser, Subcommand, ValueEnum};
 use mvmp_data::sources::SourceFormat;
 
@@ -80,59 +81,7 @@ enum Command {
     #[command(subcommand)]
     Bench(BenchCommand),
     /// Score a run (or stored predictions, or the mean-pose reference) on a dataset split.
-    Eval {
-        /// Run directory made by `mvmp train`.
-        #[arg(long, conflicts_with_all = ["predictions", "baseline"])]
-        run: Option<PathBuf>,
-        /// Predictions in infer's layout: PRED_DIR/<scene>/<frame>/people.npz.
-        #[arg(long, conflicts_with = "baseline")]
-        predictions: Option<PathBuf>,
-        /// A reference instead of a model: `mean-pose` (the training split's mean pose at each ground-truth pelvis).
-        #[arg(long, value_enum)]
-        baseline: Option<Baseline>,
-        /// Dataset root (mvmp layout).
-        #[arg(long)]
-        data: PathBuf,
-        /// train, test or all.
-        #[arg(long, default_value = "test")]
-        split: String,
-        /// Views per frame (the first N cameras; default: the run's test_views).
-        #[arg(long, allow_negative_numbers = true, value_parser = at_least_one())]
-        views: Option<usize>,
-        /// Score only the first N frames (0 = all).
-        #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
-        frames: usize,
-        /// Matching gate on pelvis distance (metres).
-        #[arg(long, default_value_t = mvmp_eval::DEFAULT_GATE, value_parser = positive("metres"), allow_negative_numbers = true)]
-        gate: f64,
-        /// Write the JSON report here (default: RUN_DIR/eval-<split>.json for a run).
-        #[arg(long)]
-        out: Option<PathBuf>,
-        /// Also write each frame's predictions (infer's layout) under this directory.
-        #[arg(long)]
-        save_predictions: Option<PathBuf>,
-        /// Body model for --predictions (`standin:SEED` or an SMPLX npz; default: the dataset's) and for
-        /// --pseudo-gt (default: the run's).
-        #[arg(long)]
-        body_model: Option<String>,
-        /// Joints MPJPE is taken on: smplx127, panoptic15 or h36m17 (mapped from SMPL-X joints).
-        #[arg(long, default_value = "smplx127")]
-        joints: mvmp_eval::joint_sets::JointSet,
-        /// Dataset layout: mvmp; panoptic (CMU Panoptic read in place; --split test = voxelpose-val,
-        /// train = voxelpose-train, or comma-separated sequence names); h36m (Human3.6M read in place;
-        /// --split test = S9,S11, train = S1,S5,S6,S7,S8, or comma-separated subjects).
-        #[arg(long, default_value = "mvmp")]
-        format: SourceFormat,
-        /// Keep every N-th frame (panoptic: default the split's stride; h36m: default 5, i.e. 10 Hz).
-        #[arg(long, allow_negative_numbers = true)]
-        stride: Option<usize>,
-        /// Panoptic and h36m: SMPL-X pseudo-ground-truth fits, DIR/<sequence>/<frame>/people.npz (infer's
-        /// layout; <sequence> is S9/<action> for h36m, <frame> the 8-digit Panoptic index or the 6-digit
-        /// image number); PVE and PA-PVE are computed against them, posed with --body-model (default:
-        /// the run's).
-        #[arg(long)]
-        pseudo_gt: Option<PathBuf>,
-    },
+    Eval(EvalCli),
     /// Recover every person's SMPL-X mesh from calibrated views of a frame (or a sequence of frames).
     Infer {
         /// Run directory made by `mvmp train`.
@@ -234,6 +183,62 @@ enum ModelCommand {
         #[arg(long, allow_negative_numbers = true, value_parser = at_least_one())]
         people: Option<usize>,
     },
+}
+
+/// `mvmp eval`'s arguments.
+#[derive(clap::Args)]
+struct EvalCli {
+    /// Run directory made by `mvmp train`.
+    #[arg(long, conflicts_with_all = ["predictions", "baseline"])]
+    run: Option<PathBuf>,
+    /// Predictions in infer's layout: PRED_DIR/<scene>/<frame>/people.npz.
+    #[arg(long, conflicts_with = "baseline")]
+    predictions: Option<PathBuf>,
+    /// A reference instead of a model: `mean-pose` (the training split's mean pose at each ground-truth pelvis).
+    #[arg(long, value_enum)]
+    baseline: Option<Baseline>,
+    /// Dataset root (mvmp layout).
+    #[arg(long)]
+    data: PathBuf,
+    /// train, test or all.
+    #[arg(long, default_value = "test")]
+    split: String,
+    /// Views per frame (the first N cameras; default: the run's test_views).
+    #[arg(long, allow_negative_numbers = true, value_parser = at_least_one())]
+    views: Option<usize>,
+    /// Score only the first N frames (0 = all).
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
+    frames: usize,
+    /// Matching gate on pelvis distance (metres).
+    #[arg(long, default_value_t = mvmp_eval::DEFAULT_GATE, value_parser = positive("metres"), allow_negative_numbers = true)]
+    gate: f64,
+    /// Write the JSON report here (default: RUN_DIR/eval-<split>.json for a run).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Also write each frame's predictions (infer's layout) under this directory.
+    #[arg(long)]
+    save_predictions: Option<PathBuf>,
+    /// Body model for --predictions (`standin:SEED` or an SMPLX npz; default: the dataset's) and for
+    /// --pseudo-gt (default: the run's).
+    #[arg(long)]
+    body_model: Option<String>,
+    /// Joints MPJPE is taken on: smplx127, panoptic15 or h36m17 (mapped from SMPL-X joints).
+    #[arg(long, default_value = "smplx127")]
+    joints: mvmp_eval::joint_sets::JointSet,
+    /// Dataset layout: mvmp; panoptic (CMU Panoptic read in place; --split test = voxelpose-val,
+    /// train = voxelpose-train, or comma-separated sequence names); h36m (Human3.6M read in place;
+    /// --split test = S9,S11, train = S1,S5,S6,S7,S8, or comma-separated subjects).
+    #[arg(long, default_value = "mvmp")]
+    format: SourceFormat,
+    /// Keep every N-th frame (panoptic: default the split's stride; h36m: default 5, i.e. 10 Hz).
+    #[arg(long, allow_negative_numbers = true, value_parser = at_least_one())]
+    stride: Option<usize>,
+    /// Panoptic and h36m: SMPL-X pseudo-ground-truth fits, DIR/<sequence>/<frame>/people.npz (infer's
+    /// layout; <sequence> is S9/<action> for h36m, <frame> the 8-digit Panoptic index or the 6-digit
+    /// image number); PVE and PA-PVE are computed against them, posed with --body-model (default:
+    /// the run's).
+    #[arg(long)]
+    pseudo_gt: Option<PathBuf>,
 }
 
 #[derive(Subcommand)]
@@ -498,64 +503,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             from,
             out,
         }) => import::hrnet(variant, joints, &from, &out),
-        Command::Eval {
-            run,
-            predictions,
-            baseline,
-            data,
-            split,
-            views,
-            frames,
-            gate,
-            out,
-            save_predictions,
-            body_model,
-            joints,
-            format,
-            stride,
-            pseudo_gt,
-        } => {
-            let source = match (&run, &predictions, baseline) {
-                (Some(r), None, None) => run::Source::Run(r),
-                (None, Some(p), None) => run::Source::Predictions(p),
-                (None, None, Some(Baseline::MeanPose)) => run::Source::MeanPose,
-                _ => anyhow::bail!(
-                    "pass one of --run RUN_DIR, --predictions DIR, --baseline mean-pose"
-                ),
-            };
-            let split_v = if format != SourceFormat::Mvmp {
-                mvmp_data::loader::Split::Test
-            } else {
-                run::parse_split(&split)?
-            };
-            let out = out.or_else(|| run.as_ref().map(|r| r.join(format!("eval-{split}.json"))));
-            let args = run::EvalArgs {
-                source,
-                data: &data,
-                split: split_v,
-                views,
-                frames,
-                gate,
-                out: out.as_deref(),
-                save_predictions: save_predictions.as_deref(),
-                body_model: body_model.as_deref(),
-                joints,
-                format,
-                split_name: &split,
-                stride,
-                pseudo_gt: pseudo_gt.as_deref(),
-            };
-            let (m, _) = run::eval(&args, &device, false)?;
-            print!("{}", run::table(&[(format!("{split} split"), m.clone())]));
-            println!(
-                "matched {} of {} ground-truth people, {} predictions",
-                m.matched, m.ground_truth, m.predictions
-            );
-            if let Some(o) = &out {
-                println!("report {}", o.display());
-            }
-            Ok(())
-        }
+        Command::Eval(e) => eval_command(e, &device),
         Command::Infer {
             run,
             rig,
@@ -594,67 +542,123 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             &mut train::BarMonitor::new(false),
         )
         .map(|_| ()),
-        Command::Bench(BenchCommand::Model {
+        Command::Bench(b) => bench_command(b, &device, device::is_host(&cli.device)),
+    }
+}
+
+/// `mvmp eval`: score, print the table and where the report went.
+fn eval_command(e: EvalCli, device: &Device) -> anyhow::Result<()> {
+    let source = match (&e.run, &e.predictions, e.baseline) {
+        (Some(r), None, None) => run::Source::Run(r),
+        (None, Some(p), None) => run::Source::Predictions(p),
+        (None, None, Some(Baseline::MeanPose)) => run::Source::MeanPose,
+        _ => anyhow::bail!("pass one of --run RUN_DIR, --predictions DIR, --baseline mean-pose"),
+    };
+    let split = if e.format != SourceFormat::Mvmp {
+        mvmp_data::loader::Split::Test
+    } else {
+        run::parse_split(&e.split)?
+    };
+    let out = e.out.clone().or_else(|| {
+        e.run
+            .as_ref()
+            .map(|r| r.join(format!("eval-{}.json", e.split)))
+    });
+    let args = run::EvalArgs {
+        source,
+        data: &e.data,
+        split,
+        views: e.views,
+        frames: e.frames,
+        gate: e.gate,
+        out: out.as_deref(),
+        save_predictions: e.save_predictions.as_deref(),
+        body_model: e.body_model.as_deref(),
+        joints: e.joints,
+        format: e.format,
+        split_name: &e.split,
+        stride: e.stride,
+        pseudo_gt: e.pseudo_gt.as_deref(),
+    };
+    let (m, _) = run::eval(&args, device, false)?;
+    print!(
+        "{}",
+        run::table(&[(format!("{} split", e.split), m.clone())])
+    );
+    println!(
+        "matched {} of {} ground-truth people, {} predictions",
+        m.matched, m.ground_truth, m.predictions
+    );
+    if let Some(o) = &out {
+        println!("report {}", o.display());
+    }
+    Ok(())
+}
+
+/// `mvmp bench ...`: `host` says whether the device computes in host memory (the peak columns).
+fn bench_command(cmd: BenchCommand, device: &Device, host: bool) -> anyhow::Result<()> {
+    match cmd {
+        BenchCommand::Model {
             config,
             views,
             iters,
             backward,
-        }) => model::bench(&config, views, iters, backward, &device),
-        Command::Bench(BenchCommand::Attention {
+        } => model::bench(&config, views, iters, backward, device),
+        BenchCommand::Attention {
             tokens,
             heads,
             head_dim,
             tile,
             plain_up_to,
-        }) => bench_attention::bench_attention(
+        } => bench_attention::bench_attention(
             &bench_attention::AttentionArgs {
                 tokens: &tokens,
                 heads,
                 head_dim,
                 tile,
                 plain_up_to,
-                host: device::is_host(&cli.device),
+                host,
             },
-            &device,
+            device,
         ),
-        Command::Bench(BenchCommand::Train {
+        BenchCommand::Train {
             config,
             data,
             steps,
             scenes,
-        }) => bench_train::bench_train(
+        } => bench_train::bench_train(
             &bench_train::BenchTrainArgs {
                 config: config.as_deref(),
                 data: data.as_deref(),
                 steps,
                 scenes,
-                host: device::is_host(&cli.device),
+                host,
             },
-            &device,
+            device,
         ),
-        Command::Bench(BenchCommand::Learn {
+        BenchCommand::Learn {
             minutes,
             scenes,
             variants,
             out,
-        }) => learn::bench_learn(
+        } => learn::bench_learn(
             &learn::LearnArgs {
                 out: &out,
                 minutes,
                 scenes,
                 variants: variants.as_deref(),
             },
-            &device,
+            device,
         ),
-        Command::Bench(BenchCommand::Fusion {
+        BenchCommand::Fusion {
             config,
             views,
             iters,
-        }) => model::bench_fusion(&config, views, iters, &device),
-        Command::Bench(BenchCommand::Smplx {
+        } => model::bench_fusion(&config, views, iters, device),
+        BenchCommand::Smplx {
             batch,
             model,
             iters,
-        }) => body::bench(model.as_deref(), batch, iters, &device),
+        } => body::bench(model.as_deref(), batch, iters, device),
     }
 }

@@ -4,6 +4,8 @@ use std::path::Path;
 use std::time::Instant;
 
 use anyhow::{Result, bail};
+use burn::tensor::module::avg_pool2d;
+use burn::tensor::ops::AvgPoolOptions;
 use burn::tensor::{Bool, Device, Tensor, TensorData};
 use nalgebra::Vector3;
 
@@ -291,7 +293,13 @@ pub fn bench(
     let bw5 = |y| with_backward(y, backward, device);
     let (feats, t) = time(iters, || bw4(net.view_features(x.clone())));
     rows.push(("vit+reduce", t, macs("vit") + macs("reduce")));
-    let (hm, t) = time(iters, || bw4(net.hrnet.forward(x.clone())));
+    // HRNet reads the input pooled by `hrnet_downsample`, as in the model.
+    let k_hr = cfg.hrnet_downsample.max(1) as usize;
+    let xh = match k_hr {
+        1 => x.clone(),
+        k => avg_pool2d(x.clone(), AvgPoolOptions::new([k, k])),
+    };
+    let (hm, t) = time(iters, || bw4(net.hrnet.forward(xh.clone())));
     rows.push(("hrnet", t, macs("hrnet")));
     let [_, cf, h, w] = feats.dims();
     let feats = leaf(feats.reshape([1, views, cf, h, w]), backward);
@@ -309,17 +317,7 @@ pub fn bench(
     let t0 = Instant::now();
     let _ = extract_roots(lik, Subvoxel::Centre, g, k, f32::MIN);
     rows.push(("roots", t0.elapsed().as_secs_f64(), 0.0));
-    let roots: Vec<f32> = (0..k)
-        .flat_map(|i| {
-            let a = i as f64 * 2.4;
-            [
-                (g.center[0] + a.cos()) as f32,
-                (g.center[1] + a.sin()) as f32,
-                0.9,
-            ]
-        })
-        .collect();
-    let roots = Tensor::<3>::from_data(TensorData::new(roots, [1, k, 3]), device);
+    let roots = Tensor::<3>::from_data(TensorData::new(ring_roots(g, k), [1, k, 3]), device);
     let present = Tensor::<2, Bool>::from_data(TensorData::new(vec![true; k], [1, k]), device);
     let (rot, t) = time(iters, || {
         let decoded = net
@@ -344,16 +342,32 @@ pub fn bench(
         with_backward(posed, backward, device)
     });
     rows.push(("smplx", t, macs("smplx")));
-    println!(
-        "model {} on {:?}: {} views, {} x {} input, {} people, median of {} runs",
+    let header = format!(
+        "model {} on {:?}: {views} views, {s} x {s} input, {k} people, median of {iters} runs",
         config.display(),
-        device,
-        views,
-        s,
-        s,
-        k,
-        iters
+        device
     );
+    print_stage_times(&header, t_grids, backward, &rows);
+    Ok(())
+}
+
+/// `k` roots on a circle of 1 m round the grid's centre, at pelvis height, `[k * 3]`.
+pub(crate) fn ring_roots(g: &mvmp_geom::VoxelGrid, k: usize) -> Vec<f32> {
+    (0..k)
+        .flat_map(|i| {
+            let a = i as f64 * 2.4;
+            [
+                (g.center[0] + a.cos()) as f32,
+                (g.center[1] + a.sin()) as f32,
+                0.9,
+            ]
+        })
+        .collect()
+}
+
+/// The table of `bench model`: per stage its time, GFLOP/s and share of flex's GEMM speed.
+fn print_stage_times(header: &str, t_grids: f64, backward: bool, rows: &[(&str, f64, f64)]) {
+    println!("{header}");
     println!("sampling grids (once per rig): {:.1} ms", t_grids * 1e3);
     // A backward computes the gradients of the input and of the weights: twice the forward's work.
     let (what, work) = match backward {
@@ -366,7 +380,7 @@ pub fn bench(
         "stage", "ms", "GFLOP/s", "% of GEMM"
     );
     let mut total = 0.0;
-    for (name, t, m) in &rows {
+    for (name, t, m) in rows {
         let gflops = 2.0 * work * m / t / 1e9;
         let pct = if *m > 0.0 {
             format!("{:.0}%", 100.0 * gflops / FLEX_GEMM_GFLOPS)
@@ -382,5 +396,4 @@ pub fn bench(
         total += t;
     }
     println!("{:<11} {:>10.1}", "total", total * 1e3);
-    Ok(())
 }

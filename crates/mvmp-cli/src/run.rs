@@ -147,22 +147,7 @@ pub fn table(rows: &[(String, Metrics)]) -> String {
 
 /// Run an evaluation; returns the overall figures and the report.
 pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, serde_json::Value)> {
-    if let Some(dir) = args.save_predictions {
-        // Refused rather than ignored: only a model's predictions on an mvmp tree are written.
-        if args.format != SourceFormat::Mvmp {
-            bail!(
-                "--save-predictions {}: predictions are saved for --format mvmp only, not {}",
-                dir.display(),
-                args.format
-            );
-        }
-        if !matches!(args.source, Source::Run(_)) {
-            bail!(
-                "--save-predictions {}: needs --run (stored predictions and the mean pose have nothing new to save)",
-                dir.display()
-            );
-        }
-    }
+    check_save_predictions(args)?;
     match args.format {
         SourceFormat::Mvmp => {
             if args.stride.is_some() {
@@ -193,103 +178,10 @@ pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, s
             args.data.display()
         );
     }
-    let (ev, source, views): (Evaluator, serde_json::Value, usize) = match args.source {
-        Source::Run(run_dir) => {
-            let (run, cfg, _) = RunDir::open(run_dir)?;
-            let (pred, weights) = Predictor::from_run(run_dir, device)?;
-            let views = args.views.unwrap_or(cfg.test_views.min(min_views));
-            let opts = EvalOptions {
-                split: args.split,
-                views,
-                max_frames: args.frames,
-                gate: args.gate,
-                joints: args.joints,
-            };
-            let mut pb = LazyBar::new("eval", quiet);
-            let faces = pred.layer.faces().to_vec();
-            // Every frame's files go to a staging directory, moved into place once all are scored.
-            let staged = args.save_predictions.map(StagedDir::new).transpose()?;
-            let ev = evaluate(&pred, args.data, &opts, |i, n, fp| {
-                if let Some(dir) = &staged {
-                    let d = dir.path().join(&fp.scene).join(&fp.frame);
-                    write_frame(&d, &fp.people, &faces, &fp.cameras, None, &pred.cfg.grid)?;
-                }
-                pb.done(i, n);
-                Ok(())
-            })?;
-            pb.finish();
-            if let Some(s) = staged {
-                s.finish()?;
-            }
-            (ev, run_source(&run, &weights)?, views)
-        }
-        Source::Predictions(dir) => {
-            let body = match args.body_model {
-                Some(r) => mvmp_data::layout::load_body_model(r, Path::new("."))?,
-                None => layout.body_model()?,
-            };
-            let layer = SmplxLayer::new(&body, device);
-            let views = args.views.unwrap_or(1).min(min_views.max(1));
-            let opts = EvalOptions {
-                split: args.split,
-                views,
-                max_frames: args.frames,
-                gate: args.gate,
-                joints: args.joints,
-            };
-            // Images are not needed here: a small input size keeps loading cheap.
-            let ev = evaluate_frames(args.data, &opts, 28, device, |_, _, batch| {
-                let (scene, frame) = &batch.names[0];
-                let path = dir.join(scene).join(frame).join("people.npz");
-                if !path.exists() {
-                    return Err(mvmp_infer::InferError::file(
-                        &path,
-                        "no predictions for this frame (expected PRED_DIR/<scene>/<frame>/people.npz)",
-                    ));
-                }
-                let people: Vec<_> = read_people_npz(&path)?
-                    .into_iter()
-                    .map(|p| (p.params, p.score))
-                    .collect();
-                Ok(pose_params(&layer, &people))
-            })?;
-            (ev, json!({"predictions": dir.display().to_string()}), views)
-        }
-        Source::MeanPose => {
-            let layer = SmplxLayer::new(&layout.body_model()?, device);
-            // The mean of the training split (what a trained decoder starts from); without people there,
-            // the untrained decoder's parameters.
-            let (mean, people) = reference_mean(args.data, device)?;
-            let opts = EvalOptions {
-                split: args.split,
-                views: 1,
-                max_frames: args.frames,
-                gate: args.gate,
-                joints: args.joints,
-            };
-            let ev = evaluate_frames(args.data, &opts, 28, device, |_, _, batch| {
-                let [_, p, _] = batch.pelvis.dims();
-                let pel: Vec<f32> = batch
-                    .pelvis
-                    .to_data()
-                    .convert::<f32>()
-                    .try_into_vec()
-                    .unwrap();
-                let pelvis: Vec<[f32; 3]> = (0..batch.counts[0])
-                    .take(p)
-                    .map(|i| [pel[i * 3], pel[i * 3 + 1], pel[i * 3 + 2]])
-                    .collect();
-                Ok(mean_pose_at(&layer, &mean, &pelvis))
-            })?;
-            (
-                ev,
-                json!({
-                    "baseline": "mean pose at the ground-truth pelvis",
-                    "mean_of_training_people": people,
-                }),
-                1,
-            )
-        }
+    let (ev, source, views) = match args.source {
+        Source::Run(run_dir) => eval_run(args, run_dir, min_views, device, quiet)?,
+        Source::Predictions(dir) => eval_predictions(args, dir, &layout, min_views, device)?,
+        Source::MeanPose => eval_mean_pose(args, &layout, device)?,
     };
     let header = json!({
         "source": source,
@@ -299,6 +191,149 @@ pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, s
         "protocol": protocol(args.gate, args.joints),
     });
     finish_report(&ev, header, "ground_truth", args.out)
+}
+
+/// `--save-predictions` is refused rather than ignored where there is nothing to save: only a model's
+/// predictions on an mvmp tree are written.
+fn check_save_predictions(args: &EvalArgs) -> Result<()> {
+    if let Some(dir) = args.save_predictions {
+        if args.format != SourceFormat::Mvmp {
+            bail!(
+                "--save-predictions {}: predictions are saved for --format mvmp only, not {}",
+                dir.display(),
+                args.format
+            );
+        }
+        if !matches!(args.source, Source::Run(_)) {
+            bail!(
+                "--save-predictions {}: needs --run (stored predictions and the mean pose have nothing new to save)",
+                dir.display()
+            );
+        }
+    }
+    Ok(())
+}
+
+/// What one scoring gave: the evaluator, where the predictions came from, the views used.
+type Scored = (Evaluator, serde_json::Value, usize);
+
+/// A run's model on the split; with `--save-predictions`, every frame's files, put in place when all
+/// frames are scored.
+fn eval_run(
+    args: &EvalArgs,
+    run_dir: &Path,
+    min_views: usize,
+    device: &Device,
+    quiet: bool,
+) -> Result<Scored> {
+    let (run, cfg, _) = RunDir::open(run_dir)?;
+    let (pred, weights) = Predictor::from_run(run_dir, device)?;
+    let views = args.views.unwrap_or(cfg.test_views.min(min_views));
+    let opts = EvalOptions {
+        split: args.split,
+        views,
+        max_frames: args.frames,
+        gate: args.gate,
+        joints: args.joints,
+    };
+    let mut pb = LazyBar::new("eval", quiet);
+    let faces = pred.layer.faces().to_vec();
+    // Every frame's files go to a staging directory, moved into place once all are scored.
+    let staged = args.save_predictions.map(StagedDir::new).transpose()?;
+    let ev = evaluate(&pred, args.data, &opts, |i, n, fp| {
+        if let Some(dir) = &staged {
+            let d = dir.path().join(&fp.scene).join(&fp.frame);
+            write_frame(&d, &fp.people, &faces, &fp.cameras, None, &pred.cfg.grid)?;
+        }
+        pb.done(i, n);
+        Ok(())
+    })?;
+    pb.finish();
+    if let Some(s) = staged {
+        s.finish()?;
+    }
+    Ok((ev, run_source(&run, &weights)?, views))
+}
+
+/// Stored predictions (infer's layout) posed with the body model given or the dataset's.
+fn eval_predictions(
+    args: &EvalArgs,
+    dir: &Path,
+    layout: &mvmp_data::DatasetLayout,
+    min_views: usize,
+    device: &Device,
+) -> Result<Scored> {
+    let body = match args.body_model {
+        Some(r) => mvmp_data::layout::load_body_model(r, Path::new("."))?,
+        None => layout.body_model()?,
+    };
+    let layer = SmplxLayer::new(&body, device);
+    let views = args.views.unwrap_or(1).min(min_views.max(1));
+    let opts = EvalOptions {
+        split: args.split,
+        views,
+        max_frames: args.frames,
+        gate: args.gate,
+        joints: args.joints,
+    };
+    // Images are not needed here: a small input size keeps loading cheap.
+    let ev = evaluate_frames(args.data, &opts, 28, device, |_, _, batch| {
+        let (scene, frame) = &batch.names[0];
+        let path = dir.join(scene).join(frame).join("people.npz");
+        if !path.exists() {
+            return Err(mvmp_infer::InferError::file(
+                &path,
+                "no predictions for this frame (expected PRED_DIR/<scene>/<frame>/people.npz)",
+            ));
+        }
+        let people: Vec<_> = read_people_npz(&path)?
+            .into_iter()
+            .map(|p| (p.params, p.score))
+            .collect();
+        Ok(pose_params(&layer, &people))
+    })?;
+    Ok((ev, json!({"predictions": dir.display().to_string()}), views))
+}
+
+/// The mean-pose reference at each ground-truth pelvis.
+fn eval_mean_pose(
+    args: &EvalArgs,
+    layout: &mvmp_data::DatasetLayout,
+    device: &Device,
+) -> Result<Scored> {
+    let layer = SmplxLayer::new(&layout.body_model()?, device);
+    // The mean of the training split (what a trained decoder starts from); without people there,
+    // the untrained decoder's parameters.
+    let (mean, people) = reference_mean(args.data, device)?;
+    let opts = EvalOptions {
+        split: args.split,
+        views: 1,
+        max_frames: args.frames,
+        gate: args.gate,
+        joints: args.joints,
+    };
+    let ev = evaluate_frames(args.data, &opts, 28, device, |_, _, batch| {
+        let [_, p, _] = batch.pelvis.dims();
+        let pel: Vec<f32> = batch
+            .pelvis
+            .to_data()
+            .convert::<f32>()
+            .try_into_vec()
+            .unwrap();
+        let pelvis: Vec<[f32; 3]> = (0..batch.counts[0])
+            .take(p)
+            .map(|i| [pel[i * 3], pel[i * 3 + 1], pel[i * 3 + 2]])
+            .collect();
+        Ok(mean_pose_at(&layer, &mean, &pelvis))
+    })?;
+    Ok((
+        ev,
+        json!({
+            "baseline": "mean pose at the ground-truth pelvis",
+            "mean_of_training_people": people,
+        }),
+        1,
+    ))
 }
 
 /// Where a run's figures came from: the run, its weights and the hashes of both.
@@ -512,33 +547,7 @@ pub fn write_demo_configs(dir: &Path, scenes: usize) -> Result<()> {
 /// `mvmp demo`: synthesise, train both stages, evaluate on held-out scenes beside two references, infer.
 pub fn demo(out: &Path, seed: u64, device: &Device) -> Result<()> {
     let t0 = std::time::Instant::now();
-    if out.exists()
-        && std::fs::read_dir(out)
-            .with_context(|| format!("reading {}", out.display()))?
-            .next()
-            .is_some()
-    {
-        bail!(
-            "{} exists and is not empty: remove it or pass --out to a new directory",
-            out.display()
-        );
-    }
-    let cfg_dir = out.join("configs");
-    std::fs::create_dir_all(&cfg_dir).with_context(|| format!("creating {}", cfg_dir.display()))?;
-    let train_text = DEMO_TRAIN
-        .replace("\"../model/tiny.toml\"", "\"model.toml\"")
-        .replace("\nseed = 0\n", &format!("\nseed = {seed}\n"));
-    anyhow::ensure!(
-        train_text.contains(&format!("\nseed = {seed}\n")),
-        "the embedded training config has no `seed = 0` line to set the seed in"
-    );
-    for (name, text) in [
-        ("synth.toml", DEMO_SYNTH),
-        ("model.toml", DEMO_MODEL),
-        ("train.toml", train_text.as_str()),
-    ] {
-        write_atomic(&cfg_dir.join(name), text.as_bytes())?;
-    }
+    let cfg_dir = demo_configs(out, seed)?;
     let data = out.join("data");
     let run_dir = out.join("run");
     eprintln!("[1/5] synthetic dataset -> {}", data.display());
@@ -547,23 +556,7 @@ pub fn demo(out: &Path, seed: u64, device: &Device) -> Result<()> {
     eprintln!(
         "[2/5] references on the held-out scenes: the untrained model, the mean pose at the GT pelvis"
     );
-    let (train_cfg, model_cfg) = mvmp_train::TrainConfig::read(&cfg_dir.join("train.toml"))?;
-    let body = mvmp_data::layout::load_body_model(&model_cfg.body_model, &cfg_dir)?;
-    // The same initial weights the training run starts from.
-    let init = mvmp_train::seeded_init(&model_cfg, device, train_cfg.seed);
-    let untrained = Predictor::new(init, model_cfg.clone(), body, device);
-    let opts = EvalOptions {
-        split: Split::Test,
-        views: train_cfg.test_views,
-        max_frames: 0,
-        gate: mvmp_eval::DEFAULT_GATE,
-        joints: JointSet::Smplx127,
-    };
-    let m_untrained = evaluate(&untrained, &data, &opts, |_, _, _| Ok(()))?.overall();
-    drop(untrained);
-    let mean_path = out.join("eval-mean-pose.json");
-    let base = EvalArgs::held_out(Source::MeanPose, &data, &mean_path);
-    let (m_mean, _) = eval(&base, device, true)?;
+    let (m_untrained, m_mean) = demo_references(&cfg_dir, &data, out, device)?;
 
     eprintln!("[3/5] training -> {}", run_dir.display());
     crate::train::train(
@@ -595,28 +588,8 @@ pub fn demo(out: &Path, seed: u64, device: &Device) -> Result<()> {
     let (m_trained, _) = eval(&args, device, false)?;
 
     eprintln!("[5/5] inference on a held-out frame");
-    let layout = mvmp_data::DatasetLayout::open(&data)?;
-    let test = mvmp_data::loader::split_scenes(&layout, Split::Test)?;
-    let scene = &layout.scenes[*test.first().context("the dataset has no test scene")?];
-    let frame = scene
-        .index
-        .frames
-        .first()
-        .context("the first test scene has no frames")?;
-    let frame_dir = scene.dir.join(frame);
     let infer_dir = out.join("infer");
-    let images = frame_images(&frame_dir, scene.rig.len())?;
-    infer(
-        &InferArgs {
-            run: &run_dir,
-            rig: &scene.dir.join("cameras.json"),
-            images: &images,
-            frames: None,
-            out: &infer_dir,
-        },
-        device,
-        true,
-    )?;
+    demo_infer(&data, &run_dir, &infer_dir, device)?;
 
     println!(
         "\nheld-out scenes ({} people matched of {}), errors in mm:",
@@ -638,7 +611,7 @@ pub fn demo(out: &Path, seed: u64, device: &Device) -> Result<()> {
     println!(
         "evaluation   {}  (predictions in {})",
         eval_path.display(),
-        out.join("predictions").display()
+        pred_dir.display()
     );
     println!(
         "inference    {}  (people.npz, person_XX.obj/.ply, overlay_XX.png, topdown.png)",
@@ -646,6 +619,90 @@ pub fn demo(out: &Path, seed: u64, device: &Device) -> Result<()> {
     );
     println!("total time   {:.1} min", t0.elapsed().as_secs_f64() / 60.0);
     Ok(())
+}
+
+/// The demo's configs (the embedded ones, the training seed set to `seed`) written to `out/configs`,
+/// which it returns; `out` must be new or empty.
+fn demo_configs(out: &Path, seed: u64) -> Result<PathBuf> {
+    if out.exists()
+        && std::fs::read_dir(out)
+            .with_context(|| format!("reading {}", out.display()))?
+            .next()
+            .is_some()
+    {
+        bail!(
+            "{} exists and is not empty: remove it or pass --out to a new directory",
+            out.display()
+        );
+    }
+    let cfg_dir = out.join("configs");
+    std::fs::create_dir_all(&cfg_dir).with_context(|| format!("creating {}", cfg_dir.display()))?;
+    let train_text = DEMO_TRAIN
+        .replace("\"../model/tiny.toml\"", "\"model.toml\"")
+        .replace("\nseed = 0\n", &format!("\nseed = {seed}\n"));
+    anyhow::ensure!(
+        train_text.contains(&format!("\nseed = {seed}\n")),
+        "the embedded training config has no `seed = 0` line to set the seed in"
+    );
+    for (name, text) in [
+        ("synth.toml", DEMO_SYNTH),
+        ("model.toml", DEMO_MODEL),
+        ("train.toml", train_text.as_str()),
+    ] {
+        write_atomic(&cfg_dir.join(name), text.as_bytes())?;
+    }
+    Ok(cfg_dir)
+}
+
+/// The references on the held-out scenes: the untrained model (the initial weights the run starts
+/// from) and the mean pose at each ground-truth pelvis (its report written to `out`).
+fn demo_references(
+    cfg_dir: &Path,
+    data: &Path,
+    out: &Path,
+    device: &Device,
+) -> Result<(Metrics, Metrics)> {
+    let (train_cfg, model_cfg) = mvmp_train::TrainConfig::read(&cfg_dir.join("train.toml"))?;
+    let body = mvmp_data::layout::load_body_model(&model_cfg.body_model, cfg_dir)?;
+    let init = mvmp_train::seeded_init(&model_cfg, device, train_cfg.seed);
+    let untrained = Predictor::new(init, model_cfg.clone(), body, device);
+    let opts = EvalOptions {
+        split: Split::Test,
+        views: train_cfg.test_views,
+        max_frames: 0,
+        gate: mvmp_eval::DEFAULT_GATE,
+        joints: JointSet::Smplx127,
+    };
+    let m_untrained = evaluate(&untrained, data, &opts, |_, _, _| Ok(()))?.overall();
+    drop(untrained);
+    let mean_path = out.join("eval-mean-pose.json");
+    let base = EvalArgs::held_out(Source::MeanPose, data, &mean_path);
+    let (m_mean, _) = eval(&base, device, true)?;
+    Ok((m_untrained, m_mean))
+}
+
+/// Inference on the first held-out frame into `infer_dir`.
+fn demo_infer(data: &Path, run_dir: &Path, infer_dir: &Path, device: &Device) -> Result<()> {
+    let layout = mvmp_data::DatasetLayout::open(data)?;
+    let test = mvmp_data::loader::split_scenes(&layout, Split::Test)?;
+    let scene = &layout.scenes[*test.first().context("the dataset has no test scene")?];
+    let frame = scene
+        .index
+        .frames
+        .first()
+        .context("the first test scene has no frames")?;
+    let images = frame_images(&scene.dir.join(frame), scene.rig.len())?;
+    infer(
+        &InferArgs {
+            run: run_dir,
+            rig: &scene.dir.join("cameras.json"),
+            images: &images,
+            frames: None,
+            out: infer_dir,
+        },
+        device,
+        true,
+    )
 }
 
 /// `mvmp eval --format panoptic`: a run on CMU Panoptic sequences read in place. `--split` is `test`

@@ -82,15 +82,12 @@ fn parameter_bytes<M: Module>(m: &M) -> (f64, f64) {
 /// `people` people standing on a circle of 1 m round the grid's centre, seen by every view at the
 /// image's centre: the losses' tensors depend on their number, not on where they stand.
 fn people(cfg: &ModelConfig, views: usize, people: usize) -> Vec<PersonGt> {
-    let (g, half) = (&cfg.grid, cfg.image_size as f32 / 2.0);
-    (0..people)
-        .map(|i| {
-            let a = i as f64 * 2.4;
-            let pelvis = [
-                (g.center[0] + a.cos()) as f32,
-                (g.center[1] + a.sin()) as f32,
-                0.9,
-            ];
+    let half = cfg.image_size as f32 / 2.0;
+    crate::model::ring_roots(&cfg.grid, people)
+        .chunks(3)
+        .enumerate()
+        .map(|(i, r)| {
+            let pelvis = [r[0], r[1], r[2]];
             PersonGt {
                 id: i as u32,
                 pose: vec![0.0; NUM_JOINTS * 3],
