@@ -96,38 +96,7 @@ pub struct StoredPerson {
 /// have up to 10 columns), optional `scores` (default 1). Any float dtype.
 pub fn read_people_npz(path: &Path) -> Result<Vec<StoredPerson>, SmplxError> {
     let mut npz = npyz::npz::NpzArchive::open(path).map_err(|e| npz_err(path, e))?;
-    let mut read = |name: &str| -> Result<Option<Array>, SmplxError> {
-        let Some(arr) = npz.by_name(name).map_err(|e| npz_err(path, e))? else {
-            return Ok(None);
-        };
-        let shape = arr.shape().to_vec();
-        let fortran = matches!(arr.order(), npyz::Order::Fortran);
-        let data: Vec<f64> = match arr.dtype() {
-            npyz::DType::Plain(t)
-                if t.type_char() == npyz::TypeChar::Float && t.size_field() == 4 =>
-            {
-                arr.into_vec::<f32>()
-                    .map_err(|e| npz_err(path, format!("key `{name}`: {e}")))?
-                    .into_iter()
-                    .map(|x| x as f64)
-                    .collect()
-            }
-            _ => arr.into_vec::<f64>().map_err(|e| {
-                npz_err(
-                    path,
-                    format!("key `{name}`: {e} (expected float32 or float64)"),
-                )
-            })?,
-        };
-        // numpy may store column-major arrays; rows are read in C order below.
-        let data = if fortran && shape.len() == 2 {
-            let (r, c) = (shape[0] as usize, shape[1] as usize);
-            (0..r * c).map(|i| data[(i % c) * r + i / c]).collect()
-        } else {
-            data
-        };
-        Ok(Some((shape, data)))
-    };
+    let mut read = |name: &str| read_array(&mut npz, path, name);
     let (shape, transl) = read("transl")?.ok_or_else(|| npz_err(path, "missing key `transl`"))?;
     if shape.len() != 2 || shape[1] != 3 {
         return Err(npz_err(
@@ -153,72 +122,20 @@ pub fn read_people_npz(path: &Path) -> Result<Vec<StoredPerson>, SmplxError> {
         let Some((shape, data)) = read(key)? else {
             continue;
         };
-        let ok = shape.len() == 2
-            && shape[0] as usize == n
-            && (if width == 0 {
-                shape[1] <= 10
-            } else {
-                shape[1] as usize == width
-            });
-        if !ok {
-            let want = if width == 0 {
-                "[N, <=10]".to_string()
-            } else {
-                format!("[N, {width}]")
-            };
-            return Err(npz_err(
-                path,
-                format!(
-                    "key `{key}` has shape {shape:?}; expected {want} with N = {n} (the rows of `transl`)"
-                ),
-            ));
-        }
+        check_rows(path, key, &shape, n, width)?;
         let c = shape[1] as usize;
         for (i, p) in people.iter_mut().enumerate() {
-            let row = data[i * c..(i + 1) * c].to_vec();
-            match key {
-                "global_orient" => p.params.global_orient = row,
-                "body_pose" => p.params.body_pose = row,
-                "jaw_pose" => p.params.jaw_pose = row,
-                "leye_pose" => p.params.leye_pose = row,
-                "reye_pose" => p.params.reye_pose = row,
-                "left_hand_pose" => p.params.left_hand_pose = row,
-                "right_hand_pose" => p.params.right_hand_pose = row,
-                "betas" => p.params.betas = row,
-                _ => p.params.expression = row,
-            }
+            set_param(&mut p.params, key, data[i * c..(i + 1) * c].to_vec());
         }
     }
     if let Some((shape, data)) = read("scores")? {
-        if shape != [n as u64] {
-            return Err(npz_err(
-                path,
-                format!("key `scores` has shape {shape:?}; expected [{n}]"),
-            ));
-        }
-        if let Some(i) = data.iter().position(|s| !s.is_finite()) {
-            return Err(npz_err(
-                path,
-                format!("key `scores`[{i}] = {} is not finite", data[i]),
-            ));
-        }
+        finite_rows(path, "scores", &shape, &[n as u64], &data, 1)?;
         for (p, s) in people.iter_mut().zip(data) {
             p.score = s;
         }
     }
     if let Some((shape, data)) = read("pelvis")? {
-        if shape != [n as u64, 3] {
-            return Err(npz_err(
-                path,
-                format!("key `pelvis` has shape {shape:?}; expected [{n}, 3]"),
-            ));
-        }
-        if let Some(i) = data.iter().position(|s| !s.is_finite()) {
-            return Err(npz_err(
-                path,
-                format!("key `pelvis`[{}] = {} is not finite", i / 3, data[i]),
-            ));
-        }
+        finite_rows(path, "pelvis", &shape, &[n as u64, 3], &data, 3)?;
         for (p, c) in people.iter_mut().zip(data.chunks(3)) {
             p.pelvis = Some([c[0], c[1], c[2]]);
         }
@@ -229,6 +146,112 @@ pub fn read_people_npz(path: &Path) -> Result<Vec<StoredPerson>, SmplxError> {
             .map_err(|e| npz_err(path, e))?;
     }
     Ok(people)
+}
+
+/// One array of the archive as float64 rows in C order, with its shape; `None` when absent.
+fn read_array<R: std::io::Read + std::io::Seek>(
+    npz: &mut npyz::npz::NpzArchive<R>,
+    path: &Path,
+    name: &str,
+) -> Result<Option<Array>, SmplxError> {
+    let Some(arr) = npz.by_name(name).map_err(|e| npz_err(path, e))? else {
+        return Ok(None);
+    };
+    let shape = arr.shape().to_vec();
+    let fortran = matches!(arr.order(), npyz::Order::Fortran);
+    let data: Vec<f64> = match arr.dtype() {
+        npyz::DType::Plain(t) if t.type_char() == npyz::TypeChar::Float && t.size_field() == 4 => {
+            arr.into_vec::<f32>()
+                .map_err(|e| npz_err(path, format!("key `{name}`: {e}")))?
+                .into_iter()
+                .map(|x| x as f64)
+                .collect()
+        }
+        _ => arr.into_vec::<f64>().map_err(|e| {
+            npz_err(
+                path,
+                format!("key `{name}`: {e} (expected float32 or float64)"),
+            )
+        })?,
+    };
+    // numpy may store column-major arrays; rows are read in C order.
+    let data = if fortran && shape.len() == 2 {
+        let (r, c) = (shape[0] as usize, shape[1] as usize);
+        (0..r * c).map(|i| data[(i % c) * r + i / c]).collect()
+    } else {
+        data
+    };
+    Ok(Some((shape, data)))
+}
+
+/// A parameter array is `[N, width]` (`width` 0: at most 10 coefficients) with N the rows of `transl`.
+fn check_rows(
+    path: &Path,
+    key: &str,
+    shape: &[u64],
+    n: usize,
+    width: usize,
+) -> Result<(), SmplxError> {
+    let ok = shape.len() == 2
+        && shape[0] as usize == n
+        && (if width == 0 {
+            shape[1] <= 10
+        } else {
+            shape[1] as usize == width
+        });
+    if ok {
+        return Ok(());
+    }
+    let want = if width == 0 {
+        "[N, <=10]".to_string()
+    } else {
+        format!("[N, {width}]")
+    };
+    Err(npz_err(
+        path,
+        format!(
+            "key `{key}` has shape {shape:?}; expected {want} with N = {n} (the rows of `transl`)"
+        ),
+    ))
+}
+
+/// Put one person's row of `key` into its parameters.
+fn set_param(p: &mut SmplxParams, key: &str, row: Vec<f64>) {
+    match key {
+        "global_orient" => p.global_orient = row,
+        "body_pose" => p.body_pose = row,
+        "jaw_pose" => p.jaw_pose = row,
+        "leye_pose" => p.leye_pose = row,
+        "reye_pose" => p.reye_pose = row,
+        "left_hand_pose" => p.left_hand_pose = row,
+        "right_hand_pose" => p.right_hand_pose = row,
+        "betas" => p.betas = row,
+        _ => p.expression = row,
+    }
+}
+
+/// An optional per-person array has shape `want` and finite values (`per` per person).
+fn finite_rows(
+    path: &Path,
+    key: &str,
+    shape: &[u64],
+    want: &[u64],
+    data: &[f64],
+    per: usize,
+) -> Result<(), SmplxError> {
+    if shape != want {
+        return Err(npz_err(
+            path,
+            format!("key `{key}` has shape {shape:?}; expected {want:?}"),
+        ));
+    }
+    match data.iter().position(|s| !s.is_finite()) {
+        Some(i) => Err(npz_err(
+            path,
+            format!("key `{key}`[{}] = {} is not finite", i / per, data[i]),
+        )),
+        None => Ok(()),
+    }
 }
 
 #[cfg(test)]
