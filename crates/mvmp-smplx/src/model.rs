@@ -199,6 +199,66 @@ fn f32s(v: &[f64]) -> Vec<f32> {
     v.iter().map(|&x| x as f32).collect()
 }
 
+fn value_err(path: &Path, key: &str, what: String) -> SmplxError {
+    SmplxError::Value {
+        path: path.into(),
+        key: key.into(),
+        what,
+    }
+}
+
+/// The triangles of `f`, every index below the `v` vertices.
+fn faces_of(f: &Array, v: usize, path: &Path) -> Result<Vec<[u32; 3]>, SmplxError> {
+    if let Some((i, bad)) = f
+        .data
+        .iter()
+        .enumerate()
+        .find(|(_, x)| !(**x >= 0.0 && (**x as usize) < v))
+    {
+        return Err(value_err(
+            path,
+            "f",
+            format!("entry {i} = {bad} is not a vertex index below {v}"),
+        ));
+    }
+    Ok(f.data
+        .chunks_exact(3)
+        .map(|c| [c[0] as u32, c[1] as u32, c[2] as u32])
+        .collect())
+}
+
+/// The parents of `kintree_table`'s first row (the root's set to -1), each before its child.
+fn parents_of(kt: &Array, path: &Path) -> Result<Vec<i32>, SmplxError> {
+    let mut parents: Vec<i32> = kt.data[..NUM_JOINTS].iter().map(|&p| p as i32).collect();
+    parents[0] = -1;
+    for (j, &p) in parents.iter().enumerate().skip(1) {
+        if p < 0 || p as usize >= j {
+            return Err(value_err(
+                path,
+                "kintree_table",
+                format!("joint {j} has parent {p}; parents must precede their children"),
+            ));
+        }
+    }
+    Ok(parents)
+}
+
+/// The landmarks' face indices, each below the `nf` faces.
+fn landmark_faces(fi: &Array, nf: usize, path: &Path) -> Result<Vec<u32>, SmplxError> {
+    if let Some(bad) = fi
+        .data
+        .iter()
+        .find(|x| !(**x >= 0.0 && (**x as usize) < nf))
+    {
+        return Err(value_err(
+            path,
+            "lmk_faces_idx",
+            format!("{bad} is not a face index below {nf}"),
+        ));
+    }
+    Ok(fi.data.iter().map(|&x| x as u32).collect())
+}
+
 impl BodyModel {
     pub fn num_vertices(&self) -> usize {
         self.v_template.len() / 3
@@ -270,52 +330,10 @@ impl BodyModel {
         let hml = r.optional("hands_meanl", &[Some(45)])?;
         let hmr = r.optional("hands_meanr", &[Some(45)])?;
 
-        let value_err = |key: &str, what: String| SmplxError::Value {
-            path: path.into(),
-            key: key.into(),
-            what,
-        };
-        let faces: Vec<[u32; 3]> = f
-            .data
-            .chunks_exact(3)
-            .map(|c| [c[0] as u32, c[1] as u32, c[2] as u32])
-            .collect();
-        if let Some((i, bad)) = f
-            .data
-            .iter()
-            .enumerate()
-            .find(|(_, x)| !(**x >= 0.0 && (**x as usize) < v))
-        {
-            return Err(value_err(
-                "f",
-                format!("entry {i} = {bad} is not a vertex index below {v}"),
-            ));
-        }
-        let mut parents: Vec<i32> = kt.data[..NUM_JOINTS].iter().map(|&p| p as i32).collect();
-        parents[0] = -1;
-        for (j, &p) in parents.iter().enumerate().skip(1) {
-            if p < 0 || p as usize >= j {
-                return Err(value_err(
-                    "kintree_table",
-                    format!("joint {j} has parent {p}; parents must precede their children"),
-                ));
-            }
-        }
+        let faces = faces_of(&f, v, path)?;
+        let parents = parents_of(&kt, path)?;
         let landmarks = match (lmk_f, lmk_b) {
-            (Some(fi), Some(b)) => {
-                let nf = faces.len();
-                if let Some(bad) = fi
-                    .data
-                    .iter()
-                    .find(|x| !(**x >= 0.0 && (**x as usize) < nf))
-                {
-                    return Err(value_err(
-                        "lmk_faces_idx",
-                        format!("{bad} is not a face index below {nf}"),
-                    ));
-                }
-                Some((fi.data.iter().map(|&x| x as u32).collect(), f32s(&b.data)))
-            }
+            (Some(fi), Some(b)) => Some((landmark_faces(&fi, faces.len(), path)?, f32s(&b.data))),
             _ => None,
         };
         let model = BodyModel {
@@ -330,24 +348,31 @@ impl BodyModel {
             landmarks,
             hands_mean: hml.zip(hmr).map(|(a, b)| (f32s(&a.data), f32s(&b.data))),
         };
+        model.check_values(path)?;
+        Ok(model)
+    }
+
+    /// Every float array finite and within [`MAX_MODEL_VALUE`].
+    fn check_values(&self, path: &Path) -> Result<(), SmplxError> {
         let empty = Vec::new();
-        let (hands_l, hands_r) = model
+        let (hands_l, hands_r) = self
             .hands_mean
             .as_ref()
             .map_or((&empty, &empty), |(l, r)| (l, r));
-        let bary = model.landmarks.as_ref().map_or(&empty, |(_, b)| b);
+        let bary = self.landmarks.as_ref().map_or(&empty, |(_, b)| b);
         for (key, vals) in [
-            ("v_template", &model.v_template),
-            ("shapedirs", &model.shapedirs),
-            ("posedirs", &model.posedirs),
-            ("J_regressor", &model.j_regressor),
-            ("weights", &model.weights),
+            ("v_template", &self.v_template),
+            ("shapedirs", &self.shapedirs),
+            ("posedirs", &self.posedirs),
+            ("J_regressor", &self.j_regressor),
+            ("weights", &self.weights),
             ("lmk_bary_coords", bary),
             ("hands_meanl", hands_l),
             ("hands_meanr", hands_r),
         ] {
             if let Some(i) = vals.iter().position(|x| !x.is_finite()) {
                 return Err(value_err(
+                    path,
                     key,
                     format!("entry {i} is not finite ({})", vals[i]),
                 ));
@@ -357,6 +382,7 @@ impl BodyModel {
                 .position(|x| f64::from(x.abs()) > MAX_MODEL_VALUE)
             {
                 return Err(value_err(
+                    path,
                     key,
                     format!(
                         "entry {i} is {}: beyond +-{MAX_MODEL_VALUE}, which no body model in metres \
@@ -366,7 +392,7 @@ impl BodyModel {
                 ));
             }
         }
-        Ok(model)
+        Ok(())
     }
 
     /// Index of the first expression component in `shapedirs`: 10 for the 20-component (v1.0) layout,
