@@ -78,148 +78,38 @@ impl SmplxLayer {
     /// Put a body model on a device, keeping 10 shape and 10 expression components.
     pub fn new(model: &BodyModel, device: &Device) -> Self {
         let v = model.num_vertices();
-        let l = model.num_shape_components;
-        let e0 = model.expression_offset();
-        let comps: Vec<usize> = (0..NUM_BETAS).chain(e0..e0 + NUM_EXPRESSION).collect();
-        let nc = comps.len();
-        // shapedirs [V, 3, L] -> [nc, V*3] (interleaved, for the joint blend below).
-        let mut sd = vec![0f32; nc * v * 3];
-        for (ci, &c) in comps.iter().enumerate() {
-            for k in 0..v * 3 {
-                sd[ci * v * 3 + k] = model.shapedirs[k * l + c];
-            }
-        }
-        // Interleaved [.., V*3] rows to planar [.., 3*V] rows.
-        let planar = |src: &[f32], rows: usize| -> Vec<f32> {
-            let mut out = vec![0f32; rows * 3 * v];
-            for r in 0..rows {
-                for vi in 0..v {
-                    for a in 0..3 {
-                        out[r * 3 * v + a * v + vi] = src[r * 3 * v + vi * 3 + a];
-                    }
-                }
-            }
-            out
-        };
+        let (sd, nc) = selected_shapedirs(model);
         // Joints are linear in the shaped vertices: J = Jr v_template + sum_c beta_c (Jr sd_c).
-        let jr = &model.j_regressor;
-        let regress = |verts: &[f32]| -> Vec<f32> {
-            let mut out = vec![0f32; NUM_JOINTS * 3];
-            for j in 0..NUM_JOINTS {
-                let row = &jr[j * v..(j + 1) * v];
-                for (vi, &w) in row.iter().enumerate() {
-                    if w != 0.0 {
-                        for a in 0..3 {
-                            out[j * 3 + a] += w * verts[vi * 3 + a];
-                        }
-                    }
-                }
-            }
-            out
-        };
-        let j_template = regress(&model.v_template);
+        let j_template = regress(&model.j_regressor, v, &model.v_template);
         let j_sd: Vec<f32> = (0..nc)
-            .flat_map(|ci| regress(&sd[ci * v * 3..(ci + 1) * v * 3]))
+            .flat_map(|ci| regress(&model.j_regressor, v, &sd[ci * v * 3..(ci + 1) * v * 3]))
             .collect();
-        // posedirs [V, 3, 486] -> [3*V, 486], rows planar (all x, then y, then z).
         let p = NUM_POSE_JOINTS * 9;
-        let mut pd = vec![0f32; p * v * 3];
-        for vi in 0..v {
-            for a in 0..3 {
-                let row = a * v + vi;
-                pd[row * p..(row + 1) * p]
-                    .copy_from_slice(&model.posedirs[(vi * 3 + a) * p..(vi * 3 + a + 1) * p]);
-            }
-        }
-        // Extra joints as rows over vertices.
-        let mut extra_rows: Vec<Vec<(usize, f32)>> = EXTRA_VERTEX_JOINTS
-            .iter()
-            .filter(|(_, vid)| *vid < v)
-            .map(|(_, vid)| vec![(*vid, 1.0)])
-            .collect();
-        if extra_rows.len() < EXTRA_VERTEX_JOINTS.len() {
-            // A model with fewer vertices than SMPL-X has no meaningful vertex joints.
-            extra_rows.clear();
-        } else if let Some((fi, bary)) = &model.landmarks {
-            for (li, &f) in fi.iter().enumerate() {
-                let tri = model.faces[f as usize];
-                extra_rows.push(
-                    (0..3)
-                        .map(|k| (tri[k] as usize, bary[li * 3 + k]))
-                        .collect(),
-                );
-            }
-        }
+        let extra_rows = extra_joint_rows(model);
         let nx = extra_rows.len();
-        let mut extra_index = Vec::with_capacity(nx.max(1) * 3);
-        let mut extra_weight = Vec::with_capacity(nx.max(1) * 3);
-        for row in &extra_rows {
-            for k in 0..3 {
-                let (vi, w) = row.get(k).copied().unwrap_or((row[0].0, 0.0));
-                extra_index.push(vi);
-                extra_weight.push(w);
-            }
-        }
-        if nx == 0 {
-            extra_index.extend([0, 0, 0]);
-            extra_weight.extend([0.0, 0.0, 0.0]);
-        }
-        // Levels of the tree.
-        let mut depth = vec![0usize; NUM_JOINTS];
-        for j in 1..NUM_JOINTS {
-            depth[j] = depth[model.parents[j] as usize] + 1;
-        }
-        let max_depth = *depth.iter().max().unwrap_or(&0);
-        let mut position = vec![0usize; NUM_JOINTS];
-        let mut order = Vec::with_capacity(NUM_JOINTS);
-        let mut levels = Vec::new();
-        for d in 0..=max_depth {
-            let joints: Vec<usize> = (0..NUM_JOINTS).filter(|&j| depth[j] == d).collect();
-            let parent_pos: Vec<usize> = joints
-                .iter()
-                .map(|&j| {
-                    if d == 0 {
-                        0
-                    } else {
-                        position[model.parents[j] as usize]
-                    }
-                })
-                .collect();
-            for &j in &joints {
-                position[j] = order.len();
-                order.push(j);
-            }
-            levels.push((
-                int1(&joints, device),
-                int1(&parent_pos, device),
-                joints.clone(),
-            ));
-        }
-        let level_to_joint: Vec<usize> = (0..NUM_JOINTS).map(|j| position[j]).collect();
+        let taps: Vec<[(usize, f32); 3]> = extra_rows
+            .iter()
+            .map(|row| std::array::from_fn(|k| row.get(k).copied().unwrap_or((row[0].0, 0.0))))
+            .collect();
+        // A model without vertex joints still gets one all-zero tap, so the tensors are not empty.
+        let (extra_index, extra_weight): (Vec<usize>, Vec<f32>) = match nx {
+            0 => (vec![0; 3], vec![0.0; 3]),
+            _ => taps.iter().flatten().copied().unzip(),
+        };
+        let (levels, level_to_joint) = tree_levels(&model.parents, device);
         let parents: Vec<usize> = (0..NUM_JOINTS)
             .map(|j| model.parents[j].max(0) as usize)
             .collect();
-        let fused = mvmp_geom::simd::runs_fused(device).then(|| {
-            let taps = extra_rows
-                .iter()
-                .map(|row| std::array::from_fn(|k| row.get(k).copied().unwrap_or((row[0].0, 0.0))))
-                .collect();
-            FusedLbs::new(model, j_template.clone(), j_sd.clone(), taps)
-        });
+        let fused = mvmp_geom::simd::runs_fused(device)
+            .then(|| FusedLbs::new(model, j_template.clone(), j_sd.clone(), taps));
         let f2 = |d: Vec<f32>, s: [usize; 2]| Tensor::<2>::from_data(TensorData::new(d, s), device);
-        let mut weights_t = vec![0f32; NUM_JOINTS * v];
-        for vi in 0..v {
-            for j in 0..NUM_JOINTS {
-                weights_t[j * v + vi] = model.weights[vi * NUM_JOINTS + j];
-            }
-        }
         SmplxLayer {
-            v_template: f2(planar(&model.v_template, 1), [1, v * 3]),
-            shapedirs: f2(planar(&sd, nc), [nc, v * 3]),
+            v_template: f2(planar(&model.v_template, 1, v), [1, v * 3]),
+            shapedirs: f2(planar(&sd, nc, v), [nc, v * 3]),
             j_template: f2(j_template, [1, NUM_JOINTS * 3]),
             j_shapedirs: f2(j_sd, [nc, NUM_JOINTS * 3]),
-            posedirs_t: f2(pd, [v * 3, p]),
-            weights_t: f2(weights_t, [NUM_JOINTS, v]),
+            posedirs_t: f2(planar_posedirs(model), [v * 3, p]),
+            weights_t: f2(transposed_weights(model), [NUM_JOINTS, v]),
             extra_weight: Tensor::from_data(
                 TensorData::new(extra_weight, [1, nx.max(1), 3, 1]),
                 device,
@@ -424,6 +314,144 @@ impl SmplxLayer {
             joints: joints + shift,
         }
     }
+}
+
+/// The 10 shape and 10 expression components of `shapedirs [V, 3, L]` as rows `[20, V*3]` (vertices
+/// interleaved), and their number.
+fn selected_shapedirs(model: &BodyModel) -> (Vec<f32>, usize) {
+    let (v, l) = (model.num_vertices(), model.num_shape_components);
+    let e0 = model.expression_offset();
+    let comps: Vec<usize> = (0..NUM_BETAS).chain(e0..e0 + NUM_EXPRESSION).collect();
+    let mut sd = vec![0f32; comps.len() * v * 3];
+    for (ci, &c) in comps.iter().enumerate() {
+        for k in 0..v * 3 {
+            sd[ci * v * 3 + k] = model.shapedirs[k * l + c];
+        }
+    }
+    (sd, comps.len())
+}
+
+/// Interleaved `[rows, V*3]` to planar `[rows, 3*V]` (all x, then y, then z).
+fn planar(src: &[f32], rows: usize, v: usize) -> Vec<f32> {
+    let mut out = vec![0f32; rows * 3 * v];
+    for r in 0..rows {
+        for vi in 0..v {
+            for a in 0..3 {
+                out[r * 3 * v + a * v + vi] = src[r * 3 * v + vi * 3 + a];
+            }
+        }
+    }
+    out
+}
+
+/// The joint regressor `jr [55, V]` applied to interleaved vertices `[V*3]` -> `[55*3]`.
+fn regress(jr: &[f32], v: usize, verts: &[f32]) -> Vec<f32> {
+    let mut out = vec![0f32; NUM_JOINTS * 3];
+    for j in 0..NUM_JOINTS {
+        let row = &jr[j * v..(j + 1) * v];
+        for (vi, &w) in row.iter().enumerate() {
+            if w != 0.0 {
+                for a in 0..3 {
+                    out[j * 3 + a] += w * verts[vi * 3 + a];
+                }
+            }
+        }
+    }
+    out
+}
+
+/// posedirs `[V, 3, 486]` -> `[3*V, 486]`, rows planar.
+fn planar_posedirs(model: &BodyModel) -> Vec<f32> {
+    let (v, p) = (model.num_vertices(), NUM_POSE_JOINTS * 9);
+    let mut pd = vec![0f32; p * v * 3];
+    for vi in 0..v {
+        for a in 0..3 {
+            let row = a * v + vi;
+            pd[row * p..(row + 1) * p]
+                .copy_from_slice(&model.posedirs[(vi * 3 + a) * p..(vi * 3 + a + 1) * p]);
+        }
+    }
+    pd
+}
+
+/// Skinning weights `[V, 55]` -> `[55, V]`.
+fn transposed_weights(model: &BodyModel) -> Vec<f32> {
+    let v = model.num_vertices();
+    let mut w = vec![0f32; NUM_JOINTS * v];
+    for vi in 0..v {
+        for j in 0..NUM_JOINTS {
+            w[j * v + vi] = model.weights[vi * NUM_JOINTS + j];
+        }
+    }
+    w
+}
+
+/// The joints beyond the 55 as (vertex, weight) rows: the vertex joints, then the face landmarks (three
+/// barycentric taps each). A model with fewer vertices than SMPL-X has no meaningful vertex joints: none.
+fn extra_joint_rows(model: &BodyModel) -> Vec<Vec<(usize, f32)>> {
+    let v = model.num_vertices();
+    let mut rows: Vec<Vec<(usize, f32)>> = EXTRA_VERTEX_JOINTS
+        .iter()
+        .filter(|(_, vid)| *vid < v)
+        .map(|(_, vid)| vec![(*vid, 1.0)])
+        .collect();
+    if rows.len() < EXTRA_VERTEX_JOINTS.len() {
+        return Vec::new();
+    }
+    if let Some((fi, bary)) = &model.landmarks {
+        for (li, &f) in fi.iter().enumerate() {
+            let tri = model.faces[f as usize];
+            rows.push(
+                (0..3)
+                    .map(|k| (tri[k] as usize, bary[li * 3 + k]))
+                    .collect(),
+            );
+        }
+    }
+    rows
+}
+
+/// The kinematic tree by depth: per level its joints and their parents' positions in the level order,
+/// and each joint's position in that order.
+#[allow(clippy::type_complexity)]
+fn tree_levels(
+    parents: &[i32],
+    device: &Device,
+) -> (
+    Vec<(Tensor<1, Int>, Tensor<1, Int>, Vec<usize>)>,
+    Vec<usize>,
+) {
+    let mut depth = vec![0usize; NUM_JOINTS];
+    for j in 1..NUM_JOINTS {
+        depth[j] = depth[parents[j] as usize] + 1;
+    }
+    let max_depth = *depth.iter().max().unwrap_or(&0);
+    let mut position = vec![0usize; NUM_JOINTS];
+    let mut order = Vec::with_capacity(NUM_JOINTS);
+    let mut levels = Vec::new();
+    for d in 0..=max_depth {
+        let joints: Vec<usize> = (0..NUM_JOINTS).filter(|&j| depth[j] == d).collect();
+        let parent_pos: Vec<usize> = joints
+            .iter()
+            .map(|&j| {
+                if d == 0 {
+                    0
+                } else {
+                    position[parents[j] as usize]
+                }
+            })
+            .collect();
+        for &j in &joints {
+            position[j] = order.len();
+            order.push(j);
+        }
+        levels.push((
+            int1(&joints, device),
+            int1(&parent_pos, device),
+            joints.clone(),
+        ));
+    }
+    (levels, position)
 }
 
 fn int1(v: &[usize], device: &Device) -> Tensor<1, Int> {
