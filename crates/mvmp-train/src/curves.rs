@@ -119,13 +119,22 @@ fn smooth(s: Series) -> Series {
     Series { points, ..s }
 }
 
+/// The steps the series span: from 0, or from their first step when they start late (a comparison of
+/// stage-2 curves), so that the curves fill the panel.
 fn x_range(sets: &[&[Series]]) -> std::ops::Range<f64> {
-    let max = sets
-        .iter()
-        .flat_map(|s| s.iter())
-        .flat_map(|s| s.points.iter().map(|p| p.0))
-        .fold(1.0f64, f64::max);
-    0.0..max * 1.02
+    let steps = || {
+        sets.iter()
+            .flat_map(|s| s.iter())
+            .flat_map(|s| s.points.iter().map(|p| p.0))
+    };
+    let max = steps().fold(1.0f64, f64::max);
+    let min = steps().fold(f64::INFINITY, f64::min);
+    let lo = if min.is_finite() && min > 0.25 * max {
+        min - 0.02 * (max - min)
+    } else {
+        0.0
+    };
+    lo..max + 0.02 * (max - lo)
 }
 
 type DrawErr = Box<dyn std::error::Error>;
@@ -133,10 +142,11 @@ type DrawErr = Box<dyn std::error::Error>;
 /// The legend box of both panels.
 fn draw_legend<'a, 'b: 'a, CT: plotters::coord::CoordTranslate>(
     chart: &mut ChartContext<'a, BitMapBackend<'b>, CT>,
+    at: SeriesLabelPosition,
 ) -> Result<(), DrawErr> {
     chart
         .configure_series_labels()
-        .position(SeriesLabelPosition::UpperRight)
+        .position(at)
         .background_style(WHITE.mix(0.85))
         .border_style(BLACK)
         .label_font(("sans-serif", 13))
@@ -180,7 +190,7 @@ fn draw_losses(
                 PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(2))
             });
     }
-    draw_legend(&mut chart)
+    draw_legend(&mut chart, SeriesLabelPosition::UpperRight)
 }
 
 fn draw_validation(
@@ -234,7 +244,7 @@ fn draw_validation(
                 PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(2))
             });
     }
-    draw_legend(&mut chart)
+    draw_legend(&mut chart, SeriesLabelPosition::LowerLeft)
 }
 
 /// Register the embedded font once (plotters' text needs one; no system fonts are assumed).
