@@ -117,6 +117,17 @@ impl<'a> EvalArgs<'a> {
             pseudo_gt: None,
         }
     }
+
+    /// The evaluation protocol these arguments ask for, over `views` views.
+    fn options(&self, views: usize) -> EvalOptions {
+        EvalOptions {
+            split: self.split,
+            views,
+            max_frames: self.frames,
+            gate: self.gate,
+            joints: self.joints,
+        }
+    }
 }
 
 fn fmt(x: Option<f64>) -> String {
@@ -229,13 +240,7 @@ fn eval_run(
     let (run, cfg, _) = RunDir::open(run_dir)?;
     let (pred, weights) = Predictor::from_run(run_dir, device)?;
     let views = args.views.unwrap_or(cfg.test_views.min(min_views));
-    let opts = EvalOptions {
-        split: args.split,
-        views,
-        max_frames: args.frames,
-        gate: args.gate,
-        joints: args.joints,
-    };
+    let opts = args.options(views);
     let mut pb = LazyBar::new("eval", quiet);
     let faces = pred.layer.faces().to_vec();
     // Every frame's files go to a staging directory, moved into place once all are scored.
@@ -269,13 +274,7 @@ fn eval_predictions(
     };
     let layer = SmplxLayer::new(&body, device);
     let views = args.views.unwrap_or(1).min(min_views.max(1));
-    let opts = EvalOptions {
-        split: args.split,
-        views,
-        max_frames: args.frames,
-        gate: args.gate,
-        joints: args.joints,
-    };
+    let opts = args.options(views);
     // Images are not needed here: a small input size keeps loading cheap.
     let ev = evaluate_frames(args.data, &opts, 28, device, |_, _, batch| {
         let (scene, frame) = &batch.names[0];
@@ -305,13 +304,7 @@ fn eval_mean_pose(
     // The mean of the training split (what a trained decoder starts from); without people there,
     // the untrained decoder's parameters.
     let (mean, people) = reference_mean(args.data, device)?;
-    let opts = EvalOptions {
-        split: args.split,
-        views: 1,
-        max_frames: args.frames,
-        gate: args.gate,
-        joints: args.joints,
-    };
+    let opts = args.options(1);
     let ev = evaluate_frames(args.data, &opts, 28, device, |_, _, batch| {
         let [_, p, _] = batch.pelvis.dims();
         let pel: Vec<f32> = batch
