@@ -12,6 +12,10 @@ pub const ROTATION_TOLERANCE: f64 = 1e-5;
 /// sized to it would not fit in memory.
 pub const MAX_CENTRE_DISTANCE: f64 = 1e5;
 
+/// Largest magnitude of an entry of K (pixels): a telephoto lens on a large sensor has a focal length
+/// of some 10^4 to 10^5 pixels.
+pub const MAX_INTRINSIC: f64 = 1e7;
+
 /// Largest magnitude of a lens distortion coefficient: real lenses' k1..k3, p1, p2 are well inside it.
 pub const MAX_DISTORTION: f64 = 1e4;
 
@@ -77,6 +81,12 @@ impl Camera {
             if let Some(v) = vals.iter().find(|v| !v.is_finite()) {
                 return Err(self.invalid(format!("{what} holds a non-finite value ({v})")));
             }
+        }
+        if let Some(v) = self.k.iter().find(|v| v.abs() > MAX_INTRINSIC) {
+            return Err(self.invalid(format!(
+                "K holds {v}; focal lengths, skew and principal point are within +-{MAX_INTRINSIC:.0e} \
+                 pixels"
+            )));
         }
         let (fx, fy) = (self.k[(0, 0)], self.k[(1, 1)]);
         if fx <= 0.0 || fy <= 0.0 {

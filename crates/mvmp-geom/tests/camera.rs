@@ -164,6 +164,20 @@ fn invalid_cameras_are_rejected() {
     let e = at(0.0, 1e30).unwrap_err();
     assert!(e.to_string().contains("dist"), "{e}");
     at(9.9e4, -500.0).unwrap();
+    // A skew of -1e30 pixels once passed the reader and `infer` ran on it.
+    let mut k3 = k;
+    k3[(0, 1)] = -1e30;
+    let e = Camera::new(
+        "g",
+        k3,
+        Matrix3::identity(),
+        Vector3::zeros(),
+        [0.0; 5],
+        10,
+        10,
+    )
+    .unwrap_err();
+    assert!(e.to_string().contains("K holds"), "{e}");
 }
 
 #[test]
