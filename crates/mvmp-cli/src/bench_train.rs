@@ -27,6 +27,8 @@ pub struct BenchTrainArgs<'a> {
     pub scenes: usize,
     /// Whether the device computes in host memory, where the allocator sees it (the peak column).
     pub host: bool,
+    /// Also time each stage with the fused backward passes off (the tensor-op paths), side by side.
+    pub baseline: bool,
 }
 
 pub fn bench_train(args: &BenchTrainArgs, device: &Device) -> Result<()> {
@@ -55,37 +57,77 @@ pub fn bench_train(args: &BenchTrainArgs, device: &Device) -> Result<()> {
         args.steps, cfg.batch_size, cfg.train_views
     );
     let header: Vec<String> = PHASES.iter().map(|p| format!("{p:>5}")).collect();
-    println!("stage  steps  s/step  {}  peak MiB", header.join("  "));
+    println!(
+        "stage  path       steps  s/step  {}  peak MiB",
+        header.join("  ")
+    );
+    let paths: &[bool] = if args.baseline {
+        &[true, false]
+    } else {
+        &[true]
+    };
     for stage in [1u8, 2] {
-        let mut c = cfg.clone();
-        // Only this stage trains, and validation (at epoch ends) reads one frame.
-        let other = if stage == 1 {
-            &mut c.stage2
-        } else {
-            &mut c.stage1
-        };
-        other.epochs = 0;
-        c.val_frames = 1;
-        let run_dir = tmp.path().join(format!("stage{stage}"));
-        let run = RunDir::create(&run_dir, &c, &model, None)?;
-        let (run, c, m) = RunDir::open(&run.root)?;
-        let opts = TrainOptions {
-            device: device.clone(),
-            stop: Default::default(),
-            stop_after_steps: Some((WARM_UP + args.steps) as u64),
-            stop_after_time: None,
-        };
-        eprintln!("stage {stage}: {} steps", WARM_UP + args.steps);
-        let base = crate::GLOBAL.reset_peak();
-        mvmp_train::train(&run, &c, &m, &opts, &mut mvmp_train::Quiet)?;
-        let peak = crate::GLOBAL.peak().saturating_sub(base);
-        let peak = match args.host {
-            true => format!("{:.0}", peak as f64 / (1 << 20) as f64),
-            false => "-".into(),
-        };
-        println!("{}  {peak:>8}", row(stage, &run.metrics_path())?);
+        let mut times = Vec::new();
+        for &fused in paths {
+            set_fused_passes(fused);
+            let timed = time_stage(stage, &cfg, &model, tmp.path(), args, device);
+            set_fused_passes(true);
+            let (line, s_per_step) = timed?;
+            let path = if fused { "fused" } else { "tensor-ops" };
+            println!("{stage:>5}  {path:<10} {line}");
+            times.push(s_per_step);
+        }
+        if let [fused, ops] = times[..] {
+            println!("{stage:>5}  tensor-ops / fused: {:.2}x", ops / fused);
+        }
     }
     Ok(())
+}
+
+/// The training passes with their own backward on flex (fusion, convolution columns), on or off.
+fn set_fused_passes(on: bool) {
+    mvmp_fusion::set_fused_backward(on);
+    mvmp_kernels::im2col::set_fused_im2col(on);
+}
+
+/// One stage trained alone for the warm-up and timed steps: its table line (without the stage and the
+/// path) and its median seconds per step.
+fn time_stage(
+    stage: u8,
+    cfg: &TrainConfig,
+    model: &mvmp_model::ModelConfig,
+    tmp: &Path,
+    args: &BenchTrainArgs,
+    device: &Device,
+) -> Result<(String, f64)> {
+    let mut c = cfg.clone();
+    // Only this stage trains, and validation (at epoch ends) reads one frame.
+    let other = if stage == 1 {
+        &mut c.stage2
+    } else {
+        &mut c.stage1
+    };
+    other.epochs = 0;
+    c.val_frames = 1;
+    let run_dir = tempfile::tempdir_in(tmp).context("creating a temporary run directory")?;
+    let run = RunDir::create(&run_dir.path().join("run"), &c, model, None)?;
+    let (run, c, m) = RunDir::open(&run.root)?;
+    let opts = TrainOptions {
+        device: device.clone(),
+        stop: Default::default(),
+        stop_after_steps: Some((WARM_UP + args.steps) as u64),
+        stop_after_time: None,
+    };
+    eprintln!("stage {stage}: {} steps", WARM_UP + args.steps);
+    let base = crate::GLOBAL.reset_peak();
+    mvmp_train::train(&run, &c, &m, &opts, &mut mvmp_train::Quiet)?;
+    let peak = crate::GLOBAL.peak().saturating_sub(base);
+    let peak = match args.host {
+        true => format!("{:.0}", peak as f64 / (1 << 20) as f64),
+        false => "-".into(),
+    };
+    let (line, s_per_step) = row(&run.metrics_path())?;
+    Ok((format!("{line}  {peak:>8}"), s_per_step))
 }
 
 /// The demo's configs and synthetic set (with `scenes` scenes) under `dir`: (training config, dataset).
@@ -108,8 +150,9 @@ fn demo_setup(
     Ok((dir.join("train.toml"), Some(data)))
 }
 
-/// One stage's line of the table: the medians of the steps after the warm-up in its log.
-fn row(stage: u8, log: &Path) -> Result<String> {
+/// One stage's line of the table (from the steps column on) and its median seconds per step: the
+/// medians of the steps after the warm-up in its log.
+fn row(log: &Path) -> Result<(String, f64)> {
     let text =
         std::fs::read_to_string(log).with_context(|| format!("reading {}", log.display()))?;
     let steps: Vec<Value> = text
@@ -120,21 +163,18 @@ fn row(stage: u8, log: &Path) -> Result<String> {
         .collect();
     anyhow::ensure!(
         !steps.is_empty(),
-        "stage {stage}: no step after the warm-up in {} (too few training frames?)",
+        "no step after the warm-up in {} (too few training frames?)",
         log.display()
     );
     let med = |f: &dyn Fn(&Value) -> Option<f64>| median(steps.iter().filter_map(f).collect());
-    let mut line = format!(
-        "{stage:>5}  {:>5}  {:>6.3}",
-        steps.len(),
-        med(&|v| v["seconds"].as_f64())
-    );
+    let seconds = med(&|v| v["seconds"].as_f64());
+    let mut line = format!("{:>5}  {seconds:>6.3}", steps.len());
     for p in PHASES {
         let width = p.len().max(5);
         let m = med(&|v| v["phase_seconds"][p].as_f64());
         line += &format!("  {m:>width$.3}");
     }
-    Ok(line)
+    Ok((line, seconds))
 }
 
 fn median(mut x: Vec<f64>) -> f64 {

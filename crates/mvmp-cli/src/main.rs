@@ -391,6 +391,10 @@ enum BenchCommand {
         /// One-frame scenes of the synthetic set made without --config and --data.
         #[arg(long, allow_negative_numbers = true, default_value_t = 48, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(3..=10000))]
         scenes: usize,
+        /// Also time every stage with the fused training passes off (fusion and convolution columns as
+        /// tensor ops), and print the ratio.
+        #[arg(long)]
+        baseline: bool,
     },
     /// Per-stage forward times of a model config (batch 1) and the fraction of GEMM speed each reaches;
     /// with --backward, forward and backward.
@@ -626,6 +630,7 @@ fn bench_command(cmd: BenchCommand, device: &Device, host: bool) -> anyhow::Resu
             data,
             steps,
             scenes,
+            baseline,
         } => bench_train::bench_train(
             &bench_train::BenchTrainArgs {
                 config: config.as_deref(),
@@ -633,6 +638,7 @@ fn bench_command(cmd: BenchCommand, device: &Device, host: bool) -> anyhow::Resu
                 steps,
                 scenes,
                 host,
+                baseline,
             },
             device,
         ),

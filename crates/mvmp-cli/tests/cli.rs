@@ -1135,21 +1135,46 @@ fn table_rows(out: &str) -> Vec<Vec<f64>> {
         .collect()
 }
 
-/// The training benchmark on a tiny synthetic set: one row per stage, one timed step each, every phase
-/// within the step's seconds; a config without data is refused naming it.
+/// The training benchmark on a tiny synthetic set: one row per stage and path (fused, and with
+/// `--baseline` the tensor ops), one timed step each, every phase within the step's seconds, and the
+/// ratio of the two paths; a config without data is refused naming it.
 #[test]
 fn the_training_benchmark_splits_each_stage() {
-    let o = mvmp(&["bench", "train", "--steps", "1", "--scenes", "3"]);
+    let o = mvmp(&[
+        "bench",
+        "train",
+        "--steps",
+        "1",
+        "--scenes",
+        "3",
+        "--baseline",
+    ]);
     assert!(o.status.success(), "{}", stderr(&o));
     let out = String::from_utf8(o.stdout).unwrap();
-    let rows = table_rows(&out);
-    assert_eq!(rows.len(), 2, "{out}");
-    for (stage, r) in rows.iter().enumerate() {
-        assert_eq!((r[0], r[1], r.len()), ((stage + 1) as f64, 1.0, 9), "{out}");
-        let phases: f64 = r[3..8].iter().sum();
-        // The model alone is 15 MB; training holds it several times over, and far less than 10 GB.
-        assert!(r[8] > 30.0 && r[8] < 10000.0, "peak MiB: {out}");
-        assert!(r[2] > 0.0 && phases <= r[2] + 2e-3, "{out}");
+    let lines: Vec<&str> = out.lines().skip(2).collect();
+    assert_eq!(lines.len(), 6, "{out}");
+    for (i, stage) in [1, 2].into_iter().enumerate() {
+        for (j, path) in ["fused", "tensor-ops"].into_iter().enumerate() {
+            let mut cols = lines[3 * i + j].split_whitespace();
+            assert_eq!(cols.next(), Some(stage.to_string().as_str()), "{out}");
+            assert_eq!(cols.next(), Some(path), "{out}");
+            let r: Vec<f64> = cols.map(|x| x.parse().unwrap()).collect();
+            assert_eq!((r[0], r.len()), (1.0, 8), "{out}");
+            let phases: f64 = r[2..7].iter().sum();
+            // The model alone is 15 MB; training holds it several times over, and far less than 10 GB.
+            assert!(r[7] > 30.0 && r[7] < 10000.0, "peak MiB: {out}");
+            assert!(r[1] > 0.0 && phases <= r[1] + 2e-3, "{out}");
+        }
+        let ratio = lines[3 * i + 2];
+        assert!(ratio.contains("tensor-ops / fused:"), "{out}");
+        let x: f64 = ratio
+            .rsplit(' ')
+            .next()
+            .unwrap()
+            .trim_end_matches('x')
+            .parse()
+            .unwrap();
+        assert!(x > 0.0, "{out}");
     }
     assert!(out.lines().nth(1).unwrap().contains("backward"), "{out}");
     let dir = tempfile::tempdir().unwrap();

@@ -1,4 +1,4 @@
-//! Sampling and fusion as one pass on the CPU backend, for inference (no gradient).
+//! Sampling and fusion as one pass on the CPU backend, and its gradient with respect to the maps.
 //!
 //! The tensor path of [`crate::fuse_views`] samples one view at a time into a `[C, P]` plane, masks it
 //! and adds it to the running sum, so at paper scale (1.8 M voxels, 32 channels) every view writes and
@@ -19,9 +19,11 @@ const BLOCK: usize = 16;
 #[derive(Debug)]
 pub(crate) struct HostGrid {
     xy: Vec<[f32; 2]>,
-    views: usize,
-    voxels: usize,
-    map_hw: [usize; 2],
+    /// `[P]`: one over the number of views that see the voxel, 0 where none does (the mean's weight).
+    inv_count: Vec<f32>,
+    pub(crate) views: usize,
+    pub(crate) voxels: usize,
+    pub(crate) map_hw: [usize; 2],
 }
 
 impl HostGrid {
@@ -52,9 +54,18 @@ impl HostGrid {
                 }
                 [f32::NAN, f32::NAN]
             })
+            .collect::<Vec<_>>();
+        let inv_count = (0..voxels)
+            .map(|p| {
+                let seen = (0..views)
+                    .filter(|&v| !xy[v * voxels + p][0].is_nan())
+                    .count();
+                if seen == 0 { 0.0 } else { 1.0 / seen as f32 }
+            })
             .collect();
         HostGrid {
             xy,
+            inv_count,
             views,
             voxels,
             map_hw,
@@ -98,16 +109,7 @@ pub(crate) fn fuse(
         return;
     }
     // Channels last, so a bilinear tap is C contiguous floats.
-    let mut last = vec![0f32; v * h * w * c];
-    last.par_chunks_mut(h * w * c)
-        .zip(maps.par_chunks(c * h * w))
-        .for_each(|(dst, src)| {
-            for (ch, plane) in src.chunks_exact(h * w).enumerate() {
-                for (px, &x) in plane.iter().enumerate() {
-                    dst[px * c + ch] = x;
-                }
-            }
-        });
+    let last = transpose_planes(maps, v, c, h * w);
     let out = SendPtr(out.as_mut_ptr().cast::<f32>());
     let isa = Isa::detect();
     let max = mode == FusionMode::Max;
@@ -231,4 +233,123 @@ fn sample_block_body(
         }
         count[i] += 1;
     }
+}
+
+/// `[N][A][B]` -> `[N][B][A]`: each of `n` planes transposed (channels-first maps to channels-last and
+/// back), planes in parallel.
+fn transpose_planes(src: &[f32], n: usize, a: usize, b: usize) -> Vec<f32> {
+    let mut dst = vec![0f32; n * a * b];
+    dst.par_chunks_mut(a * b)
+        .zip(src.par_chunks(a * b))
+        .for_each(|(dst, src)| {
+            for (i, row) in src.chunks_exact(b).enumerate() {
+                for (j, &x) in row.iter().enumerate() {
+                    dst[j * a + i] = x;
+                }
+            }
+        });
+    dst
+}
+
+/// The bilinear taps of map pixel `(x, y)` (already clamped into the map): the four pixels' indices
+/// and weights, as [`sample_block_body`] computes them.
+#[inline(always)]
+fn taps(x: f32, y: f32, [h, w]: [usize; 2]) -> [(usize, f32); 4] {
+    let (x0, y0) = (x.floor(), y.floor());
+    let (fx, fy) = (x - x0, y - y0);
+    let (x0, y0) = (x0 as usize, y0 as usize);
+    let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+    [
+        (y0 * w + x0, (1.0 - fx) * (1.0 - fy)),
+        (y0 * w + x1, fx * (1.0 - fy)),
+        (y1 * w + x0, (1.0 - fx) * fy),
+        (y1 * w + x1, fx * fy),
+    ]
+}
+
+/// The gradient of [`fuse`] with respect to its maps: `grad [C][P]`, the fused volume's gradient, to
+/// `[V][C][h][w]`. The mean hands each seeing view `1 / count` of a voxel's gradient, spread over its
+/// four bilinear taps; the maximum hands all of it to the view that won (the first among equals), which
+/// needs the maps (`max_maps`) to find again. Views are scattered in parallel, each into its own map, so
+/// the sums run in one order whatever the number of threads.
+pub(crate) fn fuse_backward(
+    grid: &HostGrid,
+    grad: &[f32],
+    max_maps: Option<&[f32]>,
+    channels: usize,
+) -> Vec<f32> {
+    let (v, p, c) = (grid.views, grid.voxels, channels);
+    let [h, w] = grid.map_hw;
+    assert_eq!(grad.len(), c * p, "gradient vs grid");
+    if h * w == 0 || c * p == 0 {
+        return vec![0.0; v * c * h * w];
+    }
+    let grad = transpose_planes(grad, 1, c, p); // [P][C]
+    let winners = max_maps.map(|maps| max_winners(grid, maps, c));
+    let mut last = vec![0f32; v * h * w * c];
+    last.par_chunks_mut(h * w * c)
+        .enumerate()
+        .for_each(|(vi, acc)| {
+            for (pi, &[x, y]) in grid.xy[vi * p..(vi + 1) * p].iter().enumerate() {
+                if x.is_nan() {
+                    continue;
+                }
+                let g = &grad[pi * c..(pi + 1) * c];
+                for (tap, wt) in taps(x, y, grid.map_hw) {
+                    let a = &mut acc[tap * c..(tap + 1) * c];
+                    match &winners {
+                        None => {
+                            let wt = wt * grid.inv_count[pi];
+                            a.iter_mut().zip(g).for_each(|(a, g)| *a += wt * g);
+                        }
+                        Some(win) => {
+                            let win = &win[pi * c..(pi + 1) * c];
+                            for ((a, g), &k) in a.iter_mut().zip(g).zip(win) {
+                                if k as usize == vi {
+                                    *a += wt * g;
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        });
+    transpose_planes(&last, v, h * w, c)
+}
+
+/// `[P][C]`: the view whose sample is the maximum at each voxel and channel (the first among equals),
+/// `u8::MAX` where no view sees the voxel. Callers keep the views under 255.
+fn max_winners(grid: &HostGrid, maps: &[f32], c: usize) -> Vec<u8> {
+    let (v, p) = (grid.views, grid.voxels);
+    let [h, w] = grid.map_hw;
+    assert!(v < u8::MAX as usize, "max fusion's gradient over {v} views");
+    let last = transpose_planes(maps, v, c, h * w);
+    let mut win = vec![u8::MAX; p * c];
+    win.par_chunks_mut(BLOCK * c).enumerate().for_each_init(
+        || (vec![0f32; c], vec![0f32; c]),
+        |(best, s), (blk, win)| {
+            for (i, win) in win.chunks_exact_mut(c).enumerate() {
+                let pi = blk * BLOCK + i;
+                best.fill(f32::NEG_INFINITY);
+                for vi in 0..v {
+                    let [x, y] = grid.xy[vi * p + pi];
+                    if x.is_nan() {
+                        continue;
+                    }
+                    let map = &last[vi * h * w * c..(vi + 1) * h * w * c];
+                    s.fill(0.0);
+                    for (tap, wt) in taps(x, y, grid.map_hw) {
+                        let m = &map[tap * c..(tap + 1) * c];
+                        s.iter_mut().zip(m).for_each(|(s, m)| *s += wt * m);
+                    }
+                    for ((b, k), &s) in best.iter_mut().zip(win.iter_mut()).zip(s.iter()) {
+                        if s > *b {
+                            (*b, *k) = (s, vi as u8);
+                        }
+                    }
+                }
+            }
+        },
+    );
+    win
 }

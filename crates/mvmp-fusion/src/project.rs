@@ -14,6 +14,7 @@ use burn::tensor::{Bool, Device, Tensor, TensorData};
 use mvmp_geom::{Camera, CameraTensors, Letterbox, VoxelGrid};
 
 use crate::cpu::HostGrid;
+use crate::fused::FusePlan;
 
 /// How views are combined.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -63,9 +64,8 @@ impl SamplingGrid {
         let v = cameras.len();
         let ct = CameraTensors::new(cameras, Some(letterboxes), device);
         let proj = ct.project(Tensor::from_data(TensorData::new(centers, [p, 3]), device));
-        // Only for plain flex: training builds grids on the autodiff device every step, and its maps
-        // carry gradients, so a host copy there would be made and never used.
-        let host = if mvmp_geom::simd::runs_fused(device) {
+        // On flex, with or without autodiff: the fused pass (and under autodiff its backward) reads them.
+        let host = if *device == Device::flex() {
             let f32s = |t: Tensor<3>| t.into_data_as::<f32>().try_into_vec::<f32>().ok();
             let uv = f32s(proj.uv.clone());
             let seen = f32s(proj.visible.clone().float().reshape([v, p, 1]));
@@ -91,7 +91,7 @@ impl SamplingGrid {
         }
     }
 
-    /// Whether [`fuse_views`] takes the fused CPU pass with this grid (for maps without autodiff).
+    /// Whether [`fuse_views`] can take the fused CPU pass with this grid (on flex).
     pub fn is_fused(&self) -> bool {
         self.host.is_some()
     }
@@ -115,65 +115,28 @@ impl SamplingGrid {
 /// `maps`: `[B, V, C, h, w]`; `grids`: one [`SamplingGrid`] per batch item (its rig). Returns
 /// `[B, C, X, Y, Z]`.
 ///
-/// On the CPU backend without autodiff (inference) this is one fused pass (`cpu.rs`) that writes the
-/// volume once; otherwise, and whenever a gradient can flow, [`fuse_views_tensor_ops`]. Both compute the
-/// same values (tested to 1e-5 of the map scale).
+/// On flex this is one fused pass (`cpu.rs`) that writes the volume once, and under autodiff its
+/// backward scatters straight to the maps (`fused.rs`); otherwise, and with the fused backward off,
+/// [`fuse_views_tensor_ops`]. Both compute the same values and gradients (tested to 1e-5).
 pub fn fuse_views(maps: Tensor<5>, grids: &[SamplingGrid], mode: FusionMode) -> Tensor<5> {
-    if mode != FusionMode::Deformable
-        && mvmp_geom::simd::runs_fused(&maps.device())
-        && let Some(out) = fuse_views_host(&maps, grids, mode)
-    {
-        return out;
-    }
-    fuse_views_tensor_ops(maps, grids, mode)
-}
-
-/// The fused pass, or `None` when a grid has no host copy or the maps cannot be read.
-fn fuse_views_host(
-    maps: &Tensor<5>,
-    grids: &[SamplingGrid],
-    mode: FusionMode,
-) -> Option<Tensor<5>> {
-    let hosts: Vec<&HostGrid> = grids
-        .iter()
-        .map(|g| g.host.as_deref())
-        .collect::<Option<_>>()?;
-    let [b, v, c, h, w] = maps.dims();
+    let [b, v, _, h, w] = maps.dims();
     assert_eq!(grids.len(), b, "one sampling grid per batch item");
-    let [x, y, z] = grids[0].voxels.shape;
+    let shape = grids[0].voxels.shape;
     for g in grids {
         assert_eq!(g.num_views(), v, "grid views vs map views");
         assert_eq!(g.map_hw, [h, w], "grid map size vs map size");
         // One output tensor: every batch item's grid must have the same shape (the tensor path's
         // `cat` requires the same).
         assert_eq!(
-            g.voxels.shape,
-            [x, y, z],
+            g.voxels.shape, shape,
             "voxel grid shapes differ within the batch"
         );
     }
-    let host = maps
-        .clone()
-        .into_data_as::<f32>()
-        .try_into_vec::<f32>()
-        .ok()?;
-    let p = x * y * z;
-    // Every element is written by `cpu::fuse`, so the volume is not zeroed first.
-    let mut out: Vec<f32> = Vec::with_capacity(b * c * p);
-    let per_item = v * c * h * w;
-    for (bi, (dst, hg)) in out.spare_capacity_mut()[..b * c * p]
-        .chunks_exact_mut(c * p)
-        .zip(hosts)
-        .enumerate()
-    {
-        crate::cpu::fuse(hg, &host[bi * per_item..(bi + 1) * per_item], c, mode, dst);
+    let hosts = grids.iter().map(|g| g.host.clone()).collect();
+    match FusePlan::new(&maps.device(), hosts, shape, mode) {
+        Some(plan) => crate::fused::fuse(maps, plan),
+        None => fuse_views_tensor_ops(maps, grids, mode),
     }
-    // SAFETY: the loop above initialised all b * c * p elements.
-    unsafe { out.set_len(b * c * p) };
-    Some(Tensor::from_data(
-        TensorData::new(out, [b, c, x, y, z]),
-        &maps.device(),
-    ))
 }
 
 /// [`fuse_views`] as tensor ops on any backend, differentiable in the maps. Views are accumulated one at

@@ -391,12 +391,12 @@ fn fused_pass_matches_the_tensor_ops() {
     let g1 = SamplingGrid::new(&voxels, &cams, &lbs, STRIDE, [MAP, MAP], &d);
     let grids = [g0, g1];
     assert!(grids.iter().all(|g| g.is_fused()));
-    // Autodiff (training) and other backends keep no host copy (burn-ndarray is deprecated upstream but
-    // still a backend here).
+    // Training on flex takes the fused pass too; other backends keep no host copy (burn-ndarray is
+    // deprecated upstream but still a backend here).
     #[allow(deprecated)]
     let other = Device::ndarray();
     assert!(!setup(&other).2.is_fused());
-    assert!(!setup(&Device::flex().autodiff()).2.is_fused());
+    assert!(setup(&Device::flex().autodiff()).2.is_fused());
     for c in [1usize, 5, 33] {
         let n = 2 * 2 * c * MAP * MAP;
         let maps: Vec<f32> = (0..n)
@@ -419,6 +419,62 @@ fn fused_pass_matches_the_tensor_ops() {
             // The rigs leave some voxels unseen and some seen by one view only.
             assert!(a.iter().filter(|&&x| x == 0.0).count() > 0, "{mode:?}");
         }
+    }
+}
+
+/// Under autodiff on flex the fused pass's scatter backward gives the maps the gradient the tensor
+/// ops' `grid_sample` backward gives, for the mean and the maximum: two batch items with different
+/// rigs, a voxel count that is not a multiple of the block, voxels unseen or seen by one view.
+#[test]
+fn fused_backward_matches_the_tensor_ops() {
+    let d = Device::flex().autodiff();
+    let voxels = VoxelGrid::new([0.0, 0.0, 1.0], [4.0, 4.0, 2.0], [7, 9, 5]).unwrap();
+    let (_, _, g0) = setup_with(&d, voxels);
+    let cams: Vec<Camera> = vec![
+        camera("c", [-4.0, 2.0, 2.5], [0.0, 0.0, 1.0], 0.03),
+        camera("d", [1.0, 1.0, 1.2], [3.0, 3.0, 1.0], -0.02),
+    ];
+    let lbs: Vec<Letterbox> = cams
+        .iter()
+        .map(|c| Letterbox::new(c.width, c.height, S).unwrap())
+        .collect();
+    let g1 = SamplingGrid::new(&voxels, &cams, &lbs, STRIDE, [MAP, MAP], &d);
+    let grids = [g0, g1];
+    let c = 5;
+    let n = 2 * 2 * c * MAP * MAP;
+    let maps: Vec<f32> = (0..n)
+        .map(|i| ((i * 7919) % 1009) as f32 / 1009.0 - 0.3)
+        .collect();
+    let maps = TensorData::new(maps, [2, 2, c, MAP, MAP]);
+    // The volume's gradient: distinct per element, so a misplaced scatter shows.
+    let p = 7 * 9 * 5;
+    let weights: Vec<f32> = (0..2 * c * p)
+        .map(|i| ((i * 613) % 499) as f32 / 499.0 - 0.5)
+        .collect();
+    let weights = Tensor::<5>::from_data(TensorData::new(weights, [2, c, 7, 9, 5]), &d);
+    for mode in [FusionMode::Mean, FusionMode::Max] {
+        let grad_of = |fused: bool| {
+            let m = Tensor::<5>::from_data(maps.clone(), &d).require_grad();
+            let vol = if fused {
+                fuse_views(m.clone(), &grids, mode)
+            } else {
+                fuse_views_tensor_ops(m.clone(), &grids, mode)
+            };
+            let grads = (vol * weights.clone()).sum().backward();
+            vals(m.grad(&grads).expect("the maps' gradient"))
+        };
+        let (a, b) = (grad_of(true), grad_of(false));
+        let worst = a
+            .iter()
+            .zip(&b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f32::max);
+        // Same bilinear weights from coordinates computed along two routes: float32 rounding.
+        assert!(worst < 1e-5, "{mode:?}: max diff {worst}");
+        assert!(
+            b.iter().any(|&x| x != 0.0),
+            "{mode:?}: a gradient reaches the maps"
+        );
     }
 }
 

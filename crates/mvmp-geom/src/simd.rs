@@ -2,8 +2,9 @@
 //! use.
 use burn::tensor::Device;
 
-/// Whether `device` takes the fused CPU passes: burn's flex backend without autodiff. (`Device` equality
-/// does not tell autodiff flex from plain flex, hence both checks.)
+/// Whether `device` takes the fused SMPL-X pass: burn's flex backend without autodiff. (`Device` equality
+/// does not tell autodiff flex from plain flex, hence both checks.) Fusion's fused pass runs on flex
+/// under autodiff too, with its own backward (mvmp-fusion).
 pub fn runs_fused(device: &Device) -> bool {
     !device.is_autodiff() && *device == Device::flex()
 }

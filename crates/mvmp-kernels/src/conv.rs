@@ -12,7 +12,9 @@
 use burn::nn::PaddingConfig2d;
 use burn::nn::conv::Conv2d;
 use burn::tensor::ops::PadMode;
-use burn::tensor::{Tensor, s};
+use burn::tensor::{Device, Tensor, s};
+
+use crate::im2col::Columns;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 /// Most tap values (output positions x kernel taps x input channels) of a convolution computed as a
@@ -56,6 +58,41 @@ fn product(conv: &Conv2d, x: Tensor<4>, pad: [usize; 4]) -> Option<Tensor<4>> {
     if b * ho * wo * kh * kw * ci > PRODUCT_CAP.load(Ordering::Relaxed) {
         return None;
     }
+    let cols = if x.device() == Device::flex() && crate::im2col::fused_im2col() {
+        let geometry = Columns {
+            kernel: [kh, kw],
+            stride: [sh, sw],
+            pad,
+            out: [ho, wo],
+        };
+        crate::im2col::columns(x, geometry)
+    } else {
+        tensor_columns(x, [kh, kw], [sh, sw], pad, [ho, wo])
+    };
+    // The weight's taps in the columns' order: [Co, kh, kw, Ci].
+    let weight = conv
+        .weight
+        .val()
+        .permute([0, 2, 3, 1])
+        .reshape([co, kh * kw * ci]);
+    let mut y = cols.matmul(weight.transpose());
+    if let Some(bias) = &conv.bias {
+        y = y + bias.val().reshape([1, co]);
+    }
+    Some(y.reshape([b, ho, wo, co]).permute([0, 3, 1, 2]))
+}
+
+/// [`crate::im2col::columns`] as tensor ops on any backend: the zero-padded input channels last, one
+/// strided slice per kernel tap, side by side.
+fn tensor_columns(
+    x: Tensor<4>,
+    [kh, kw]: [usize; 2],
+    [sh, sw]: [usize; 2],
+    pad: [usize; 4],
+    [ho, wo]: [usize; 2],
+) -> Tensor<2> {
+    let [b, ci, _, _] = x.dims();
+    let [top, left, bottom, right] = pad;
     let mut x = x.permute([0, 2, 3, 1]); // [B, H, W, C]
     if pad != [0; 4] {
         x = x.pad(
@@ -71,16 +108,5 @@ fn product(conv: &Conv2d, x: Tensor<4>, pad: [usize; 4]) -> Option<Tensor<4>> {
                 .slice(s![.., i..i + sh * (ho - 1) + 1; si, j..j + sw * (wo - 1) + 1; sj, ..])
         })
         .collect();
-    let cols = Tensor::cat(taps, 3).reshape([b * ho * wo, kh * kw * ci]);
-    // The weight's taps in the columns' order: [Co, kh, kw, Ci].
-    let weight = conv
-        .weight
-        .val()
-        .permute([0, 2, 3, 1])
-        .reshape([co, kh * kw * ci]);
-    let mut y = cols.matmul(weight.transpose());
-    if let Some(bias) = &conv.bias {
-        y = y + bias.val().reshape([1, co]);
-    }
-    Some(y.reshape([b, ho, wo, co]).permute([0, 3, 1, 2]))
+    Tensor::cat(taps, 3).reshape([b * ho * wo, kh * kw * ci])
 }

@@ -1,10 +1,12 @@
 //! Tensor operations that carry their own backward pass, registered with burn as a backend extension:
 //! each backend runs the forward in its own ops, and under autodiff the backward is the one written
 //! here rather than the one burn would derive from the forward's ops: tiled attention, and a transformer
-//! block recomputed in its backward. `conv` holds convolutions written as matrix products for training.
+//! block recomputed in its backward, and a convolution's columns (im2col) on flex. `conv` holds
+//! convolutions written as matrix products for training.
 
 pub mod attention;
 pub mod conv;
+pub mod im2col;
 pub mod recompute;
 
 pub use attention::{DEFAULT_BLOCK, attention, plain_attention};

@@ -286,12 +286,18 @@ fn assert_close(a: Vec<Tensor<1>>, b: Vec<Tensor<1>>, what: &str) {
 
 /// 2D convolutions as products equal burn's: values and the gradients of input, weight and bias, for
 /// HRNet's 1x1s, 3x3s and stride-2 3x3s, an uneven padding and a kernel that does not fit the input a
-/// whole number of times.
+/// whole number of times; on flex (the im2col operation) and on ndarray (the columns as tensor ops).
 #[test]
 fn convolutions_as_products_are_the_convolutions_2d() {
+    #[allow(deprecated)]
+    for d in [Device::flex().autodiff(), Device::ndarray().autodiff()] {
+        products_are_convolutions(&d);
+    }
+}
+
+fn products_are_convolutions(d: &Device) {
     use burn::nn::PaddingConfig2d;
     use burn::nn::conv::Conv2dConfig;
-    let d = Device::flex().autodiff();
     d.seed(3);
     for (k, stride, pad, bias) in [
         (1, 1, (0, 0, 0, 0), true),
@@ -304,10 +310,9 @@ fn convolutions_as_products_are_the_convolutions_2d() {
             .with_stride([stride, stride])
             .with_padding(PaddingConfig2d::Explicit(pad.0, pad.1, pad.2, pad.3))
             .with_bias(bias)
-            .init(&d);
-        let x =
-            Tensor::<4>::random([2, 5, 6, 9], Distribution::Normal(0.0, 1.0), &d).require_grad();
-        let w = Tensor::<4>::random(conv.forward(x.clone()).dims(), Distribution::Default, &d);
+            .init(d);
+        let x = Tensor::<4>::random([2, 5, 6, 9], Distribution::Normal(0.0, 1.0), d).require_grad();
+        let w = Tensor::<4>::random(conv.forward(x.clone()).dims(), Distribution::Default, d);
         let run = |product: bool| {
             let y = match product {
                 true => crate::conv::conv2d(&conv, x.clone()),
@@ -325,7 +330,7 @@ fn convolutions_as_products_are_the_convolutions_2d() {
         assert_close(
             run(true),
             run(false),
-            &format!("kernel {k} stride {stride} pad {pad:?}"),
+            &format!("{d:?}: kernel {k} stride {stride} pad {pad:?}"),
         );
     }
 }
