@@ -87,7 +87,7 @@ impl Basic3DBlock {
         let y = if x.is_autodiff() && self.conv.kernel_size[0] >= 5 {
             conv_in_slabs(&self.conv, x, SLAB.load(Ordering::Relaxed))
         } else {
-            self.conv.forward(x)
+            mvmp_kernels::conv::conv3d(&self.conv, x)
         };
         relu(apply(&self.bn, &self.gn, y))
     }
@@ -176,10 +176,11 @@ impl Res3DBlock {
     }
 
     pub fn forward(&self, x: Tensor<5>) -> Tensor<5> {
-        let r = relu(apply(&self.bn1, &self.gn1, self.conv1.forward(x.clone())));
-        let r = apply(&self.bn2, &self.gn2, self.conv2.forward(r));
+        use mvmp_kernels::conv::conv3d;
+        let r = relu(apply(&self.bn1, &self.gn1, conv3d(&self.conv1, x.clone())));
+        let r = apply(&self.bn2, &self.gn2, conv3d(&self.conv2, r));
         let s = match &self.skip {
-            Some((c, b, g)) => apply(b, g, c.forward(x)),
+            Some((c, b, g)) => apply(b, g, conv3d(c, x)),
             None => x,
         };
         relu(r + s)

@@ -1,16 +1,20 @@
-//! 2D convolutions in training as the matrix products they are (im2col): each kernel tap is a strided
-//! slice of the zero-padded input, channels last, and the taps side by side multiply the weight. The
-//! backward is then two matrix products and the slices' scatter, where flex's own convolution backward is
-//! far slower when channels are few (4 views, forward / backward: a 3x3 over 16 channels at 56 x 56 3.9 /
-//! 34 ms; a 1x1 0.24 / 13 ms, the same 1x1 as a product 0.68 / 0.57 ms). The tiny HRNet's forward and
-//! backward went from 393-417 to 253-316 ms with it (`mvmp bench model --backward`).
+//! Convolutions in training as the matrix products they are: the zero-padded input's taps of every
+//! output position side by side (the columns) multiply the weight. On flex the columns come from
+//! [`crate::im2col`], whose backward adds them back in one pass; elsewhere each kernel tap is a strided
+//! slice of the padded input, channels last. Flex's own convolution backward is far slower when channels
+//! are few (4 views, forward / backward: a 3x3 over 16 channels at 56 x 56 3.9 / 34 ms; a 1x1 0.24 /
+//! 13 ms, the same 1x1 as a product 0.68 / 0.57 ms). The tiny HRNet's forward and backward went from
+//! 393-417 to 253-316 ms with the slices and to 205-230 ms with the im2col operation (`mvmp bench model
+//! --backward`).
 //!
-//! The taps are kept for the backward, `k^2` times the input, so convolutions over
+//! The columns are kept for the backward, `k^2` (`k^3`) times the input, so convolutions over
 //! [`PRODUCT_MAX_ELEMENTS`] tap values (the paper-size HRNet's highest branch) and every convolution
-//! without autodiff take burn's own. 3D convolutions keep burn's: the same form made the tiny RootNet's
-//! forward and backward slower (264-308 against 218-255 ms).
+//! without autodiff take burn's own. 3D convolutions are products only on flex: as slices (27 of them)
+//! they made the tiny RootNet's forward and backward slower (264-308 against 218-255 ms); with the
+//! operation they are faster (211-217 against 240-246 ms).
 use burn::nn::PaddingConfig2d;
-use burn::nn::conv::Conv2d;
+use burn::nn::PaddingConfig3d;
+use burn::nn::conv::{Conv2d, Conv3d};
 use burn::tensor::ops::PadMode;
 use burn::tensor::{Device, Tensor, s};
 
@@ -46,6 +50,57 @@ pub fn conv2d(conv: &Conv2d, x: Tensor<4>) -> Tensor<4> {
     }
 }
 
+/// `conv.forward(x)` for a 3D convolution: in training on flex, as a product of the columns
+/// ([`crate::im2col`]) and the weight when small enough; otherwise burn's own.
+pub fn conv3d(conv: &Conv3d, x: Tensor<5>) -> Tensor<5> {
+    let pad = match conv.padding {
+        PaddingConfig3d::Valid => [0; 3],
+        PaddingConfig3d::Explicit(a, b, c) => [a, b, c],
+        PaddingConfig3d::Same => return conv.forward(x),
+    };
+    let plain = conv.dilation == [1; 3] && conv.groups == 1;
+    let fused = x.is_autodiff() && x.device() == Device::flex() && crate::im2col::fused_im2col();
+    if !(plain && fused) {
+        return conv.forward(x);
+    }
+    product3d(conv, x.clone(), pad).unwrap_or_else(|| conv.forward(x))
+}
+
+/// The 3D convolution as a product with symmetric padding `pad`; `None` when the kernel is wider than
+/// the padded input or its taps would exceed the cap.
+fn product3d(conv: &Conv3d, x: Tensor<5>, pad: [usize; 3]) -> Option<Tensor<5>> {
+    let [b, ci, d, h, w] = x.dims();
+    let co = conv.weight.dims()[0];
+    let mut out = [0; 3];
+    for (a, n) in [d, h, w].into_iter().enumerate() {
+        out[a] = (n + 2 * pad[a]).checked_sub(conv.kernel_size[a])? / conv.stride[a] + 1;
+    }
+    let taps: usize = conv.kernel_size.iter().product();
+    let outputs: usize = out.iter().product();
+    if b * outputs * taps * ci > PRODUCT_CAP.load(Ordering::Relaxed) {
+        return None;
+    }
+    let geometry = Columns {
+        kernel: conv.kernel_size,
+        stride: conv.stride,
+        pad,
+        out,
+    };
+    let cols = crate::im2col::columns(x, geometry);
+    // The weight's taps in the columns' order: [Co, kd, kh, kw, Ci].
+    let weight = conv
+        .weight
+        .val()
+        .permute([0, 2, 3, 4, 1])
+        .reshape([co, taps * ci]);
+    let mut y = cols.matmul(weight.transpose());
+    if let Some(bias) = &conv.bias {
+        y = y + bias.val().reshape([1, co]);
+    }
+    let [od, oh, ow] = out;
+    Some(y.reshape([b, od, oh, ow, co]).permute([0, 4, 1, 2, 3]))
+}
+
 /// The convolution as a product, `pad` = (top, left, bottom, right); `None` when the kernel is wider
 /// than the padded input (burn's convolution says so) or its taps would exceed the cap.
 fn product(conv: &Conv2d, x: Tensor<4>, pad: [usize; 4]) -> Option<Tensor<4>> {
@@ -60,12 +115,12 @@ fn product(conv: &Conv2d, x: Tensor<4>, pad: [usize; 4]) -> Option<Tensor<4>> {
     }
     let cols = if x.device() == Device::flex() && crate::im2col::fused_im2col() {
         let geometry = Columns {
-            kernel: [kh, kw],
-            stride: [sh, sw],
-            pad,
-            out: [ho, wo],
+            kernel: [1, kh, kw],
+            stride: [1, sh, sw],
+            pad: [0, top, left],
+            out: [1, ho, wo],
         };
-        crate::im2col::columns(x, geometry)
+        crate::im2col::columns(x.unsqueeze_dim(2), geometry)
     } else {
         tensor_columns(x, [kh, kw], [sh, sw], pad, [ho, wo])
     };

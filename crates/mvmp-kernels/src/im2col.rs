@@ -1,5 +1,5 @@
-//! The columns of a 2D convolution as a product (im2col) on flex, with a backward that adds each column
-//! back into the input it was copied from (col2im) in one pass.
+//! The columns of a 2D or 3D convolution as a product (im2col) on flex, with a backward that adds each
+//! column back into the input it was copied from (col2im) in one pass. A 2D input is a 3D one of depth 1.
 //!
 //! As tensor ops (`conv::product` on other backends) the columns are a pad, one strided slice per
 //! kernel tap and a concatenation, and autodiff's backward of them makes a zero tensor the size of the
@@ -30,19 +30,50 @@ pub fn fused_im2col() -> bool {
     FUSED_IM2COL.load(Ordering::Relaxed)
 }
 
-/// The shape of a convolution's columns: kernel and stride `[h, w]`, padding (top, left, bottom,
-/// right) and the output size `[h, w]`.
+/// The shape of a convolution's columns over three spatial axes (a 2D convolution: depth 1): kernel,
+/// stride, the padding before each axis (what lies past the end follows from the output size) and the
+/// output size.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Columns {
-    pub kernel: [usize; 2],
-    pub stride: [usize; 2],
-    pub pad: [usize; 4],
-    pub out: [usize; 2],
+    pub kernel: [usize; 3],
+    pub stride: [usize; 3],
+    pub pad: [usize; 3],
+    pub out: [usize; 3],
 }
 
-/// `x [B, C, H, W]` -> `[B * Ho * Wo, kh * kw * C]`: row `(b, oy, ox)` holds the zero-padded input's
-/// taps in the order `(i, j, c)` (the weight's `[Co, kh, kw, Ci]`).
-pub fn columns(x: Tensor<4>, geometry: Columns) -> Tensor<2> {
+impl Columns {
+    fn taps(&self) -> usize {
+        self.kernel.iter().product()
+    }
+
+    fn outputs(&self) -> usize {
+        self.out.iter().product()
+    }
+
+    /// The input position (flat over `size`) that output `o` (flat) reads at tap `t` (flat), or `None`
+    /// in the padding.
+    #[inline(always)]
+    fn source(&self, size: [usize; 3], o: usize, t: usize) -> Option<usize> {
+        let [_, oh, ow] = self.out;
+        let [_, kh, kw] = self.kernel;
+        let (o, k) = (
+            [o / (oh * ow), o / ow % oh, o % ow],
+            [t / (kh * kw), t / kw % kh, t % kw],
+        );
+        let mut flat = 0;
+        for a in 0..3 {
+            let i = (o[a] * self.stride[a] + k[a])
+                .checked_sub(self.pad[a])
+                .filter(|&i| i < size[a])?;
+            flat = flat * size[a] + i;
+        }
+        Some(flat)
+    }
+}
+
+/// `x [B, C, D, H, W]` -> `[B * Do * Ho * Wo, kd * kh * kw * C]`: row `(b, od, oy, ox)` holds the
+/// zero-padded input's taps in the order `(kd, kh, kw, c)` (the weight's `[Co, kd, kh, kw, Ci]`).
+pub fn columns(x: Tensor<5>, geometry: Columns) -> Tensor<2> {
     Tensor::from_dispatch(<Dispatch as Im2colBackend>::im2col(
         x.into_dispatch(),
         geometry,
@@ -55,12 +86,10 @@ pub fn columns(x: Tensor<4>, geometry: Columns) -> Tensor<2> {
 pub trait Im2colBackend: Backend {
     fn im2col(x: FloatTensor<Self>, geometry: Columns) -> FloatTensor<Self> {
         let device = x.device();
-        let dims = dims4(&x.shape());
+        let dims = dims5(&x.shape());
         let cols = forward_host(&host::<Self>(x), dims, &geometry);
-        let [b, c, _, _] = dims;
-        let [ho, wo] = geometry.out;
-        let [kh, kw] = geometry.kernel;
-        Self::float_from_data(TensorData::new(cols, [b * ho * wo, kh * kw * c]), &device)
+        let shape = [dims[0] * geometry.outputs(), geometry.taps() * dims[1]];
+        Self::float_from_data(TensorData::new(cols, shape), &device)
     }
 }
 
@@ -70,7 +99,7 @@ impl<B: Backend + Im2colBackend, C: CheckpointStrategy> Im2colBackend for Autodi
     fn im2col(x: FloatTensor<Self>, geometry: Columns) -> FloatTensor<Self> {
         let guards = [x.node()];
         let x = x.into_primitive();
-        let dims = dims4(&x.shape());
+        let dims = dims5(&x.shape());
         let out = B::im2col(x, geometry);
         // The state is two shapes: nothing a checkpointing strategy could save by recomputing.
         match Col2im.prepare::<C>(guards).compute_bound().stateful() {
@@ -80,7 +109,7 @@ impl<B: Backend + Im2colBackend, C: CheckpointStrategy> Im2colBackend for Autodi
     }
 }
 
-fn dims4(shape: &burn::tensor::Shape) -> [usize; 4] {
+fn dims5(shape: &burn::tensor::Shape) -> [usize; 5] {
     std::array::from_fn(|i| shape[i])
 }
 
@@ -98,7 +127,7 @@ fn host<B: Backend>(t: FloatTensor<B>) -> Vec<f32> {
 struct Col2im;
 
 impl<B: Backend> Backward<B, 1> for Col2im {
-    type State = ([usize; 4], Columns);
+    type State = ([usize; 5], Columns);
 
     fn backward(self, ops: Ops<Self::State, 1>, grads: &mut Gradients, _: &mut Checkpointer) {
         let grad = grads.consume::<B>(&ops.node);
@@ -114,24 +143,7 @@ impl<B: Backend> Backward<B, 1> for Col2im {
     }
 }
 
-/// The input position `(y, x)` that output `(oy, ox)` reads at tap `(i, j)`, or `None` in the padding.
-#[inline(always)]
-fn source(
-    g: &Columns,
-    [h, w]: [usize; 2],
-    [oy, ox]: [usize; 2],
-    [i, j]: [usize; 2],
-) -> Option<usize> {
-    let y = (oy * g.stride[0] + i)
-        .checked_sub(g.pad[0])
-        .filter(|&y| y < h)?;
-    let x = (ox * g.stride[1] + j)
-        .checked_sub(g.pad[1])
-        .filter(|&x| x < w)?;
-    Some(y * w + x)
-}
-
-/// `[B][C][H*W]` <-> `[B][H*W][C]`, batch items in parallel.
+/// `[B][C][P]` <-> `[B][P][C]`, batch items in parallel.
 fn transpose_items(src: &[f32], b: usize, rows: usize, cols: usize) -> Vec<f32> {
     use rayon::prelude::*;
     let mut dst = vec![0f32; b * rows * cols];
@@ -147,21 +159,24 @@ fn transpose_items(src: &[f32], b: usize, rows: usize, cols: usize) -> Vec<f32> 
     dst
 }
 
-fn forward_host(x: &[f32], [b, c, h, w]: [usize; 4], g: &Columns) -> Vec<f32> {
+fn forward_host(x: &[f32], [b, c, d, h, w]: [usize; 5], g: &Columns) -> Vec<f32> {
     use rayon::prelude::*;
-    let last = transpose_items(x, b, c, h * w); // [B][H*W][C]
-    let ([kh, kw], [ho, wo]) = (g.kernel, g.out);
-    let width = kh * kw * c;
-    let mut cols = vec![0f32; b * ho * wo * width];
-    // One chunk per output row of one batch item.
-    cols.par_chunks_mut(wo * width)
+    let size = d * h * w;
+    let last = transpose_items(x, b, c, size); // [B][P][C]
+    let (taps, outputs) = (g.taps(), g.outputs());
+    let width = taps * c;
+    let mut cols = vec![0f32; b * outputs * width];
+    // Chunks of a whole number of rows of one batch item.
+    let rows = g.out[2].max(1);
+    cols.par_chunks_mut(rows * width)
         .enumerate()
-        .for_each(|(line, dst)| {
-            let (bi, oy) = (line / ho, line % ho);
-            let src = &last[bi * h * w * c..(bi + 1) * h * w * c];
-            for (ox, row) in dst.chunks_exact_mut(width).enumerate() {
+        .for_each(|(chunk, dst)| {
+            let bi = chunk * rows / outputs;
+            let src = &last[bi * size * c..(bi + 1) * size * c];
+            for (r, row) in dst.chunks_exact_mut(width).enumerate() {
+                let o = (chunk * rows + r) % outputs;
                 for (t, tap) in row.chunks_exact_mut(c).enumerate() {
-                    if let Some(p) = source(g, [h, w], [oy, ox], [t / kw, t % kw]) {
+                    if let Some(p) = g.source([d, h, w], o, t) {
                         tap.copy_from_slice(&src[p * c..(p + 1) * c]);
                     }
                 }
@@ -170,24 +185,24 @@ fn forward_host(x: &[f32], [b, c, h, w]: [usize; 4], g: &Columns) -> Vec<f32> {
     cols
 }
 
-fn backward_host(grad: &[f32], [b, c, h, w]: [usize; 4], g: &Columns) -> Vec<f32> {
+fn backward_host(grad: &[f32], [b, c, d, h, w]: [usize; 5], g: &Columns) -> Vec<f32> {
     use rayon::prelude::*;
-    let ([kh, kw], [ho, wo]) = (g.kernel, g.out);
-    let width = kh * kw * c;
-    let mut acc = vec![0f32; b * h * w * c]; // [B][H*W][C]
-    acc.par_chunks_mut(h * w * c)
+    let size = d * h * w;
+    let width = g.taps() * c;
+    let outputs = g.outputs();
+    let mut acc = vec![0f32; b * size * c]; // [B][P][C]
+    acc.par_chunks_mut(size * c)
         .enumerate()
         .for_each(|(bi, acc)| {
-            let rows = &grad[bi * ho * wo * width..(bi + 1) * ho * wo * width];
-            for (r, row) in rows.chunks_exact(width).enumerate() {
-                let (oy, ox) = (r / wo, r % wo);
+            let rows = &grad[bi * outputs * width..(bi + 1) * outputs * width];
+            for (o, row) in rows.chunks_exact(width).enumerate() {
                 for (t, tap) in row.chunks_exact(c).enumerate() {
-                    if let Some(p) = source(g, [h, w], [oy, ox], [t / kw, t % kw]) {
+                    if let Some(p) = g.source([d, h, w], o, t) {
                         let a = &mut acc[p * c..(p + 1) * c];
                         a.iter_mut().zip(tap).for_each(|(a, t)| *a += t);
                     }
                 }
             }
         });
-    transpose_items(&acc, b, h * w, c)
+    transpose_items(&acc, b, size, c)
 }

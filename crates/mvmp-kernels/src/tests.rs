@@ -335,6 +335,51 @@ fn products_are_convolutions(d: &Device) {
     }
 }
 
+/// 3D convolutions as products of columns equal burn's: values and the gradients of input, weight and
+/// bias, for the RootNet's 3x3x3 and 1x1x1, a stride-2 kernel and an axis the kernel does not fit a whole
+/// number of times.
+#[test]
+fn convolutions_as_products_are_the_convolutions_3d() {
+    use burn::nn::PaddingConfig3d;
+    use burn::nn::conv::Conv3dConfig;
+    let d = Device::flex().autodiff();
+    d.seed(5);
+    for (k, stride, pad, bias) in [
+        (3, 1, 1, true),
+        (1, 1, 0, true),
+        (3, 2, 1, false),
+        (2, 1, 0, true),
+    ] {
+        let conv = Conv3dConfig::new([3, 4], [k; 3])
+            .with_stride([stride; 3])
+            .with_padding(PaddingConfig3d::Explicit(pad, pad, pad))
+            .with_bias(bias)
+            .init(&d);
+        let x =
+            Tensor::<5>::random([2, 3, 5, 6, 7], Distribution::Normal(0.0, 1.0), &d).require_grad();
+        let w = Tensor::<5>::random(conv.forward(x.clone()).dims(), Distribution::Default, &d);
+        let run = |product: bool| {
+            let y = match product {
+                true => crate::conv::conv3d(&conv, x.clone()),
+                false => conv.forward(x.clone()),
+            };
+            let grads = (y.clone() * w.clone()).sum().backward();
+            let mut out = vec![
+                y.detach().flatten::<1>(0, 4),
+                x.grad(&grads).unwrap().flatten::<1>(0, 4),
+                conv.weight.val().grad(&grads).unwrap().flatten::<1>(0, 4),
+            ];
+            out.extend(conv.bias.as_ref().map(|b| b.val().grad(&grads).unwrap()));
+            out
+        };
+        assert_close(
+            run(true),
+            run(false),
+            &format!("kernel {k} stride {stride} pad {pad}"),
+        );
+    }
+}
+
 /// Without autodiff, or over the size cap, the convolution is burn's own (the same values).
 #[test]
 fn convolutions_without_autodiff_or_too_large_are_burns() {
