@@ -1,12 +1,14 @@
 //! Property tests of the file readers: a valid model, training or synthesis config, camera rig,
-//! annotation or SMPL-X parameter file with one number replaced by an arbitrary value (any float,
-//! infinities and NaN included, huge integers, another type) is either refused with an error or read into
-//! values that are all finite and pass validation. No input panics.
+//! annotation, SMPL-X parameter file, Panoptic calibration or body file, or Human3.6M camera file with one
+//! number replaced by an arbitrary value (any float, infinities and NaN included, huge integers, another
+//! type) is either refused with an error or read into values that are all finite and pass validation. No
+//! input panics.
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
 use mvmp::data::Annotation;
 use mvmp::data::synth::{SynthConfig, generate};
+use mvmp::data::{h36m, panoptic};
 use mvmp::geom::Rig;
 use mvmp::model::ModelConfig;
 use mvmp::smplx::SmplxParams;
@@ -142,6 +144,45 @@ fn all_finite(v: &impl serde::Serialize) -> bool {
     walk(&toml::Value::try_from(v).expect("serialisable as TOML"))
 }
 
+/// A Panoptic calibration holding two HD cameras (cm, y down).
+fn panoptic_calibration() -> String {
+    let cam = |name: &str, s: f64| {
+        let c = (1.0 - s * s).sqrt();
+        serde_json::json!({
+            "name": name, "type": "hd", "resolution": [1920, 1080], "panel": 0, "node": 1,
+            "K": [[1400.0, 0.0, 960.0], [0.0, 1400.0, 540.0], [0.0, 0.0, 1.0]],
+            "distCoef": [-0.2, 0.1, 0.001, -0.001, 0.0],
+            "R": [[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]],
+            "t": [[10.0], [-20.0], [400.0]],
+        })
+    };
+    serde_json::json!({"calibDataSource": "readers", "cameras": [cam("00_03", 0.6), cam("00_06", -0.8)]})
+        .to_string()
+}
+
+/// A Panoptic `body3DScene` file with two people of 19 joints (x, y, z, confidence).
+fn panoptic_bodies() -> String {
+    let body = |id: i64| {
+        let j: Vec<f64> = (0..19)
+            .flat_map(|i| [30.0 * id as f64, -100.0 - i as f64, 10.0, 0.8])
+            .collect();
+        serde_json::json!({"id": id, "joints19": j})
+    };
+    serde_json::json!({"version": 0.7, "univTime": 1.0, "fpsType": "hd_29_97", "bodies": [body(0), body(1)]})
+        .to_string()
+}
+
+fn rig_is_finite(rig: &Rig) -> bool {
+    rig.cameras.iter().all(|c| {
+        c.k.iter()
+            .chain(c.r.iter())
+            .chain(c.t.iter())
+            .all(|x| x.is_finite())
+            && c.width > 0
+            && c.height > 0
+    })
+}
+
 fn write(dir: &Path, name: &str, text: &str) -> PathBuf {
     let p = dir.join(name);
     std::fs::write(&p, text).unwrap();
@@ -188,10 +229,42 @@ proptest! {
         let base = std::fs::read_to_string(dataset().join("scene_000/cameras.json")).unwrap();
         let text = mutate_json(&base, at, value);
         if let Ok(rig) = Rig::read(&write(dir.path(), "cameras.json", &text)) {
-            for c in &rig.cameras {
-                prop_assert!(c.k.iter().chain(c.r.iter()).chain(c.t.iter()).all(|x| x.is_finite()));
-                prop_assert!(c.width > 0 && c.height > 0);
+            prop_assert!(rig_is_finite(&rig), "{text}");
+        }
+    }
+
+    #[test]
+    fn panoptic_calibrations(at in any::<Index>(), value in json_value()) {
+        let dir = tempfile::tempdir().unwrap();
+        let text = mutate_json(&panoptic_calibration(), at, value);
+        let path = write(dir.path(), "calibration_x.json", &text);
+        if let Ok(rig) = panoptic::read_calibration(&path, &["00_03", "00_06"]) {
+            prop_assert!(rig_is_finite(&rig), "{text}");
+            prop_assert_eq!(rig.cameras.len(), 2);
+        }
+    }
+
+    #[test]
+    fn panoptic_body_files(at in any::<Index>(), value in json_value()) {
+        let dir = tempfile::tempdir().unwrap();
+        let text = mutate_json(&panoptic_bodies(), at, value);
+        if let Ok(bodies) = panoptic::read_bodies(&write(dir.path(), "body3DScene_0.json", &text)) {
+            for b in &bodies {
+                prop_assert_eq!((b.joints.len(), b.confidence.len()), (19, 19), "{}", text);
+                prop_assert!(b.joints.iter().flatten().chain(&b.confidence).all(|x| x.is_finite()));
             }
+        }
+    }
+
+    #[test]
+    fn human36m_camera_files(at in any::<Index>(), value in json_value()) {
+        let dir = tempfile::tempdir().unwrap();
+        let base = repo("crates/mvmp-data/tests/fixtures/h36m/camera-parameters.json");
+        let text = mutate_json(&base, at, value);
+        let path = write(dir.path(), "camera-parameters.json", &text);
+        if let Ok(rig) = h36m::read_cameras(&path, "S9") {
+            prop_assert!(rig_is_finite(&rig), "{text}");
+            prop_assert_eq!(rig.cameras.len(), 4);
         }
     }
 
