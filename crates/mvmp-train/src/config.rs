@@ -258,125 +258,135 @@ impl TrainConfig {
     }
 
     pub fn validate(&self, path: &Path) -> Result<(), TrainError> {
-        let bad = |key: &str, what: String| TrainError::Config {
-            path: path.into(),
-            key: key.into(),
-            what,
-        };
+        self.check_run()
+            .and_then(|()| self.check_stages())
+            .and_then(|()| self.check_sources())
+            .and_then(|()| self.loss.validate().map_err(|what| ("loss".into(), what)))
+            .map_err(|(key, what)| TrainError::Config {
+                path: path.into(),
+                key,
+                what,
+            })
+    }
+
+    /// Batch, views, matching gate, checkpoints and augmentation: the offending key and why.
+    fn check_run(&self) -> Result<(), (String, String)> {
+        let bad = |key: &str, what: String| Err((key.to_string(), what));
         if self.batch_size == 0 {
-            return Err(bad("batch_size", "0: must be at least 1".into()));
+            return bad("batch_size", "0: must be at least 1".into());
         }
         for (key, n) in [
             ("train_views", self.train_views),
             ("test_views", self.test_views),
         ] {
             if !(1..=MAX_VIEWS).contains(&n) {
-                return Err(bad(key, format!("{n}: expected 1 to {MAX_VIEWS} views")));
+                return bad(key, format!("{n}: expected 1 to {MAX_VIEWS} views"));
             }
         }
         if !(self.match_gate.is_finite() && self.match_gate > 0.0) {
-            return Err(bad(
+            return bad(
                 "match_gate",
                 format!("{}: must be positive", self.match_gate),
-            ));
+            );
         }
         if self.keep_checkpoints == 0 {
-            return Err(bad("keep_checkpoints", "0: must be at least 1".into()));
+            return bad("keep_checkpoints", "0: must be at least 1".into());
         }
+        if let Some((key, x)) = self.augment.invalid() {
+            return bad(
+                &format!("augment.{key}"),
+                format!("{x}: expected a strength within [0, 1)"),
+            );
+        }
+        Ok(())
+    }
+
+    /// Each stage's rates, clipping and schedule: the offending key and why.
+    fn check_stages(&self) -> Result<(), (String, String)> {
+        let bad = |key: String, what: String| Err((key, what));
         for (name, s) in [("stage1", &self.stage1), ("stage2", &self.stage2)] {
             if !(s.lr.is_finite() && s.lr > 0.0) {
-                return Err(bad(
-                    &format!("{name}.lr"),
-                    format!("{}: must be positive", s.lr),
-                ));
+                return bad(format!("{name}.lr"), format!("{}: must be positive", s.lr));
             }
             if let Some(d) = s.decoder_lr
                 && !(d.is_finite() && d > 0.0)
             {
-                return Err(bad(
-                    &format!("{name}.decoder_lr"),
+                return bad(
+                    format!("{name}.decoder_lr"),
                     format!("{d}: must be positive"),
-                ));
+                );
             }
             if !(s.final_lr_factor.is_finite() && (0.0..=1.0).contains(&s.final_lr_factor)) {
-                return Err(bad(
-                    &format!("{name}.final_lr_factor"),
+                return bad(
+                    format!("{name}.final_lr_factor"),
                     format!("{}: must be within [0, 1]", s.final_lr_factor),
-                ));
+                );
             }
             if !(s.grad_clip.is_finite() && s.grad_clip >= 0.0) {
-                return Err(bad(
-                    &format!("{name}.grad_clip"),
+                return bad(
+                    format!("{name}.grad_clip"),
                     format!("{}: must be 0 (off) or positive", s.grad_clip),
-                ));
+                );
             }
-        }
-        if let Some((key, x)) = self.augment.invalid() {
-            return Err(bad(
-                &format!("augment.{key}"),
-                format!("{x}: expected a strength within [0, 1)"),
-            ));
         }
         if self.stage1.freeze_backbone {
-            return Err(bad(
-                "stage1.freeze_backbone",
+            return bad(
+                "stage1.freeze_backbone".into(),
                 "true: stage 1 trains HRNet and the RootNet only; set it in stage2".into(),
-            ));
+            );
         }
         if self.stage1.epochs + self.stage2.epochs == 0 {
-            return Err(bad(
-                "stage1.epochs, stage2.epochs",
+            return bad(
+                "stage1.epochs, stage2.epochs".into(),
                 "both 0: nothing to train".into(),
-            ));
+            );
         }
+        Ok(())
+    }
+
+    /// The extra training sources and the validation source: the offending key and why.
+    fn check_sources(&self) -> Result<(), (String, String)> {
+        let bad = |key: String, what: &str| Err((key, what.to_string()));
         for (i, src) in self.sources.iter().enumerate() {
             if src.stride == Some(0) {
-                return Err(bad(
-                    &format!("sources[{i}].stride"),
-                    "0: keep every N-th frame with N >= 1".into(),
-                ));
+                return bad(
+                    format!("sources[{i}].stride"),
+                    "0: keep every N-th frame with N >= 1",
+                );
             }
             if src.repeat == Some(0) {
-                return Err(bad(
-                    &format!("sources[{i}].repeat"),
-                    "0: each frame is drawn at least once per epoch".into(),
-                ));
+                return bad(
+                    format!("sources[{i}].repeat"),
+                    "0: each frame is drawn at least once per epoch",
+                );
             }
             if src.format == SourceFormat::Mvmp && (src.stride.is_some() || src.cameras.is_some()) {
-                return Err(bad(
-                    &format!("sources[{i}]"),
-                    "stride and cameras apply to panoptic and h36m sources; an mvmp source uses every frame".into(),
-                ));
+                return bad(
+                    format!("sources[{i}]"),
+                    "stride and cameras apply to panoptic and h36m sources; an mvmp source uses every frame",
+                );
             }
             if src.format == SourceFormat::Mvmp && src.pseudo_gt.is_some() {
-                return Err(bad(
-                    &format!("sources[{i}].pseudo_gt"),
-                    "applies to panoptic and h36m sources; an mvmp source has SMPL-X ground truth"
-                        .into(),
-                ));
+                return bad(
+                    format!("sources[{i}].pseudo_gt"),
+                    "applies to panoptic and h36m sources; an mvmp source has SMPL-X ground truth",
+                );
             }
         }
-        if self
-            .validation
-            .as_ref()
-            .is_some_and(|v| v.pseudo_gt.is_some())
-        {
-            return Err(bad(
-                "validation.pseudo_gt",
-                "applies to training sources; validation scores the dataset's joints (use `mvmp eval --pseudo-gt` for meshes)".into(),
-            ));
+        let validation = self.validation.as_ref();
+        if validation.is_some_and(|v| v.pseudo_gt.is_some()) {
+            return bad(
+                "validation.pseudo_gt".into(),
+                "applies to training sources; validation scores the dataset's joints (use `mvmp eval --pseudo-gt` for meshes)",
+            );
         }
-        if self.validation.as_ref().is_some_and(|v| v.repeat.is_some()) {
-            return Err(bad(
-                "validation.repeat",
-                "repeat applies to training sources; validation uses each frame once".into(),
-            ));
+        if validation.is_some_and(|v| v.repeat.is_some()) {
+            return bad(
+                "validation.repeat".into(),
+                "repeat applies to training sources; validation uses each frame once",
+            );
         }
-        self.loss.validate().map_err(|what| TrainError::Config {
-            path: path.into(),
-            key: "loss".into(),
-            what,
-        })
+        Ok(())
     }
 
     /// The training sources: `data` (an MVMP-HMR tree, its train split) first, then `sources`.

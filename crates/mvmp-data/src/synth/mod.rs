@@ -225,27 +225,7 @@ fn make_scene(
     std::fs::create_dir_all(&dir).map_err(|e| DataError::io(&dir, e))?;
     let rig = make_rig(cfg, &mut rng)?;
     rig.write(&dir.join("cameras.json"))?;
-    let night = rng.random_bool(cfg.lighting.night_fraction);
-    let elev = rng.random_range(0.5..1.2f64);
-    let azim = rng.random_range(0.0..std::f64::consts::TAU);
-    let tone = |rng: &mut ChaCha8Rng| -> [f32; 3] {
-        let g = rng.random_range(0.25..0.6f32);
-        [
-            g * rng.random_range(0.9..1.1),
-            g,
-            g * rng.random_range(0.85..1.05),
-        ]
-    };
-    let scenery = Scenery {
-        night,
-        light_dir: [
-            -(elev.cos() * azim.cos()) as f32,
-            -(elev.cos() * azim.sin()) as f32,
-            -elev.sin() as f32,
-        ],
-        ground: [tone(&mut rng), tone(&mut rng)],
-        seed: rng.random(),
-    };
+    let scenery = make_scenery(cfg, &mut rng);
     let count = rng.random_range(cfg.people[0]..=cfg.people[1]);
     let mut people: Vec<Posed> = Vec::new();
     let mut frames = Vec::new();
@@ -268,55 +248,8 @@ fn make_scene(
             .par_iter()
             .map(|cam| render_view(cam, &people, faces, parts, &scenery))
             .collect();
-        let mut images = Vec::new();
-        let mut depth = Vec::new();
-        let mut masks = Vec::new();
-        for (v, out) in views.iter().enumerate() {
-            let img = format!("view_{v:02}.{ext}");
-            write_png_rgb(
-                &fdir.join(&img),
-                out.width,
-                out.height,
-                &out.rgb,
-                ext == "jpg",
-            )?;
-            images.push(img);
-            if cfg.depth {
-                let d = format!("depth_{v:02}.png");
-                // 16-bit PNG samples are big-endian in the file; the encoder takes native-endian u16 bytes.
-                let bytes: Vec<u8> = out.depth_mm.iter().flat_map(|x| x.to_ne_bytes()).collect();
-                write_png_gray(&fdir.join(&d), out.width, out.height, &bytes, true)?;
-                depth.push(d);
-            }
-            if cfg.masks {
-                let m = format!("mask_{v:02}.png");
-                write_png_gray(&fdir.join(&m), out.width, out.height, &out.mask, false)?;
-                masks.push(m);
-            }
-        }
-        let ann = Annotation {
-            format: ANNOTATION_FORMAT.into(),
-            version: SCHEMA_VERSION,
-            images,
-            depth: cfg.depth.then_some(depth),
-            masks: cfg.masks.then_some(masks),
-            people: people
-                .iter()
-                .enumerate()
-                .map(|(i, p)| Person {
-                    id: p.state.id,
-                    smplx: p.params(),
-                    pelvis: p.pelvis,
-                    joints_3d: p.joints.clone(),
-                    views: rig
-                        .cameras
-                        .iter()
-                        .zip(&views)
-                        .map(|(cam, view)| person_view(cam, p, i, view))
-                        .collect(),
-                })
-                .collect(),
-        };
+        let files = write_views(cfg, &fdir, &views, ext)?;
+        let ann = frame_annotation(&rig, &people, &views, files);
         write_json(&fdir.join("annotation.json"), &ann)?;
         frames.push(frame_name);
         progress();
@@ -335,6 +268,111 @@ fn make_scene(
         views: rig.len(),
         people: people.len(),
     })
+}
+
+/// A scene's lighting and ground: night or day, the sun's direction, two ground tones and the texture's
+/// seed, drawn in that order.
+fn make_scenery(cfg: &SynthConfig, rng: &mut ChaCha8Rng) -> Scenery {
+    let night = rng.random_bool(cfg.lighting.night_fraction);
+    let elev = rng.random_range(0.5..1.2f64);
+    let azim = rng.random_range(0.0..std::f64::consts::TAU);
+    let tone = |rng: &mut ChaCha8Rng| -> [f32; 3] {
+        let g = rng.random_range(0.25..0.6f32);
+        [
+            g * rng.random_range(0.9..1.1),
+            g,
+            g * rng.random_range(0.85..1.05),
+        ]
+    };
+    Scenery {
+        night,
+        light_dir: [
+            -(elev.cos() * azim.cos()) as f32,
+            -(elev.cos() * azim.sin()) as f32,
+            -elev.sin() as f32,
+        ],
+        ground: [tone(rng), tone(rng)],
+        seed: rng.random(),
+    }
+}
+
+/// The file names of one frame's views: images, and depth maps and masks where the config makes them.
+struct ViewFiles {
+    images: Vec<String>,
+    depth: Option<Vec<String>>,
+    masks: Option<Vec<String>>,
+}
+
+/// Write one frame's rendered views into `fdir`.
+fn write_views(
+    cfg: &SynthConfig,
+    fdir: &Path,
+    views: &[ViewOutput],
+    ext: &str,
+) -> Result<ViewFiles, DataError> {
+    let mut images = Vec::new();
+    let mut depth = Vec::new();
+    let mut masks = Vec::new();
+    for (v, out) in views.iter().enumerate() {
+        let img = format!("view_{v:02}.{ext}");
+        write_png_rgb(
+            &fdir.join(&img),
+            out.width,
+            out.height,
+            &out.rgb,
+            ext == "jpg",
+        )?;
+        images.push(img);
+        if cfg.depth {
+            let d = format!("depth_{v:02}.png");
+            // 16-bit PNG samples are big-endian in the file; the encoder takes native-endian u16 bytes.
+            let bytes: Vec<u8> = out.depth_mm.iter().flat_map(|x| x.to_ne_bytes()).collect();
+            write_png_gray(&fdir.join(&d), out.width, out.height, &bytes, true)?;
+            depth.push(d);
+        }
+        if cfg.masks {
+            let m = format!("mask_{v:02}.png");
+            write_png_gray(&fdir.join(&m), out.width, out.height, &out.mask, false)?;
+            masks.push(m);
+        }
+    }
+    Ok(ViewFiles {
+        images,
+        depth: cfg.depth.then_some(depth),
+        masks: cfg.masks.then_some(masks),
+    })
+}
+
+/// One frame's annotation: its files and every person's parameters, joints and per-view boxes.
+fn frame_annotation(
+    rig: &Rig,
+    people: &[Posed],
+    views: &[ViewOutput],
+    files: ViewFiles,
+) -> Annotation {
+    Annotation {
+        format: ANNOTATION_FORMAT.into(),
+        version: SCHEMA_VERSION,
+        images: files.images,
+        depth: files.depth,
+        masks: files.masks,
+        people: people
+            .iter()
+            .enumerate()
+            .map(|(i, p)| Person {
+                id: p.state.id,
+                smplx: p.params(),
+                pelvis: p.pelvis,
+                joints_3d: p.joints.clone(),
+                views: rig
+                    .cameras
+                    .iter()
+                    .zip(views)
+                    .map(|(cam, view)| person_view(cam, p, i, view))
+                    .collect(),
+            })
+            .collect(),
+    }
 }
 
 /// Generate a dataset into `out` (which must not exist or be empty). `progress` is called once per frame.
