@@ -131,116 +131,136 @@ impl SynthConfig {
     }
 
     pub fn validate(&self, path: &Path) -> Result<(), DataError> {
-        let bad = |key: &str, what: String| DataError::Config {
-            path: path.into(),
-            key: key.into(),
-            what,
-        };
+        self.check_scenes()
+            .and_then(|()| self.cameras.check())
+            .map_err(|(key, what)| DataError::Config {
+                path: path.into(),
+                key,
+                what,
+            })
+    }
+
+    /// Scene, frame and people counts, area, images and lighting: the offending key and why.
+    fn check_scenes(&self) -> Result<(), (String, String)> {
+        let bad = |key: &str, what: String| Err((key.to_string(), what));
         if self.scenes == 0 {
-            return Err(bad("scenes", "must be at least 1".into()));
+            return bad("scenes", "must be at least 1".into());
         }
         if self.frames_per_scene == 0 {
-            return Err(bad("frames_per_scene", "must be at least 1".into()));
+            return bad("frames_per_scene", "must be at least 1".into());
         }
         let [lo, hi] = self.people;
         if lo == 0 || lo > hi || hi > 254 {
-            return Err(bad(
+            return bad(
                 "people",
                 format!("{:?}: expected 1 <= min <= max <= 254", self.people),
-            ));
+            );
         }
         if !self
             .area
             .iter()
             .all(|a| a.is_finite() && *a >= 2.0 && *a <= 100.0)
         {
-            return Err(bad(
+            return bad(
                 "area",
                 format!("{:?}: each side must be 2 to 100 m", self.area),
-            ));
+            );
         }
         let [w, h] = self.image_size;
         if !(16..=8192).contains(&w) || !(16..=8192).contains(&h) {
-            return Err(bad(
+            return bad(
                 "image_size",
                 format!("{:?}: 16 to 8192 pixels", self.image_size),
-            ));
+            );
         }
         if !["png", "jpeg"].contains(&self.image_format.as_str()) {
-            return Err(bad(
+            return bad(
                 "image_format",
                 format!("{:?}: expected \"png\" or \"jpeg\"", self.image_format),
-            ));
+            );
         }
-        let c = &self.cameras;
+        if !(0.0..=1.0).contains(&self.lighting.night_fraction) {
+            return bad(
+                "lighting.night_fraction",
+                format!("{}: expected 0 to 1", self.lighting.night_fraction),
+            );
+        }
+        Ok(())
+    }
+}
+
+fn fov_ok(f: f64) -> bool {
+    f.is_finite() && (10.0..=150.0).contains(&f)
+}
+
+impl CameraConfig {
+    /// The cameras: their count and rings, or the listed ones; field of view, distortion and aim.
+    fn check(&self) -> Result<(), (String, String)> {
+        let bad = |key: &str, what: String| Err((key.to_string(), what));
+        let c = self;
         if c.listed.is_empty() {
-            if c.count == 0 || c.count > 50 {
-                return Err(bad(
-                    "cameras.count",
-                    format!("{}: expected 1 to 50", c.count),
-                ));
-            }
-            if c.rings.is_empty() {
-                return Err(bad("cameras.rings", "at least one ring is needed".into()));
-            }
-            for (i, r) in c.rings.iter().enumerate() {
-                if !(r.height.is_finite()
-                    && r.height > 0.2
-                    && r.radius.is_finite()
-                    && r.radius > 1.0)
-                {
-                    return Err(bad(
-                        &format!("cameras.rings[{i}]"),
-                        format!(
-                            "height {} and radius {}: expected > 0.2 m and > 1 m",
-                            r.height, r.radius
-                        ),
-                    ));
-                }
-            }
+            c.check_rings()?;
         } else if c.listed.len() > 50 {
-            return Err(bad(
+            return bad(
                 "cameras.listed",
                 format!("{} cameras: at most 50", c.listed.len()),
-            ));
+            );
         }
-        let fov_ok = |f: f64| f.is_finite() && (10.0..=150.0).contains(&f);
         if !(fov_ok(c.fov_deg[0]) && fov_ok(c.fov_deg[1]) && c.fov_deg[0] <= c.fov_deg[1]) {
-            return Err(bad(
+            return bad(
                 "cameras.fov_deg",
                 format!("{:?}: expected 10 to 150 degrees, min <= max", c.fov_deg),
-            ));
+            );
         }
         if !(c.k1[0] <= c.k1[1] && c.k1.iter().all(|k| k.is_finite() && k.abs() <= 0.5)) {
-            return Err(bad(
+            return bad(
                 "cameras.k1",
                 format!("{:?}: expected |k1| <= 0.5, min <= max", c.k1),
-            ));
+            );
         }
         if !(c.look_at_height.is_finite() && c.look_at_height.abs() <= 100.0) {
-            return Err(bad(
+            return bad(
                 "cameras.look_at_height",
                 format!(
                     "{}: expected a finite height within 100 m",
                     c.look_at_height
                 ),
-            ));
+            );
         }
         for (i, l) in c.listed.iter().enumerate() {
             let finite = l.position.iter().chain(&l.look_at).all(|v| v.is_finite());
             let k1_ok = l.k1.is_finite() && l.k1.abs() <= 0.5;
             if !finite || !fov_ok(l.fov_deg) || !k1_ok || l.position == l.look_at {
-                return Err(bad(
+                return bad(
                     &format!("cameras.listed[{i}]"),
                     "position and look_at must be finite and distinct, fov_deg 10 to 150, |k1| <= 0.5".into(),
-                ));
+                );
             }
         }
-        if !(0.0..=1.0).contains(&self.lighting.night_fraction) {
-            return Err(bad(
-                "lighting.night_fraction",
-                format!("{}: expected 0 to 1", self.lighting.night_fraction),
+        Ok(())
+    }
+
+    /// The camera count and rings of a generated rig.
+    fn check_rings(&self) -> Result<(), (String, String)> {
+        if self.count == 0 || self.count > 50 {
+            return Err((
+                "cameras.count".into(),
+                format!("{}: expected 1 to 50", self.count),
             ));
+        }
+        if self.rings.is_empty() {
+            return Err(("cameras.rings".into(), "at least one ring is needed".into()));
+        }
+        for (i, r) in self.rings.iter().enumerate() {
+            if !(r.height.is_finite() && r.height > 0.2 && r.radius.is_finite() && r.radius > 1.0) {
+                return Err((
+                    format!("cameras.rings[{i}]"),
+                    format!(
+                        "height {} and radius {}: expected > 0.2 m and > 1 m",
+                        r.height, r.radius
+                    ),
+                ));
+            }
         }
         Ok(())
     }

@@ -184,6 +184,55 @@ pub fn render_view(
     let (w, h) = (cam.width, cam.height);
     let light = scenery.light();
     let mut frame = Frame::new(w, h, [0.0; 3]);
+    draw_background(&mut frame, cam, scenery, &light);
+    let colours: Vec<Vec<[f32; 3]>> = people
+        .iter()
+        .map(|p| part_colours(&p.state.appearance, parts))
+        .collect();
+    let meshes: Vec<MeshRef> = people
+        .iter()
+        .zip(&colours)
+        .map(|(p, c)| MeshRef {
+            vertices: &p.vertices,
+            faces,
+            color: [1.0; 3],
+            face_colors: Some(c),
+        })
+        .collect();
+    draw(&mut frame, cam, &meshes, &light);
+    let (mask, visible, bbox) = instances(&frame, people.len());
+    let silhouette: Vec<u32> = people
+        .iter()
+        .zip(&visible)
+        .map(|(p, v)| coverage(cam, &p.vertices, faces, w, h).max(*v))
+        .collect();
+    let depth_mm = frame
+        .depth
+        .iter()
+        .map(|&z| {
+            if z.is_finite() {
+                (z * 1000.0).round().clamp(1.0, 65535.0) as u16
+            } else {
+                0
+            }
+        })
+        .collect();
+    ViewOutput {
+        width: w,
+        height: h,
+        rgb: frame.to_rgb8(),
+        depth_mm,
+        mask,
+        visible,
+        silhouette,
+        bbox,
+    }
+}
+
+/// Ground and sky by casting every pixel's ray: the textured, sunlit ground (with a lamp's pool of
+/// light at night) where the ray meets it, with its depth, and a sky gradient elsewhere.
+fn draw_background(frame: &mut Frame, cam: &Camera, scenery: &Scenery, light: &Light) {
+    let (w, h) = (cam.width, cam.height);
     let sun = Vector3::new(
         light.dir[0] as f64,
         light.dir[1] as f64,
@@ -219,40 +268,34 @@ pub fn render_view(
             }
         }
     }
-    let colours: Vec<Vec<[f32; 3]>> = people
+}
+
+/// Each face's colour for one person's appearance.
+fn part_colours(a: &Appearance, parts: &[Part]) -> Vec<[f32; 3]> {
+    parts
         .iter()
-        .map(|p| {
-            let a: &Appearance = &p.state.appearance;
-            parts
-                .iter()
-                .map(|part| match part {
-                    Part::Skin => a.skin,
-                    Part::Hair => a.hair,
-                    Part::Shirt => a.shirt,
-                    Part::ShirtFront => a.shirt_front,
-                    Part::Sleeve if a.long_sleeves => a.shirt,
-                    Part::Sleeve => a.skin,
-                    Part::Pants => a.pants,
-                    Part::Shoes => a.shoes,
-                })
-                .collect()
+        .map(|part| match part {
+            Part::Skin => a.skin,
+            Part::Hair => a.hair,
+            Part::Shirt => a.shirt,
+            Part::ShirtFront => a.shirt_front,
+            Part::Sleeve if a.long_sleeves => a.shirt,
+            Part::Sleeve => a.skin,
+            Part::Pants => a.pants,
+            Part::Shoes => a.shoes,
         })
-        .collect();
-    let meshes: Vec<MeshRef> = people
-        .iter()
-        .zip(&colours)
-        .map(|(p, c)| MeshRef {
-            vertices: &p.vertices,
-            faces,
-            color: [1.0; 3],
-            face_colors: Some(c),
-        })
-        .collect();
-    draw(&mut frame, cam, &meshes, &light);
-    let n = people.len();
+        .collect()
+}
+
+/// Per-pixel instance mask (person index + 1, 0 for none), each person's visible pixel count and the box
+/// of their visible pixels, from the rasterizer's per-pixel mesh index.
+type Instances = (Vec<u8>, Vec<u32>, Vec<Option<[f64; 4]>>);
+
+fn instances(frame: &Frame, n: usize) -> Instances {
+    let w = frame.width;
     let mut visible = vec![0u32; n];
     let mut bbox: Vec<Option<[f64; 4]>> = vec![None; n];
-    let mut mask = vec![0u8; (w * h) as usize];
+    let mut mask = vec![0u8; frame.mesh.len()];
     for (k, &m) in frame.mesh.iter().enumerate() {
         if m >= 0 {
             let i = m as usize;
@@ -263,32 +306,7 @@ pub fn render_view(
             *b = [b[0].min(x), b[1].min(y), b[2].max(x), b[3].max(y)];
         }
     }
-    let silhouette: Vec<u32> = people
-        .iter()
-        .zip(&visible)
-        .map(|(p, v)| coverage(cam, &p.vertices, faces, w, h).max(*v))
-        .collect();
-    let depth_mm = frame
-        .depth
-        .iter()
-        .map(|&z| {
-            if z.is_finite() {
-                (z * 1000.0).round().clamp(1.0, 65535.0) as u16
-            } else {
-                0
-            }
-        })
-        .collect();
-    ViewOutput {
-        width: w,
-        height: h,
-        rgb: frame.to_rgb8(),
-        depth_mm,
-        mask,
-        visible,
-        silhouette,
-        bbox,
-    }
+    (mask, visible, bbox)
 }
 
 #[cfg(test)]
