@@ -61,6 +61,14 @@ impl std::fmt::Debug for FusedLbs {
     }
 }
 
+/// Where one body's kinematic chain writes: its skinning transforms `[55][12]`, its shift `[3]` and its
+/// 55 posed joints `[55][3]`.
+struct Posed<'a> {
+    transforms: &'a mut [f32],
+    shift: &'a mut [f32],
+    joints: &'a mut [f32],
+}
+
 /// Float32 arrays of a fused forward: `vertices [N, V, 3]`, `joints [N, J, 3]`.
 pub(crate) struct FusedOutput {
     pub vertices: Vec<f32>,
@@ -160,19 +168,39 @@ impl FusedLbs {
         mode: Translation,
     ) -> FusedOutput {
         let nc = self.num_components;
-        let k = self.k;
-        let v = self.num_vertices;
         debug_assert_eq!(rot.len(), n * NUM_JOINTS * 9);
         debug_assert_eq!(coeffs.len(), n * nc);
         debug_assert_eq!(transl.len(), n * 3);
-        // Per body: the features (column b of `feat [K, N]`), the skinning transforms `[55][12]` and the
-        // shift; the posed joints go straight to the output.
-        let nx = self.extra.len();
-        let nj = NUM_JOINTS + nx;
-        let mut feat = vec![0f32; k * n];
+        // Per body: the skinning transforms `[55][12]` and the shift; the posed joints go straight to
+        // the output.
+        let nj = NUM_JOINTS + self.extra.len();
+        let feat = self.features(n, rot, coeffs);
         let mut transforms = vec![0f32; n * NUM_JOINTS * 12];
         let mut shift = vec![0f32; n * 3];
         let mut joints = vec![0f32; n * nj * 3];
+        for b in 0..n {
+            self.pose_body(
+                &coeffs[b * nc..(b + 1) * nc],
+                &rot[b * NUM_JOINTS * 9..(b + 1) * NUM_JOINTS * 9],
+                [transl[b * 3], transl[b * 3 + 1], transl[b * 3 + 2]],
+                mode,
+                Posed {
+                    transforms: &mut transforms[b * NUM_JOINTS * 12..(b + 1) * NUM_JOINTS * 12],
+                    shift: &mut shift[b * 3..b * 3 + 3],
+                    joints: &mut joints[b * nj * 3..(b * nj + NUM_JOINTS) * 3],
+                },
+            );
+        }
+        let vertices = self.skin(n, &feat, &transforms, &shift);
+        self.vertex_joints(n, &vertices, &mut joints);
+        FusedOutput { vertices, joints }
+    }
+
+    /// `feat [K, N]`: column b holds body b's GEMM features, 1, its coefficients, and its 54 non-root
+    /// rotations minus the identity (the pose correctives' input).
+    fn features(&self, n: usize, rot: &[f32], coeffs: &[f32]) -> Vec<f32> {
+        let nc = self.num_components;
+        let mut feat = vec![0f32; self.k * n];
         for b in 0..n {
             let c = &coeffs[b * nc..(b + 1) * nc];
             let r = &rot[b * NUM_JOINTS * 9..(b + 1) * NUM_JOINTS * 9];
@@ -186,55 +214,64 @@ impl FusedLbs {
                     feat[(1 + nc + (j - 1) * 9 + e) * n + b] = r[j * 9 + e] - eye;
                 }
             }
-            let mut rest = self.j_template.clone();
-            for (ci, &cv) in c.iter().enumerate() {
-                let dir = &self.j_shapedirs[ci * NUM_JOINTS * 3..(ci + 1) * NUM_JOINTS * 3];
-                for (x, d) in rest.iter_mut().zip(dir) {
-                    *x += cv * d;
-                }
-            }
-            let mut g_rot = [[0f32; 9]; NUM_JOINTS];
-            let mut g_t = [[0f32; 3]; NUM_JOINTS];
-            for &j in &self.chain_order {
-                let rj: [f32; 9] = r[j * 9..j * 9 + 9].try_into().expect("9 entries");
-                let jr = [rest[j * 3], rest[j * 3 + 1], rest[j * 3 + 2]];
-                if j == 0 {
-                    g_rot[0] = rj;
-                    g_t[0] = jr;
-                    continue;
-                }
-                let p = self.parents[j];
-                let rel = [
-                    jr[0] - rest[p * 3],
-                    jr[1] - rest[p * 3 + 1],
-                    jr[2] - rest[p * 3 + 2],
-                ];
-                let gp = g_rot[p];
-                g_t[j] = add3(mat_vec(&gp, &rel), g_t[p]);
-                g_rot[j] = mat_mul(&gp, &rj);
-            }
-            let tr = [transl[b * 3], transl[b * 3 + 1], transl[b * 3 + 2]];
-            let s = match mode {
-                Translation::Standard => tr,
-                Translation::Pelvis => [tr[0] - rest[0], tr[1] - rest[1], tr[2] - rest[2]],
-            };
-            shift[b * 3..b * 3 + 3].copy_from_slice(&s);
-            for j in 0..NUM_JOINTS {
-                let jr = [rest[j * 3], rest[j * 3 + 1], rest[j * 3 + 2]];
-                let t = sub3(g_t[j], mat_vec(&g_rot[j], &jr));
-                let a = &mut transforms[(b * NUM_JOINTS + j) * 12..(b * NUM_JOINTS + j + 1) * 12];
-                for row in 0..3 {
-                    a[row * 4..row * 4 + 3].copy_from_slice(&g_rot[j][row * 3..row * 3 + 3]);
-                    a[row * 4 + 3] = t[row];
-                }
-                let out = &mut joints[(b * nj + j) * 3..(b * nj + j) * 3 + 3];
-                for ax in 0..3 {
-                    out[ax] = g_t[j][ax] + s[ax];
-                }
+        }
+        feat
+    }
+
+    /// One body's kinematic chain: its rest joints from the shape, every joint's world rotation and
+    /// position, the skinning transforms, the shift and the posed joints.
+    fn pose_body(&self, c: &[f32], r: &[f32], tr: [f32; 3], mode: Translation, out: Posed) {
+        let mut rest = self.j_template.clone();
+        for (ci, &cv) in c.iter().enumerate() {
+            let dir = &self.j_shapedirs[ci * NUM_JOINTS * 3..(ci + 1) * NUM_JOINTS * 3];
+            for (x, d) in rest.iter_mut().zip(dir) {
+                *x += cv * d;
             }
         }
+        let mut g_rot = [[0f32; 9]; NUM_JOINTS];
+        let mut g_t = [[0f32; 3]; NUM_JOINTS];
+        for &j in &self.chain_order {
+            let rj: [f32; 9] = r[j * 9..j * 9 + 9].try_into().expect("9 entries");
+            let jr = [rest[j * 3], rest[j * 3 + 1], rest[j * 3 + 2]];
+            if j == 0 {
+                g_rot[0] = rj;
+                g_t[0] = jr;
+                continue;
+            }
+            let p = self.parents[j];
+            let rel = [
+                jr[0] - rest[p * 3],
+                jr[1] - rest[p * 3 + 1],
+                jr[2] - rest[p * 3 + 2],
+            ];
+            let gp = g_rot[p];
+            g_t[j] = add3(mat_vec(&gp, &rel), g_t[p]);
+            g_rot[j] = mat_mul(&gp, &rj);
+        }
+        let s = match mode {
+            Translation::Standard => tr,
+            Translation::Pelvis => [tr[0] - rest[0], tr[1] - rest[1], tr[2] - rest[2]],
+        };
+        out.shift.copy_from_slice(&s);
+        for j in 0..NUM_JOINTS {
+            let jr = [rest[j * 3], rest[j * 3 + 1], rest[j * 3 + 2]];
+            let t = sub3(g_t[j], mat_vec(&g_rot[j], &jr));
+            let a = &mut out.transforms[j * 12..(j + 1) * 12];
+            for row in 0..3 {
+                a[row * 4..row * 4 + 3].copy_from_slice(&g_rot[j][row * 3..row * 3 + 3]);
+                a[row * 4 + 3] = t[row];
+            }
+            for ax in 0..3 {
+                out.joints[j * 3 + ax] = g_t[j][ax] + s[ax];
+            }
+        }
+    }
 
-        let mut vertices = vec![0f32; n * v * 3];
+    /// Every body's vertices `[N, V, 3]`: per block, the GEMM of the packed rows and the features gives
+    /// the unposed vertices, then the block is skinned and shifted.
+    fn skin(&self, n: usize, feat: &[f32], transforms: &[f32], shift: &[f32]) -> Vec<f32> {
+        let k = self.k;
+        let mut vertices = vec![0f32; n * self.num_vertices * 3];
         let out = SendPtr(vertices.as_mut_ptr());
         let isa = Isa::detect();
         (0..self.num_blocks).into_par_iter().for_each_init(
@@ -244,15 +281,20 @@ impl FusedLbs {
                     let panel =
                         &self.packed[(blk * 3 + a) * k * BLOCK..(blk * 3 + a + 1) * k * BLOCK];
                     let dst = &mut unposed[a * n * BLOCK..(a + 1) * n * BLOCK];
-                    gemm_panel(isa, panel, &feat, k, n, dst);
+                    gemm_panel(isa, panel, feat, k, n, dst);
                 }
                 // SAFETY: block `blk` writes only vertices blk*BLOCK.. of each body, which no other
                 // block touches, and `vertices` outlives the parallel loop.
-                unsafe { self.skin_block(isa, blk, n, unposed, &transforms, &shift, out) };
+                unsafe { self.skin_block(isa, blk, n, unposed, transforms, shift, out) };
             },
         );
+        vertices
+    }
 
-        // Vertex joints from the finished mesh (the shift is already in the vertices).
+    /// The vertex joints from the finished mesh (the shift is already in the vertices), added after
+    /// each body's 55 skeleton joints in `joints [N, 55 + extra, 3]`.
+    fn vertex_joints(&self, n: usize, vertices: &[f32], joints: &mut [f32]) {
+        let (v, nj) = (self.num_vertices, NUM_JOINTS + self.extra.len());
         for b in 0..n {
             for (xi, taps) in self.extra.iter().enumerate() {
                 let o = (b * nj + NUM_JOINTS + xi) * 3;
@@ -263,7 +305,6 @@ impl FusedLbs {
                 }
             }
         }
-        FusedOutput { vertices, joints }
     }
 
     /// Skin the unposed block `[3][N][BLOCK]` of every body and write it, shifted, to `out [N, V, 3]`.

@@ -520,15 +520,113 @@ pub fn standin_model(seed: u64) -> BodyModel {
     let (tubes, built) = build_full(&base);
     let nv = built.verts.len();
     assert_eq!(nv, STANDIN_VERTICES, "stand-in vertex budget");
-
-    // Shape directions: central differences in the proportion parameters.
-    let delta = 1e-3;
-    let mut shapedirs = vec![0f64; nv * 3 * (NUM_SHAPE + NUM_EXPR)];
+    let face = face_points(&tubes);
+    let head = Head::new(&tubes, &built);
+    let mut shapedirs = shape_directions(&base, nv);
+    expression_directions(&mut shapedirs, &built, &head, &face);
+    let weights = skin_weights(&tubes, &built, &head, &face);
+    let jreg = joint_regressor(&tubes, &built, &head, &face);
+    let posedirs = pose_correctives(&base, &weights);
+    let lmk = landmarks(&built, &tubes, &face);
+    let picks = vertex_joint_picks(&tubes, &built, &head, &face);
+    let mut new_of_old: Vec<usize> = (0..nv).collect();
+    let mut old_at_new: Vec<usize> = (0..nv).collect();
+    // Place the vertex joints at the official vertex indices.
+    for (&(_, target), &src) in EXTRA_VERTEX_JOINTS.iter().zip(&picks) {
+        let cur = new_of_old[src];
+        let displaced = old_at_new[target];
+        old_at_new.swap(cur, target);
+        new_of_old[src] = target;
+        new_of_old[displaced] = cur;
+    }
+    let v_template: Vec<f32> = (0..nv)
+        .flat_map(|n| built.verts[old_at_new[n]].map(|x| x as f32))
+        .collect();
+    let faces: Vec<[u32; 3]> = built
+        .faces
+        .iter()
+        .map(|f| f.map(|i| new_of_old[i as usize] as u32))
+        .collect();
+    let per_vertex = |src: &[f64], width: usize| -> Vec<f32> {
+        (0..nv)
+            .flat_map(|n| {
+                let o = old_at_new[n];
+                src[o * width..(o + 1) * width]
+                    .iter()
+                    .map(|&x| x as f32)
+                    .collect::<Vec<_>>()
+            })
+            .collect()
+    };
+    let j_regressor: Vec<f32> = (0..NUM_JOINTS)
+        .flat_map(|j| (0..nv).map(move |n| (j, n)))
+        .map(|(j, n)| jreg[j * nv + old_at_new[n]] as f32)
+        .collect();
+    // Landmark faces refer to face indices, which the permutation keeps.
+    let hands_mean = (
+        (0..45)
+            .map(|_| rng.random_range(-0.15..0.15) as f32)
+            .collect(),
+        (0..45)
+            .map(|_| rng.random_range(-0.15..0.15) as f32)
+            .collect(),
+    );
     let l = NUM_SHAPE + NUM_EXPR;
+    BodyModel {
+        v_template,
+        faces,
+        shapedirs: per_vertex(&shapedirs, 3 * l),
+        num_shape_components: l,
+        posedirs: per_vertex(&posedirs, 3 * NUM_POSE_JOINTS * 9),
+        j_regressor,
+        weights: per_vertex(&weights, NUM_JOINTS),
+        parents: crate::names::PARENTS.to_vec(),
+        landmarks: Some(lmk),
+        hands_mean: Some(hands_mean),
+    }
+}
+
+/// The head's vertices (tube 1, its rings and two poles) and its centre.
+struct Head {
+    range: std::ops::Range<usize>,
+    centre: V3,
+}
+
+impl Head {
+    fn new(tubes: &[Tube], built: &Built) -> Self {
+        let start = built.tube_info[1].0;
+        Head {
+            range: start..start + 2 + tubes[1].rings * tubes[1].segs,
+            centre: tubes[1].points[3],
+        }
+    }
+
+    /// The `n` head vertices nearest `target`, inverse-distance weighted (weights sum to 1).
+    fn nearest(&self, built: &Built, target: V3, n: usize) -> Vec<(usize, f64)> {
+        let mut d: Vec<(usize, f64)> = self
+            .range
+            .clone()
+            .map(|v| (v, norm(sub(built.verts[v], target))))
+            .collect();
+        d.sort_by(|a, b| a.1.total_cmp(&b.1));
+        d.truncate(n);
+        let tot: f64 = d.iter().map(|x| 1.0 / (x.1 + 1e-3)).sum();
+        d.into_iter()
+            .map(|(v, x)| (v, (1.0 / (x + 1e-3)) / tot))
+            .collect()
+    }
+}
+
+/// `[V][3][shape + expression]` with the shape columns filled: central differences in the proportion
+/// parameters.
+fn shape_directions(base: &Proportions, nv: usize) -> Vec<f64> {
+    let delta = 1e-3;
+    let l = NUM_SHAPE + NUM_EXPR;
+    let mut shapedirs = vec![0f64; nv * 3 * l];
     for c in 0..NUM_SHAPE {
-        let mut hi = base;
+        let mut hi = *base;
         hi.p[c] += delta;
-        let mut lo = base;
+        let mut lo = *base;
         lo.p[c] -= delta;
         let (_, bh) = build_full(&hi);
         let (_, bl) = build_full(&lo);
@@ -538,12 +636,15 @@ pub fn standin_model(seed: u64) -> BodyModel {
             }
         }
     }
-    // Expression directions on the face.
-    let face = face_points(&tubes);
-    let head = built.tube_info[1].0..built.tube_info[1].0 + 2 + tubes[1].rings * tubes[1].segs;
-    let head_centre = tubes[1].points[3];
+    shapedirs
+}
+
+/// The expression columns of `shapedirs`: ten local deformations of the front of the head.
+fn expression_directions(shapedirs: &mut [f64], built: &Built, head: &Head, face: &Face) {
+    let l = NUM_SHAPE + NUM_EXPR;
+    let head_centre = head.centre;
     let gauss = |p: V3, c: V3, s: f64| (-dot(sub(p, c), sub(p, c)) / (2.0 * s * s)).exp();
-    for v in head.clone() {
+    for v in head.range.clone() {
         let p = built.verts[v];
         if p[2] < head_centre[2] {
             continue;
@@ -582,8 +683,12 @@ pub fn standin_model(seed: u64) -> BodyModel {
             }
         }
     }
+}
 
-    // Skinning weights along each tube, blended across joints.
+/// `[V][joints]` skinning weights: each tube segment's owner, blended across shared control points; the
+/// jaw carries the lower front of the head.
+fn skin_weights(tubes: &[Tube], built: &Built, head: &Head, face: &Face) -> Vec<f64> {
+    let nv = built.verts.len();
     let mut weights = vec![0f64; nv * NUM_JOINTS];
     for (v, &(ti, s, _)) in built.origin.iter().enumerate() {
         let t = &tubes[ti];
@@ -611,18 +716,22 @@ pub fn standin_model(seed: u64) -> BodyModel {
             weights[v * NUM_JOINTS + j] += x;
         }
     }
-    // The jaw carries the lower front of the head.
-    for v in head.clone() {
+    for v in head.range.clone() {
         let p = built.verts[v];
         let jw = smoothstep((face.mouth[1] + 0.005 - p[1]) / 0.02)
-            * smoothstep((p[2] - head_centre[2]) / 0.05);
+            * smoothstep((p[2] - head.centre[2]) / 0.05);
         if jw > 0.0 {
             weights[v * NUM_JOINTS + 15] -= jw;
             weights[v * NUM_JOINTS + 22] += jw;
         }
     }
+    weights
+}
 
-    // Joint regressor: rows are convex combinations of vertices.
+/// `[joints][V]` joint regressor, rows convex combinations of vertices: body joints from the rings at
+/// their control points, jaw and eyes from the nearest head vertices.
+fn joint_regressor(tubes: &[Tube], built: &Built, head: &Head, face: &Face) -> Vec<f64> {
+    let nv = built.verts.len();
     let mut jreg = vec![0f64; NUM_JOINTS * nv];
     for (ti, t) in tubes.iter().enumerate() {
         let (base_v, ring_s, _) = &built.tube_info[ti];
@@ -642,27 +751,19 @@ pub fn standin_model(seed: u64) -> BodyModel {
             }
         }
     }
-    // Jaw and eyes: the nearest head vertices, inverse-distance weighted.
-    let nearest = |target: V3, n: usize, range: std::ops::Range<usize>| -> Vec<(usize, f64)> {
-        let mut d: Vec<(usize, f64)> = range
-            .map(|v| (v, norm(sub(built.verts[v], target))))
-            .collect();
-        d.sort_by(|a, b| a.1.total_cmp(&b.1));
-        d.truncate(n);
-        let tot: f64 = d.iter().map(|x| 1.0 / (x.1 + 1e-3)).sum();
-        d.into_iter()
-            .map(|(v, x)| (v, (1.0 / (x + 1e-3)) / tot))
-            .collect()
-    };
     let jaw_pt = add(face.mouth, [0.0, -0.01, -0.04]);
     for (j, target) in [(22, jaw_pt), (23, face.eyes[0]), (24, face.eyes[1])] {
-        for (v, w) in nearest(target, 8, head.clone()) {
+        for (v, w) in head.nearest(built, target, 8) {
             jreg[j * nv + v] += w;
         }
     }
+    jreg
+}
 
-    // Pose correctives: joints bulge outward in their blend zone as they bend.
-    let rest = build_full(&base).1;
+/// `[V][3][pose joints * 9]` pose correctives: joints bulge outward in their blend zone as they bend.
+fn pose_correctives(base: &Proportions, weights: &[f64]) -> Vec<f64> {
+    let rest = build_full(base).1;
+    let nv = rest.verts.len();
     let normals = vertex_normals(&rest.verts, &rest.faces);
     let mut posedirs = vec![0f64; nv * 3 * NUM_POSE_JOINTS * 9];
     for v in 0..nv {
@@ -680,19 +781,20 @@ pub fn standin_model(seed: u64) -> BodyModel {
             }
         }
     }
+    posedirs
+}
 
-    // Landmarks on the front of the face.
-    let lmk = landmarks(&built, &tubes, &face);
-
-    // Place the vertex joints at the official vertex indices.
-    let head_range = head.clone();
-    let mut picks: Vec<usize> = Vec::new();
-    let pick_near = |t: V3| -> usize { nearest(t, 1, head_range.clone())[0].0 };
-    picks.push(pick_near(add(face.nose, [0.0, 0.0, 0.02])));
-    picks.push(pick_near(face.eyes[1]));
-    picks.push(pick_near(face.eyes[0]));
-    picks.push(pick_near(scale(face.ears[1], 1.3)));
-    picks.push(pick_near(scale(face.ears[0], 1.3)));
+/// The vertices that stand for SMPL-X's vertex joints, in [`EXTRA_VERTEX_JOINTS`]' order: nose, eyes and
+/// ears, each foot's big toe, small toe and heel, and the ten fingertips.
+fn vertex_joint_picks(tubes: &[Tube], built: &Built, head: &Head, face: &Face) -> Vec<usize> {
+    let pick_near = |t: V3| -> usize { head.nearest(built, t, 1)[0].0 };
+    let mut picks = vec![
+        pick_near(add(face.nose, [0.0, 0.0, 0.02])),
+        pick_near(face.eyes[1]),
+        pick_near(face.eyes[0]),
+        pick_near(scale(face.ears[1], 1.3)),
+        pick_near(scale(face.ears[0], 1.3)),
+    ];
     // Feet: tubes 3 (left) and 3 + 8 (right, after leg, foot, arm, 5 fingers of the left side).
     for (foot_tube, medial_sign) in [(3usize, -1.0), (3 + 8, 1.0)] {
         let (b0, _, _) = built.tube_info[foot_tube];
@@ -724,60 +826,7 @@ pub fn standin_model(seed: u64) -> BodyModel {
         // Tube order: index, middle, pinky, ring, thumb.
         picks.extend([tip(4), tip(0), tip(1), tip(3), tip(2)]);
     }
-    let mut new_of_old: Vec<usize> = (0..nv).collect();
-    let mut old_at_new: Vec<usize> = (0..nv).collect();
-    for (&(_, target), &src) in EXTRA_VERTEX_JOINTS.iter().zip(&picks) {
-        let cur = new_of_old[src];
-        let displaced = old_at_new[target];
-        old_at_new.swap(cur, target);
-        new_of_old[src] = target;
-        new_of_old[displaced] = cur;
-    }
-
-    let v_template: Vec<f32> = (0..nv)
-        .flat_map(|n| built.verts[old_at_new[n]].map(|x| x as f32))
-        .collect();
-    let faces: Vec<[u32; 3]> = built
-        .faces
-        .iter()
-        .map(|f| f.map(|i| new_of_old[i as usize] as u32))
-        .collect();
-    let per_vertex = |src: &[f64], width: usize| -> Vec<f32> {
-        (0..nv)
-            .flat_map(|n| {
-                let o = old_at_new[n];
-                src[o * width..(o + 1) * width]
-                    .iter()
-                    .map(|&x| x as f32)
-                    .collect::<Vec<_>>()
-            })
-            .collect()
-    };
-    let j_regressor: Vec<f32> = (0..NUM_JOINTS)
-        .flat_map(|j| (0..nv).map(move |n| (j, n)))
-        .map(|(j, n)| jreg[j * nv + old_at_new[n]] as f32)
-        .collect();
-    // Landmark faces refer to face indices, which the permutation keeps.
-    let hands_mean = (
-        (0..45)
-            .map(|_| rng.random_range(-0.15..0.15) as f32)
-            .collect(),
-        (0..45)
-            .map(|_| rng.random_range(-0.15..0.15) as f32)
-            .collect(),
-    );
-    BodyModel {
-        v_template,
-        faces,
-        shapedirs: per_vertex(&shapedirs, 3 * l),
-        num_shape_components: l,
-        posedirs: per_vertex(&posedirs, 3 * NUM_POSE_JOINTS * 9),
-        j_regressor,
-        weights: per_vertex(&weights, NUM_JOINTS),
-        parents: crate::names::PARENTS.to_vec(),
-        landmarks: Some(lmk),
-        hands_mean: Some(hands_mean),
-    }
+    picks
 }
 
 fn vertex_normals(verts: &[V3], faces: &[[u32; 3]]) -> Vec<V3> {
