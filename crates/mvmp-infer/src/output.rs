@@ -102,66 +102,18 @@ pub fn topdown(
     size: u32,
 ) -> RgbImage {
     let mut img = RgbImage::from_pixel(size, size, Rgb([248, 248, 245]));
-    // Fit the grid and the cameras with a margin.
-    let (mut lo, mut hi) = (
-        [
-            grid.center[0] - grid.size[0] / 2.0,
-            grid.center[1] - grid.size[1] / 2.0,
-        ],
-        [
-            grid.center[0] + grid.size[0] / 2.0,
-            grid.center[1] + grid.size[1] / 2.0,
-        ],
-    );
-    for c in cameras {
-        let p = c.centre();
-        lo = [lo[0].min(p.x), lo[1].min(p.y)];
-        hi = [hi[0].max(p.x), hi[1].max(p.y)];
-    }
-    let span = (hi[0] - lo[0]).max(hi[1] - lo[1]) * 1.1;
-    let mid = [(lo[0] + hi[0]) / 2.0, (lo[1] + hi[1]) / 2.0];
-    let s = size as f64 / span;
-    // x to the right, y up the picture.
-    let to_px = |x: f64, y: f64| -> (f64, f64) {
-        (
-            (x - mid[0]) * s + size as f64 / 2.0,
-            size as f64 / 2.0 - (y - mid[1]) * s,
-        )
-    };
-    let grey = Rgb([215, 215, 210]);
-    // A 1 m grid, or 10 m, 100 m, ... so that at most about 100 lines cross the picture.
-    let step = 10f64.powi((span / 100.0).log10().ceil().max(0.0) as i32);
-    let (gx0, gx1) = ((lo[0] / step).floor() - 1.0, (hi[0] / step).ceil() + 1.0);
-    let (gy0, gy1) = ((lo[1] / step).floor() - 1.0, (hi[1] / step).ceil() + 1.0);
-    for i in 0..=(gx1 - gx0) as usize {
-        let gx = (gx0 + i as f64) * step;
-        let (a, b) = (to_px(gx, gy0 * step), to_px(gx, gy1 * step));
-        line(&mut img, a, b, 1.0, grey);
-    }
-    for i in 0..=(gy1 - gy0) as usize {
-        let gy = (gy0 + i as f64) * step;
-        let (a, b) = (to_px(gx0 * step, gy), to_px(gx1 * step, gy));
-        line(&mut img, a, b, 1.0, grey);
-    }
+    let view = TopView::fit(grid, cameras, size);
+    view.draw_ground(&mut img);
     // The grid's area.
-    let corners = [
-        to_px(
-            grid.center[0] - grid.size[0] / 2.0,
-            grid.center[1] - grid.size[1] / 2.0,
-        ),
-        to_px(
-            grid.center[0] + grid.size[0] / 2.0,
-            grid.center[1] - grid.size[1] / 2.0,
-        ),
-        to_px(
-            grid.center[0] + grid.size[0] / 2.0,
-            grid.center[1] + grid.size[1] / 2.0,
-        ),
-        to_px(
-            grid.center[0] - grid.size[0] / 2.0,
-            grid.center[1] + grid.size[1] / 2.0,
-        ),
-    ];
+    let (x0, x1) = (
+        grid.center[0] - grid.size[0] / 2.0,
+        grid.center[0] + grid.size[0] / 2.0,
+    );
+    let (y0, y1) = (
+        grid.center[1] - grid.size[1] / 2.0,
+        grid.center[1] + grid.size[1] / 2.0,
+    );
+    let corners = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)].map(|(x, y)| view.to_px(x, y));
     for i in 0..4 {
         line(
             &mut img,
@@ -173,16 +125,15 @@ pub fn topdown(
     }
     for c in cameras {
         let p = c.centre();
-        let (u, v) = to_px(p.x, p.y);
-        disc(&mut img, (u, v), 5.0, Rgb([90, 90, 90]));
+        disc(&mut img, view.to_px(p.x, p.y), 5.0, Rgb([90, 90, 90]));
     }
-    let r = (0.25 * s).max(3.0);
+    let r = (0.25 * view.scale).max(3.0);
     for (i, p) in people.iter().enumerate() {
         let col = PALETTE[i % PALETTE.len()].map(|c| (c.powf(1.0 / 2.2) * 255.0) as u8);
-        let (u, v) = to_px(p.pelvis[0] as f64, p.pelvis[1] as f64);
+        let (u, v) = view.to_px(p.pelvis[0] as f64, p.pelvis[1] as f64);
         disc(&mut img, (u, v), r, Rgb(col));
         if let Some(h) = heading(&p.joints) {
-            let tip = to_px(
+            let tip = view.to_px(
                 p.pelvis[0] as f64 + 0.6 * h[0],
                 p.pelvis[1] as f64 + 0.6 * h[1],
             );
@@ -190,6 +141,76 @@ pub fn topdown(
         }
     }
     img
+}
+
+/// The ground area a top-down picture shows: the grid and the cameras with a margin, x to the right and
+/// y up the picture.
+struct TopView {
+    lo: [f64; 2],
+    hi: [f64; 2],
+    span: f64,
+    mid: [f64; 2],
+    /// Pixels per metre.
+    scale: f64,
+    size: f64,
+}
+
+impl TopView {
+    fn fit(grid: &VoxelGrid, cameras: &[Camera], size: u32) -> Self {
+        let mut lo = [
+            grid.center[0] - grid.size[0] / 2.0,
+            grid.center[1] - grid.size[1] / 2.0,
+        ];
+        let mut hi = [
+            grid.center[0] + grid.size[0] / 2.0,
+            grid.center[1] + grid.size[1] / 2.0,
+        ];
+        for c in cameras {
+            let p = c.centre();
+            lo = [lo[0].min(p.x), lo[1].min(p.y)];
+            hi = [hi[0].max(p.x), hi[1].max(p.y)];
+        }
+        let span = (hi[0] - lo[0]).max(hi[1] - lo[1]) * 1.1;
+        TopView {
+            lo,
+            hi,
+            span,
+            mid: [(lo[0] + hi[0]) / 2.0, (lo[1] + hi[1]) / 2.0],
+            scale: size as f64 / span,
+            size: size as f64,
+        }
+    }
+
+    fn to_px(&self, x: f64, y: f64) -> (f64, f64) {
+        (
+            (x - self.mid[0]) * self.scale + self.size / 2.0,
+            self.size / 2.0 - (y - self.mid[1]) * self.scale,
+        )
+    }
+
+    /// A 1 m grid, or 10 m, 100 m, ... so that at most about 100 lines cross the picture.
+    fn draw_ground(&self, img: &mut RgbImage) {
+        let grey = Rgb([215, 215, 210]);
+        let step = 10f64.powi((self.span / 100.0).log10().ceil().max(0.0) as i32);
+        let (gx0, gx1) = (
+            (self.lo[0] / step).floor() - 1.0,
+            (self.hi[0] / step).ceil() + 1.0,
+        );
+        let (gy0, gy1) = (
+            (self.lo[1] / step).floor() - 1.0,
+            (self.hi[1] / step).ceil() + 1.0,
+        );
+        for i in 0..=(gx1 - gx0) as usize {
+            let gx = (gx0 + i as f64) * step;
+            let (a, b) = (self.to_px(gx, gy0 * step), self.to_px(gx, gy1 * step));
+            line(img, a, b, 1.0, grey);
+        }
+        for i in 0..=(gy1 - gy0) as usize {
+            let gy = (gy0 + i as f64) * step;
+            let (a, b) = (self.to_px(gx0 * step, gy), self.to_px(gx1 * step, gy));
+            line(img, a, b, 1.0, grey);
+        }
+    }
 }
 
 fn disc(img: &mut RgbImage, c: (f64, f64), r: f64, col: Rgb<u8>) {
