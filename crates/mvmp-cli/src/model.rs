@@ -13,7 +13,7 @@ use mvmp_data::synth::look_at;
 use mvmp_fusion::{FusionMode, Subvoxel, extract_roots, fuse_views};
 use mvmp_geom::{Camera, Letterbox};
 use mvmp_model::summary::summarize;
-use mvmp_model::{ModelConfig, RigGrids};
+use mvmp_model::{ModelConfig, MvmpHmr, RigGrids};
 use mvmp_smplx::{SmplxLayer, Translation, regressed_to_full_pose};
 
 /// flex's measured float32 GEMM speed on the 2-core development machine (GFLOP/s, 1024^3).
@@ -264,14 +264,11 @@ pub fn bench(
         false => device.clone(),
     };
     let net = cfg.init(device);
-
-    let layer = SmplxLayer::new(&mvmp_smplx::standin_model(0), device);
     let s = cfg.image_size;
-    let g = &cfg.grid;
     let (cams, lbs) = ring_rig(&cfg, views)?;
     let t0 = Instant::now();
-    let grids = [RigGrids::new(&cfg, &cams, &lbs, device)];
-    sync(&grids[0].features.grid);
+    let grids = RigGrids::new(&cfg, &cams, &lbs, device);
+    sync(&grids.features.grid);
     let t_grids = t0.elapsed().as_secs_f64();
     let n = views * 3 * (s * s) as usize;
     let img: Vec<f32> = (0..n)
@@ -281,74 +278,150 @@ pub fn bench(
         TensorData::new(img, [views, 3, s as usize, s as usize]),
         device,
     );
-    let sm = summarize(&cfg, views, &Device::flex().autodiff());
-    let macs = |name: &str| {
-        sm.rows
+    let mut b = StageBench {
+        iters,
+        backward,
+        device,
+        summary: summarize(&cfg, views, &Device::flex().autodiff()),
+        rows: Vec::new(),
+    };
+    let (feats, hm) = b.backbones(&net, &cfg, x);
+    let (vol, hvol) = b.fusion(&cfg, &grids, feats, hm);
+    let rot = b.heads(&net, &cfg, vol, hvol);
+    b.smplx(rot);
+    let header = format!(
+        "model {} on {:?}: {views} views, {s} x {s} input, {} people, median of {iters} runs",
+        config.display(),
+        device,
+        cfg.max_people
+    );
+    print_stage_times(&header, t_grids, backward, &b.rows);
+    Ok(())
+}
+
+/// The stages of `mvmp bench model`, each timed on its own input; the rows are (stage, seconds, MACs).
+struct StageBench<'a> {
+    iters: usize,
+    backward: bool,
+    device: &'a Device,
+    summary: mvmp_model::summary::Summary,
+    rows: Vec<(&'static str, f64, f64)>,
+}
+
+impl StageBench<'_> {
+    fn macs(&self, name: &str) -> f64 {
+        self.summary
+            .rows
             .iter()
             .find(|r| r.name == name)
             .map_or(0.0, |r| r.macs)
-    };
-    let mut rows: Vec<(&str, f64, f64)> = Vec::new();
-    let bw4 = |y| with_backward(y, backward, device);
-    let bw5 = |y| with_backward(y, backward, device);
-    let (feats, t) = time(iters, || bw4(net.view_features(x.clone())));
-    rows.push(("vit+reduce", t, macs("vit") + macs("reduce")));
-    // HRNet reads the input pooled by `hrnet_downsample`, as in the model.
-    let k_hr = cfg.hrnet_downsample.max(1) as usize;
-    let xh = match k_hr {
-        1 => x.clone(),
-        k => avg_pool2d(x.clone(), AvgPoolOptions::new([k, k])),
-    };
-    let (hm, t) = time(iters, || bw4(net.hrnet.forward(xh.clone())));
-    rows.push(("hrnet", t, macs("hrnet")));
-    let [_, cf, h, w] = feats.dims();
-    let feats = leaf(feats.reshape([1, views, cf, h, w]), backward);
-    let [_, j, hh, hw] = hm.dims();
-    let hm = leaf(hm.reshape([1, views, j, hh, hw]), backward);
-    let fg = vec![grids[0].features.clone()];
-    let hg = vec![grids[0].heatmaps.clone()];
-    let (vol, t1) = time(iters, || bw5(fuse_views(feats.clone(), &fg, cfg.fusion)));
-    let (hvol, t2) = time(iters, || bw5(fuse_views(hm.clone(), &hg, FusionMode::Mean)));
-    rows.push(("fusion", t1 + t2, macs("fusion")));
-    let (vol, hvol) = (leaf(vol, backward), leaf(hvol, backward));
-    let (lik, t) = time(iters, || bw5(net.rootnet.forward(hvol.clone()).0));
-    rows.push(("rootnet", t, macs("rootnet")));
-    let k = cfg.max_people;
-    let t0 = Instant::now();
-    let _ = extract_roots(lik, Subvoxel::Centre, g, k, f32::MIN);
-    rows.push(("roots", t0.elapsed().as_secs_f64(), 0.0));
-    let roots = Tensor::<3>::from_data(TensorData::new(ring_roots(g, k), [1, k, 3]), device);
-    let present = Tensor::<2, Bool>::from_data(TensorData::new(vec![true; k], [1, k]), device);
-    let (rot, t) = time(iters, || {
-        let decoded = net
-            .decoder
-            .forward(vol.clone(), g, roots.clone(), present.clone());
-        bw4(decoded.rot6d)
-    });
-    rows.push(("decoder", t, macs("decoder")));
-    let rot = rot.detach().reshape([k * NUM_REGRESSED, 6]);
-    let rotm = mvmp_geom::rotation::rot6d_to_matrix(rot).reshape([k, NUM_REGRESSED, 3, 3]);
-    let rotm = leaf(rotm, backward);
-    let (_, t) = time(iters, || {
-        let posed = layer
-            .forward(
-                regressed_to_full_pose(rotm.clone()),
-                Tensor::zeros([k, 10], device),
-                Tensor::zeros([k, 10], device),
-                Tensor::zeros([k, 3], device),
-                Translation::Pelvis,
-            )
-            .vertices;
-        with_backward(posed, backward, device)
-    });
-    rows.push(("smplx", t, macs("smplx")));
-    let header = format!(
-        "model {} on {:?}: {views} views, {s} x {s} input, {k} people, median of {iters} runs",
-        config.display(),
-        device
-    );
-    print_stage_times(&header, t_grids, backward, &rows);
-    Ok(())
+    }
+
+    /// Time `f` (with its backward when timed) and record it.
+    fn run<const D: usize>(
+        &mut self,
+        stage: &'static str,
+        macs: f64,
+        f: impl Fn() -> Tensor<D>,
+    ) -> Tensor<D> {
+        let (backward, device) = (self.backward, self.device);
+        let (y, t) = time(self.iters, || with_backward(f(), backward, device));
+        self.rows.push((stage, t, macs));
+        y
+    }
+
+    /// The ViT with its reduction and HRNet (on the input pooled by `hrnet_downsample`, as in the model):
+    /// features and heatmaps `[1, V, C, h, w]`, cut from the graph.
+    fn backbones(
+        &mut self,
+        net: &MvmpHmr,
+        cfg: &ModelConfig,
+        x: Tensor<4>,
+    ) -> (Tensor<5>, Tensor<5>) {
+        let macs = self.macs("vit") + self.macs("reduce");
+        let feats = self.run("vit+reduce", macs, || net.view_features(x.clone()));
+        let xh = match cfg.hrnet_downsample.max(1) as usize {
+            1 => x,
+            k => avg_pool2d(x, AvgPoolOptions::new([k, k])),
+        };
+        let hm = self.run("hrnet", self.macs("hrnet"), || {
+            net.hrnet.forward(xh.clone())
+        });
+        let [v, cf, h, w] = feats.dims();
+        let [_, j, hh, hw] = hm.dims();
+        (
+            leaf(feats.reshape([1, v, cf, h, w]), self.backward),
+            leaf(hm.reshape([1, v, j, hh, hw]), self.backward),
+        )
+    }
+
+    /// Both fusions, timed as one row: the feature volume and the heatmap volume, cut from the graph.
+    fn fusion(
+        &mut self,
+        cfg: &ModelConfig,
+        grids: &RigGrids,
+        feats: Tensor<5>,
+        hm: Tensor<5>,
+    ) -> (Tensor<5>, Tensor<5>) {
+        let fg = vec![grids.features.clone()];
+        let hg = vec![grids.heatmaps.clone()];
+        let vol = self.run("fusion", 0.0, || fuse_views(feats.clone(), &fg, cfg.fusion));
+        let t1 = self.rows.pop().map_or(0.0, |r| r.1);
+        let hvol = self.run("fusion", self.macs("fusion"), || {
+            fuse_views(hm.clone(), &hg, FusionMode::Mean)
+        });
+        if let Some(r) = self.rows.last_mut() {
+            r.1 += t1;
+        }
+        (leaf(vol, self.backward), leaf(hvol, self.backward))
+    }
+
+    /// The RootNet, root extraction and the decoder at `max_people` roots on a ring: the rotations
+    /// `[K, 53, 3, 3]`, cut from the graph.
+    fn heads(
+        &mut self,
+        net: &MvmpHmr,
+        cfg: &ModelConfig,
+        vol: Tensor<5>,
+        hvol: Tensor<5>,
+    ) -> Tensor<4> {
+        let (g, k, device) = (&cfg.grid, cfg.max_people, self.device);
+        let lik = self.run("rootnet", self.macs("rootnet"), || {
+            net.rootnet.forward(hvol.clone()).0
+        });
+        let t0 = Instant::now();
+        let _ = extract_roots(lik, Subvoxel::Centre, g, k, f32::MIN);
+        self.rows.push(("roots", t0.elapsed().as_secs_f64(), 0.0));
+        let roots = Tensor::<3>::from_data(TensorData::new(ring_roots(g, k), [1, k, 3]), device);
+        let present = Tensor::<2, Bool>::from_data(TensorData::new(vec![true; k], [1, k]), device);
+        let rot = self.run("decoder", self.macs("decoder"), || {
+            let decoded = net
+                .decoder
+                .forward(vol.clone(), g, roots.clone(), present.clone());
+            decoded.rot6d
+        });
+        let rot = rot.detach().reshape([k * NUM_REGRESSED, 6]);
+        let rotm = mvmp_geom::rotation::rot6d_to_matrix(rot).reshape([k, NUM_REGRESSED, 3, 3]);
+        leaf(rotm, self.backward)
+    }
+
+    /// The stand-in body layer posing `K` bodies.
+    fn smplx(&mut self, rotm: Tensor<4>) {
+        let device = self.device;
+        let layer = SmplxLayer::new(&mvmp_smplx::standin_model(0), device);
+        let k = rotm.dims()[0];
+        self.run("smplx", self.macs("smplx"), || {
+            layer
+                .forward(
+                    regressed_to_full_pose(rotm.clone()),
+                    Tensor::zeros([k, 10], device),
+                    Tensor::zeros([k, 10], device),
+                    Tensor::zeros([k, 3], device),
+                    Translation::Pelvis,
+                )
+                .vertices
+        });
+    }
 }
 
 /// `k` roots on a circle of 1 m round the grid's centre, at pelvis height, `[k * 3]`.

@@ -216,13 +216,20 @@ impl ModelConfig {
     }
 
     pub fn validate(&self) -> Result<(), ModelConfigError> {
-        let bad = |key: &str, what: String| ModelConfigError::Invalid {
-            key: key.into(),
-            what,
-        };
+        self.check_inputs()
+            .and_then(|()| self.check_volume())
+            .map_err(|(key, what)| ModelConfigError::Invalid {
+                key: key.into(),
+                what,
+            })
+    }
+
+    /// The input size, HRNet's downsampling, the feature channels and the heatmap joints: the offending
+    /// key and why.
+    fn check_inputs(&self) -> Result<(), (&'static str, String)> {
         // Heatmaps are exactly S/4; a multiple of 14 also uses every pixel in the ViT (the paper: 1288).
         if self.image_size < 28 || !self.image_size.is_multiple_of(4) {
-            return Err(bad(
+            return Err((
                 "image_size",
                 format!(
                     "{}: must be a multiple of 4 of at least 28",
@@ -232,7 +239,7 @@ impl ModelConfig {
         }
         let k = self.hrnet_downsample;
         if k == 0 || !self.image_size.is_multiple_of(4 * k) || self.image_size / k < 28 {
-            return Err(bad(
+            return Err((
                 "hrnet_downsample",
                 format!(
                     "{k}: must be at least 1, divide image_size ({}) into a multiple of 4 and leave \
@@ -242,10 +249,10 @@ impl ModelConfig {
             ));
         }
         if self.feature_channels == 0 {
-            return Err(bad("feature_channels", "must be positive".into()));
+            return Err(("feature_channels", "must be positive".into()));
         }
         if self.heatmap_joints.is_empty() || self.heatmap_joints.iter().any(|&j| j >= 127) {
-            return Err(bad(
+            return Err((
                 "heatmap_joints",
                 format!(
                     "{:?}: a non-empty list of SMPL-X joint indices below 127",
@@ -254,7 +261,7 @@ impl ModelConfig {
             ));
         }
         if !self.heatmap_joints.contains(&self.primary_joint.joint()) {
-            return Err(bad(
+            return Err((
                 "primary_joint",
                 format!(
                     "{:?} (joint {}) is not in heatmap_joints",
@@ -263,11 +270,14 @@ impl ModelConfig {
                 ),
             ));
         }
-        self.grid
-            .validate()
-            .map_err(|e| bad("grid", e.to_string()))?;
+        Ok(())
+    }
+
+    /// The grid, the RootNet, detection and the decoder: the offending key and why.
+    fn check_volume(&self) -> Result<(), (&'static str, String)> {
+        self.grid.validate().map_err(|e| ("grid", e.to_string()))?;
         if self.grid.shape.iter().any(|s| !s.is_multiple_of(4)) {
-            return Err(bad(
+            return Err((
                 "grid.shape",
                 format!(
                     "{:?}: every side must be divisible by 4 (the V2V encoder pools twice)",
@@ -276,13 +286,13 @@ impl ModelConfig {
             ));
         }
         if !(self.rootnet_width > 0.0 && self.rootnet_width <= 4.0) {
-            return Err(bad(
+            return Err((
                 "rootnet_width",
                 format!("{}: expected (0, 4]", self.rootnet_width),
             ));
         }
         if self.max_people == 0 || self.max_people > MAX_PEOPLE {
-            return Err(bad(
+            return Err((
                 "max_people",
                 format!(
                     "{}: expected 1 to {MAX_PEOPLE} (each slot is a decoded SMPL-X mesh)",
@@ -292,7 +302,7 @@ impl ModelConfig {
         }
         // The likelihood is a sigmoid: at 1 or above no voxel ever passes (below 0 every peak does).
         if !(self.root_threshold.is_finite() && self.root_threshold < 1.0) {
-            return Err(bad(
+            return Err((
                 "root_threshold",
                 format!(
                     "{}: must be a finite likelihood below 1 (a negative one keeps every peak)",
@@ -302,7 +312,7 @@ impl ModelConfig {
         }
         let d = &self.decoder;
         if d.dim == 0 || d.heads == 0 || !d.dim.is_multiple_of(d.heads) {
-            return Err(bad(
+            return Err((
                 "decoder.dim",
                 format!(
                     "{} must be a positive multiple of decoder.heads = {}",
@@ -311,7 +321,7 @@ impl ModelConfig {
             ));
         }
         if d.pool == 0 {
-            return Err(bad("decoder.pool", "must be at least 1".into()));
+            return Err(("decoder.pool", "must be at least 1".into()));
         }
         Ok(())
     }
