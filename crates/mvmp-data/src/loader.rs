@@ -9,8 +9,8 @@ use burn::tensor::{Bool, Device, Tensor, TensorData};
 use nalgebra::{Vector2, Vector3};
 
 use crate::DataError;
-use crate::layout::{Annotation, DatasetLayout, FrameRef};
-use mvmp_geom::{Camera, Letterbox};
+use crate::layout::{Annotation, DatasetLayout, FrameRef, Person};
+use mvmp_geom::{Camera, Letterbox, Rig};
 use mvmp_smplx::names::{NUM_JOINTS, NUM_JOINTS_WITH_LANDMARKS};
 
 /// ImageNet normalisation (RGB).
@@ -202,29 +202,21 @@ impl FrameDataset {
         crate::sources::select_views(&self.views, epoch, index, available)
     }
 
-    /// Load sample `index`.
-    pub fn load(&self, index: usize) -> Result<FrameSample, DataError> {
-        self.load_with_draw(index, index)
-    }
-
-    /// Frame `index` with the views of draw number `draw` (a frame drawn repeatedly in an epoch gets a
-    /// view draw per repeat).
-    pub fn load_with_draw(&self, index: usize, draw: usize) -> Result<FrameSample, DataError> {
-        let f = &self.frames[index];
-        let scene = &self.layout.scenes[f.scene];
-        let apath = f.dir.join("annotation.json");
-        let ann = Annotation::read(&apath, scene.rig.len())?;
-        if let Some((n, body)) = &self.joints {
-            ann.check_joints(*n, body)
-                .map_err(|what| DataError::file(&apath, what))?;
-        }
-        let views = self.select_views(draw, scene.rig.len());
+    /// The chosen views of frame `f`: its images letterboxed and normalised `[V][3][S][S]`, their
+    /// cameras and letterboxes. An image whose size is not its camera's is an error naming both.
+    fn load_views(
+        &self,
+        f: &FrameRef,
+        rig: &Rig,
+        ann: &Annotation,
+        views: &[usize],
+    ) -> Result<LoadedViews, DataError> {
         let s = self.size as usize;
         let mut images = vec![0f32; views.len() * 3 * s * s];
         let mut cameras = Vec::new();
         let mut letterboxes = Vec::new();
         for (vi, &v) in views.iter().enumerate() {
-            let cam = scene.rig.cameras[v].clone();
+            let cam = rig.cameras[v].clone();
             let path = f.dir.join(&ann.images[v]);
             let img = crate::check::open_image(&path)
                 .map_err(|e| DataError::file(&path, format!("unreadable image: {e}")))?
@@ -247,42 +239,32 @@ impl FrameDataset {
             cameras.push(cam);
             letterboxes.push(lb);
         }
+        Ok((images, cameras, letterboxes))
+    }
+
+    /// Load sample `index`.
+    pub fn load(&self, index: usize) -> Result<FrameSample, DataError> {
+        self.load_with_draw(index, index)
+    }
+
+    /// Frame `index` with the views of draw number `draw` (a frame drawn repeatedly in an epoch gets a
+    /// view draw per repeat).
+    pub fn load_with_draw(&self, index: usize, draw: usize) -> Result<FrameSample, DataError> {
+        let f = &self.frames[index];
+        let scene = &self.layout.scenes[f.scene];
+        let apath = f.dir.join("annotation.json");
+        let ann = Annotation::read(&apath, scene.rig.len())?;
+        if let Some((n, body)) = &self.joints {
+            ann.check_joints(*n, body)
+                .map_err(|what| DataError::file(&apath, what))?;
+        }
+        let views = self.select_views(draw, scene.rig.len());
+        let s = self.size as usize;
+        let (images, cameras, letterboxes) = self.load_views(f, &scene.rig, &ann, &views)?;
         let people: Vec<PersonGt> = ann
             .people
             .iter()
-            .map(|p| {
-                let joints_2d = views
-                    .iter()
-                    .zip(&letterboxes)
-                    .map(|(&v, lb)| {
-                        p.views[v]
-                            .joints_2d
-                            .iter()
-                            .map(|j| {
-                                let q = lb.apply(Vector2::new(j[0], j[1]));
-                                [q.x as f32, q.y as f32, j[2] as f32]
-                            })
-                            .collect()
-                    })
-                    .collect();
-                let f32s = |v: &[f64], n: usize| -> Vec<f32> {
-                    let mut o: Vec<f32> = v.iter().map(|&x| x as f32).collect();
-                    o.resize(n, 0.0);
-                    o
-                };
-                let pose = f32s(&p.smplx.full_pose(), NUM_JOINTS * 3);
-                PersonGt {
-                    id: p.id,
-                    pose,
-                    betas: f32s(&p.smplx.betas, 10).try_into().expect("10 betas"),
-                    expression: f32s(&p.smplx.expression, 10).try_into().expect("10 values"),
-                    pelvis: p.pelvis.map(|x| x as f32),
-                    joints_3d: p.joints_3d.iter().map(|j| j.map(|x| x as f32)).collect(),
-                    joint_valid: vec![1.0; p.joints_3d.len()],
-                    joints_2d,
-                    smplx: true,
-                }
-            })
+            .map(|p| person_gt(p, &views, &letterboxes))
             .collect();
         Ok(FrameSample {
             scene: f.scene_name.clone(),
@@ -299,6 +281,45 @@ impl FrameDataset {
             ],
             people,
         })
+    }
+}
+
+/// A frame's chosen views: images `[V][3][S][S]`, cameras, letterboxes.
+type LoadedViews = (Vec<f32>, Vec<Camera>, Vec<Letterbox>);
+
+/// One person's ground truth for the chosen views: parameters as float32 (the full pose, 10 betas, 10
+/// expression values), pelvis, 3D joints, and each view's 2D joints in letterboxed pixels.
+fn person_gt(p: &Person, views: &[usize], letterboxes: &[Letterbox]) -> PersonGt {
+    let joints_2d = views
+        .iter()
+        .zip(letterboxes)
+        .map(|(&v, lb)| {
+            p.views[v]
+                .joints_2d
+                .iter()
+                .map(|j| {
+                    let q = lb.apply(Vector2::new(j[0], j[1]));
+                    [q.x as f32, q.y as f32, j[2] as f32]
+                })
+                .collect()
+        })
+        .collect();
+    let f32s = |v: &[f64], n: usize| -> Vec<f32> {
+        let mut o: Vec<f32> = v.iter().map(|&x| x as f32).collect();
+        o.resize(n, 0.0);
+        o
+    };
+    let pose = f32s(&p.smplx.full_pose(), NUM_JOINTS * 3);
+    PersonGt {
+        id: p.id,
+        pose,
+        betas: f32s(&p.smplx.betas, 10).try_into().expect("10 betas"),
+        expression: f32s(&p.smplx.expression, 10).try_into().expect("10 values"),
+        pelvis: p.pelvis.map(|x| x as f32),
+        joints_3d: p.joints_3d.iter().map(|j| j.map(|x| x as f32)).collect(),
+        joint_valid: vec![1.0; p.joints_3d.len()],
+        joints_2d,
+        smplx: true,
     }
 }
 
