@@ -450,55 +450,18 @@ impl Batcher<FrameSample, FrameBatch> for FrameBatcher {
             .map(|q| q.joints_3d.len())
             .next()
             .unwrap_or(127);
-        let mut images = Vec::with_capacity(b * v * 3 * s * s);
-        let mut mask = vec![false; b * p];
-        let mut pose = vec![0f32; b * p * NUM_JOINTS * 3];
-        let mut betas = vec![0f32; b * p * 10];
-        let mut expr = vec![0f32; b * p * 10];
-        let mut pelvis = vec![0f32; b * p * 3];
-        let mut j3 = vec![0f32; b * p * j * 3];
-        let mut j2 = vec![0f32; b * v * p * j * 3];
-        let mut valid = vec![0f32; b * p * j];
-        let mut smplx = vec![0f32; b * p];
-        let mut cover = vec![0f32; b * j];
-        for (bi, it) in items.iter().enumerate() {
-            images.extend_from_slice(&it.images);
-            for (ji, &c) in it.cover.iter().enumerate().take(j) {
-                cover[bi * j + ji] = if c { 1.0 } else { 0.0 };
-            }
-            for (pi, q) in it.people.iter().enumerate() {
-                let k = bi * p + pi;
-                mask[k] = true;
-                pose[k * NUM_JOINTS * 3..(k + 1) * NUM_JOINTS * 3].copy_from_slice(&q.pose);
-                betas[k * 10..(k + 1) * 10].copy_from_slice(&q.betas);
-                expr[k * 10..(k + 1) * 10].copy_from_slice(&q.expression);
-                pelvis[k * 3..(k + 1) * 3].copy_from_slice(&q.pelvis);
-                smplx[k] = if q.smplx { 1.0 } else { 0.0 };
-                for (ji, &x) in q.joint_valid.iter().enumerate().take(j) {
-                    valid[k * j + ji] = x;
-                }
-                for (ji, x) in q.joints_3d.iter().enumerate().take(j) {
-                    j3[(k * j + ji) * 3..(k * j + ji) * 3 + 3].copy_from_slice(x);
-                }
-                for (vi, view) in q.joints_2d.iter().enumerate() {
-                    for (ji, x) in view.iter().enumerate().take(j) {
-                        let o = (((bi * v + vi) * p + pi) * j + ji) * 3;
-                        j2[o..o + 3].copy_from_slice(x);
-                    }
-                }
-            }
-        }
+        let h = Padded::new(&items, [b, v, s, p, j]);
         let t = |data: Vec<f32>, shape: Vec<usize>| TensorData::new(data, shape);
         // Only people with SMPL-X ground truth have vertices; a batch of joint-annotated frames needs none.
-        let any_smplx = smplx.iter().any(|&x| x > 0.0);
+        let any_smplx = h.smplx.iter().any(|&x| x > 0.0);
         let vertices = self.body.as_ref().filter(|_| any_smplx).map(|model| {
             let layer = self.layer(model, device);
             let n = b * p;
             let out = layer.forward_axis_angle(
-                Tensor::from_data(t(pose.clone(), vec![n, NUM_JOINTS, 3]), device),
-                Tensor::from_data(t(betas.clone(), vec![n, 10]), device),
-                Tensor::from_data(t(expr.clone(), vec![n, 10]), device),
-                Tensor::from_data(t(pelvis.clone(), vec![n, 3]), device),
+                Tensor::from_data(t(h.pose.clone(), vec![n, NUM_JOINTS, 3]), device),
+                Tensor::from_data(t(h.betas.clone(), vec![n, 10]), device),
+                Tensor::from_data(t(h.expr.clone(), vec![n, 10]), device),
+                Tensor::from_data(t(h.pelvis.clone(), vec![n, 3]), device),
                 mvmp_smplx::Translation::Pelvis,
             );
             let nv = layer.num_vertices();
@@ -506,24 +469,93 @@ impl Batcher<FrameSample, FrameBatch> for FrameBatcher {
         });
         FrameBatch {
             vertices,
-            images: Tensor::from_data(t(images, vec![b, v, 3, s, s]), device),
+            images: Tensor::from_data(t(h.images, vec![b, v, 3, s, s]), device),
             cameras: items.iter().map(|i| i.cameras.clone()).collect(),
             letterboxes: items.iter().map(|i| i.letterboxes.clone()).collect(),
-            mask: Tensor::from_data(TensorData::new(mask, [b, p]), device),
-            pose: Tensor::from_data(t(pose, vec![b, p, NUM_JOINTS, 3]), device),
-            betas: Tensor::from_data(t(betas, vec![b, p, 10]), device),
-            expression: Tensor::from_data(t(expr, vec![b, p, 10]), device),
-            pelvis: Tensor::from_data(t(pelvis, vec![b, p, 3]), device),
-            joints_3d: Tensor::from_data(t(j3, vec![b, p, j, 3]), device),
-            joints_2d: Tensor::from_data(t(j2, vec![b, v, p, j, 3]), device),
-            joint_valid: Tensor::from_data(t(valid, vec![b, p, j]), device),
-            smplx: Tensor::from_data(t(smplx, vec![b, p]), device),
-            cover: Tensor::from_data(t(cover, vec![b, j]), device),
+            mask: Tensor::from_data(TensorData::new(h.mask, [b, p]), device),
+            pose: Tensor::from_data(t(h.pose, vec![b, p, NUM_JOINTS, 3]), device),
+            betas: Tensor::from_data(t(h.betas, vec![b, p, 10]), device),
+            expression: Tensor::from_data(t(h.expr, vec![b, p, 10]), device),
+            pelvis: Tensor::from_data(t(h.pelvis, vec![b, p, 3]), device),
+            joints_3d: Tensor::from_data(t(h.j3, vec![b, p, j, 3]), device),
+            joints_2d: Tensor::from_data(t(h.j2, vec![b, v, p, j, 3]), device),
+            joint_valid: Tensor::from_data(t(h.valid, vec![b, p, j]), device),
+            smplx: Tensor::from_data(t(h.smplx, vec![b, p]), device),
+            cover: Tensor::from_data(t(h.cover, vec![b, j]), device),
             counts: items.iter().map(|i| i.people.len()).collect(),
             names: items
                 .iter()
                 .map(|i| (i.scene.clone(), i.frame.clone()))
                 .collect(),
+        }
+    }
+}
+
+/// A batch's ground truth on the host, every frame padded to `p` people of `j` joints (absent people
+/// and joints zero, masked out).
+struct Padded {
+    images: Vec<f32>,
+    mask: Vec<bool>,
+    pose: Vec<f32>,
+    betas: Vec<f32>,
+    expr: Vec<f32>,
+    pelvis: Vec<f32>,
+    j3: Vec<f32>,
+    j2: Vec<f32>,
+    valid: Vec<f32>,
+    smplx: Vec<f32>,
+    cover: Vec<f32>,
+}
+
+impl Padded {
+    /// `dims`: batch, views, image side, people, joints.
+    fn new(items: &[FrameSample], dims: [usize; 5]) -> Self {
+        let [b, v, s, p, j] = dims;
+        let mut h = Padded {
+            images: Vec::with_capacity(b * v * 3 * s * s),
+            mask: vec![false; b * p],
+            pose: vec![0f32; b * p * NUM_JOINTS * 3],
+            betas: vec![0f32; b * p * 10],
+            expr: vec![0f32; b * p * 10],
+            pelvis: vec![0f32; b * p * 3],
+            j3: vec![0f32; b * p * j * 3],
+            j2: vec![0f32; b * v * p * j * 3],
+            valid: vec![0f32; b * p * j],
+            smplx: vec![0f32; b * p],
+            cover: vec![0f32; b * j],
+        };
+        for (bi, it) in items.iter().enumerate() {
+            h.images.extend_from_slice(&it.images);
+            for (ji, &c) in it.cover.iter().enumerate().take(j) {
+                h.cover[bi * j + ji] = if c { 1.0 } else { 0.0 };
+            }
+            for (pi, q) in it.people.iter().enumerate() {
+                h.put_person(q, [bi, pi], dims);
+            }
+        }
+        h
+    }
+
+    /// Person `pi` of batch item `bi`.
+    fn put_person(&mut self, q: &PersonGt, [bi, pi]: [usize; 2], [_, v, _, p, j]: [usize; 5]) {
+        let k = bi * p + pi;
+        self.mask[k] = true;
+        self.pose[k * NUM_JOINTS * 3..(k + 1) * NUM_JOINTS * 3].copy_from_slice(&q.pose);
+        self.betas[k * 10..(k + 1) * 10].copy_from_slice(&q.betas);
+        self.expr[k * 10..(k + 1) * 10].copy_from_slice(&q.expression);
+        self.pelvis[k * 3..(k + 1) * 3].copy_from_slice(&q.pelvis);
+        self.smplx[k] = if q.smplx { 1.0 } else { 0.0 };
+        for (ji, &x) in q.joint_valid.iter().enumerate().take(j) {
+            self.valid[k * j + ji] = x;
+        }
+        for (ji, x) in q.joints_3d.iter().enumerate().take(j) {
+            self.j3[(k * j + ji) * 3..(k * j + ji) * 3 + 3].copy_from_slice(x);
+        }
+        for (vi, view) in q.joints_2d.iter().enumerate().take(v) {
+            for (ji, x) in view.iter().enumerate().take(j) {
+                let o = (((bi * v + vi) * p + pi) * j + ji) * 3;
+                self.j2[o..o + 3].copy_from_slice(x);
+            }
         }
     }
 }
