@@ -162,7 +162,6 @@ pub fn open_training_set(
             what: "missing: set `data` (an MVMP-HMR dataset) or add [[sources]]".into(),
         });
     }
-    let primary = model_cfg.primary_joint.joint();
     // `data`, when set, is the first spec; errors name a source by its index in `[[sources]]`.
     let key = |i: usize, field: &str| match (i + cfg.sources.len()).checked_sub(specs.len()) {
         Some(k) => format!("sources[{k}].{field}"),
@@ -170,33 +169,23 @@ pub fn open_training_set(
     };
     let mut parts = Vec::with_capacity(specs.len());
     for (i, spec) in specs.iter().enumerate() {
-        let set = spec.format.joint_set();
-        if !covered_slots(set)[primary] {
-            return Err(TrainError::Config {
-                path: config.into(),
-                key: key(i, "format"),
-                what: format!(
-                    "{}: its joints ({}) do not include the model's primary joint {:?}",
-                    spec.format.name(),
-                    set.name(),
-                    model_cfg.primary_joint
+        let bad = |key: String, what: String| TrainError::Config {
+            path: config.into(),
+            key,
+            what,
+        };
+        check_primary_joint(model_cfg, spec).map_err(|w| bad(key(i, "format"), w))?;
+        let cameras = source_cameras(spec)?;
+        if cfg.train_views > cameras {
+            return Err(bad(
+                "train_views".into(),
+                format!(
+                    "{}: the frames of {} ({}) have {cameras} cameras",
+                    cfg.train_views,
+                    key(i, "root"),
+                    spec.root
                 ),
-            });
-        }
-        {
-            let cameras = source_cameras(spec)?;
-            if cfg.train_views > cameras {
-                return Err(TrainError::Config {
-                    path: config.into(),
-                    key: "train_views".into(),
-                    what: format!(
-                        "{}: the frames of {} ({}) have {cameras} cameras",
-                        cfg.train_views,
-                        key(i, "root"),
-                        spec.root
-                    ),
-                });
-            }
+            ));
         }
         let part = spec.open_training(
             ViewChoice::Random {
@@ -209,23 +198,13 @@ pub fn open_training_set(
             (Some(dir), SourceDataset::Joints(d)) => {
                 let dir = PathBuf::from(dir);
                 if !dir.is_dir() {
-                    return Err(TrainError::Config {
-                        path: config.into(),
-                        key: key(i, "pseudo_gt"),
-                        what: format!("{}: not a directory", dir.display()),
-                    });
+                    return Err(bad(
+                        key(i, "pseudo_gt"),
+                        format!("{}: not a directory", dir.display()),
+                    ));
                 }
-                // A path is absolute by now (`ModelConfig::read` resolves it beside its config).
-                let base = config.parent().unwrap_or(Path::new("."));
-                let body = mvmp_data::layout::load_body_model(&model_cfg.body_model, base)?;
-                let layer = SmplxLayer::new(&body, &Device::flex());
-                SourceDataset::Joints(d.with_meshes(Arc::new(crate::pseudo::PseudoGtMeshes(
-                    PseudoGt {
-                        dir,
-                        layer,
-                        gate: cfg.match_gate,
-                    },
-                ))))
+                let meshes = pseudo_gt_meshes(cfg, model_cfg, config, dir)?;
+                SourceDataset::Joints(d.with_meshes(meshes))
             }
             (_, part) => part,
         });
@@ -239,6 +218,40 @@ pub fn open_training_set(
         ));
     }
     Ok(set)
+}
+
+/// A training source's joints must include the model's primary joint (the root the detection branch
+/// learns): why not, if they do not.
+fn check_primary_joint(model_cfg: &ModelConfig, spec: &SourceSpec) -> Result<(), String> {
+    let set = spec.format.joint_set();
+    if covered_slots(set)[model_cfg.primary_joint.joint()] {
+        return Ok(());
+    }
+    Err(format!(
+        "{}: its joints ({}) do not include the model's primary joint {:?}",
+        spec.format.name(),
+        set.name(),
+        model_cfg.primary_joint
+    ))
+}
+
+/// The pseudo-ground-truth meshes of a joint-annotated source: SMPL-X fits in `dir`, posed with the
+/// model's body model.
+fn pseudo_gt_meshes(
+    cfg: &TrainConfig,
+    model_cfg: &ModelConfig,
+    config: &Path,
+    dir: PathBuf,
+) -> Result<Arc<crate::pseudo::PseudoGtMeshes>, TrainError> {
+    // A path is absolute by now (`ModelConfig::read` resolves it beside its config).
+    let base = config.parent().unwrap_or(Path::new("."));
+    let body = mvmp_data::layout::load_body_model(&model_cfg.body_model, base)?;
+    let layer = SmplxLayer::new(&body, &Device::flex());
+    Ok(Arc::new(crate::pseudo::PseudoGtMeshes(PseudoGt {
+        dir,
+        layer,
+        gate: cfg.match_gate,
+    })))
 }
 
 /// Open the validation source the way validation will (its split, the first `test_views` cameras), so
