@@ -89,6 +89,81 @@ fn check_image(r: &mut CheckReport, path: &Path, size: (u32, u32), kind: &str, d
     r.images += 1;
 }
 
+/// One scene of a dataset: its rig, its index and every frame. `joints`: what each person must hold (the
+/// body model's output joints), when the body model could be read.
+fn check_scene(r: &mut CheckReport, dir: &Path, joints: Option<usize>, body: &str, deep: bool) {
+    let rig = match Rig::read(&dir.join("cameras.json")) {
+        Ok(rig) => rig,
+        Err(e) => return problem(r, &dir.join("cameras.json"), e.to_string()),
+    };
+    r.views = r.views.max(rig.len());
+    let scene = match SceneIndex::read(dir) {
+        Ok(s) => s,
+        Err(e) => return problem(r, &dir.join("scene.json"), e.to_string()),
+    };
+    for f in &scene.frames {
+        r.frames += 1;
+        check_frame(r, &dir.join(f), &rig, joints, body, deep);
+    }
+}
+
+/// One frame: its annotation against the rig and the body model's joints, and every view's image,
+/// depth map and mask.
+fn check_frame(
+    r: &mut CheckReport,
+    fdir: &Path,
+    rig: &Rig,
+    joints: Option<usize>,
+    body: &str,
+    deep: bool,
+) {
+    let apath = fdir.join("annotation.json");
+    let ann = match Annotation::read_with_problems(&apath, rig.len()) {
+        Ok((a, found)) if found.is_empty() => a,
+        Ok((_, found)) => {
+            for what in found {
+                problem(r, &apath, what);
+            }
+            return;
+        }
+        Err(e) => {
+            let what = e.to_string();
+            let prefix = format!("{}: ", apath.display());
+            return problem(r, &apath, what.trim_start_matches(&prefix).to_string());
+        }
+    };
+    r.people += ann.people.len();
+    if let Some(Err(what)) = joints.map(|n| ann.check_joints(n, body)) {
+        problem(r, &apath, what);
+    }
+    for (v, cam) in rig.cameras.iter().enumerate() {
+        let size = (cam.width, cam.height);
+        check_image(r, &fdir.join(&ann.images[v]), size, "image", deep);
+        if let Some(d) = &ann.depth {
+            check_image(r, &fdir.join(&d[v]), size, "depth map", deep);
+        }
+        if let Some(m) = &ann.masks {
+            let mpath = fdir.join(&m[v]);
+            check_image(r, &mpath, size, "mask", deep);
+            check_mask_people(r, &mpath, ann.people.len());
+        }
+    }
+}
+
+/// A mask's largest person index must be one of the frame's people.
+fn check_mask_people(r: &mut CheckReport, mpath: &Path, people: usize) {
+    if let Ok(img) = image::open(mpath) {
+        let max = img.to_luma8().pixels().map(|p| p.0[0]).max().unwrap_or(0);
+        if max as usize > people {
+            problem(
+                r,
+                mpath,
+                format!("mask holds person {max} but the frame has {people} people"),
+            );
+        }
+    }
+}
+
 /// Validate the dataset at `root`; `deep` also decodes every image.
 pub fn check_dataset(root: &Path, deep: bool) -> CheckReport {
     let mut r = CheckReport::default();
@@ -112,76 +187,8 @@ pub fn check_dataset(root: &Path, deep: bool) -> CheckReport {
         }
     };
     for name in &index.scenes {
-        let dir = root.join(name);
         r.scenes += 1;
-        let rig = match Rig::read(&dir.join("cameras.json")) {
-            Ok(rig) => rig,
-            Err(e) => {
-                problem(&mut r, &dir.join("cameras.json"), e.to_string());
-                continue;
-            }
-        };
-        r.views = r.views.max(rig.len());
-        let scene = match SceneIndex::read(&dir) {
-            Ok(s) => s,
-            Err(e) => {
-                problem(&mut r, &dir.join("scene.json"), e.to_string());
-                continue;
-            }
-        };
-        for f in &scene.frames {
-            let fdir = dir.join(f);
-            let apath = fdir.join("annotation.json");
-            r.frames += 1;
-            let ann = match Annotation::read_with_problems(&apath, rig.len()) {
-                Ok((a, found)) if found.is_empty() => a,
-                Ok((_, found)) => {
-                    for what in found {
-                        problem(&mut r, &apath, what);
-                    }
-                    continue;
-                }
-                Err(e) => {
-                    problem(
-                        &mut r,
-                        &apath,
-                        e.to_string()
-                            .trim_start_matches(&format!("{}: ", apath.display()))
-                            .to_string(),
-                    );
-                    continue;
-                }
-            };
-            r.people += ann.people.len();
-            if let Some(Err(what)) = joints.map(|n| ann.check_joints(n, &index.body_model)) {
-                problem(&mut r, &apath, what);
-            }
-            for (v, cam) in rig.cameras.iter().enumerate() {
-                let size = (cam.width, cam.height);
-                check_image(&mut r, &fdir.join(&ann.images[v]), size, "image", deep);
-                if let Some(d) = &ann.depth {
-                    check_image(&mut r, &fdir.join(&d[v]), size, "depth map", deep);
-                }
-                if let Some(m) = &ann.masks {
-                    let mpath = fdir.join(&m[v]);
-                    check_image(&mut r, &mpath, size, "mask", deep);
-                    if let Ok(img) = image::open(&mpath) {
-                        let max = img.to_luma8().pixels().map(|p| p.0[0]).max().unwrap_or(0);
-                        if max as usize > ann.people.len() {
-                            problem(
-                                &mut r,
-                                &mpath,
-                                format!(
-                                    "mask holds person {} but the frame has {} people",
-                                    max,
-                                    ann.people.len()
-                                ),
-                            );
-                        }
-                    }
-                }
-            }
-        }
+        check_scene(&mut r, &root.join(name), joints, &index.body_model, deep);
     }
     r
 }
