@@ -287,30 +287,15 @@ pub struct H36mReport {
 /// summarised per video directory (the first missing frame and the count), not listed one by one.
 pub fn check_tree(root: &Path, cameras: &[&str]) -> H36mReport {
     let mut report = H36mReport::default();
-    let problem = |r: &mut H36mReport, path: &Path, what: String| {
-        r.problems.push(crate::check::Problem {
-            path: path.into(),
-            what,
-        })
-    };
-    let mut subjects: Vec<String> = match std::fs::read_dir(root) {
-        Ok(rd) => rd
-            .filter_map(|e| e.ok())
-            .filter(|e| e.path().is_dir())
-            .filter_map(|e| e.file_name().to_str().map(str::to_string))
-            .filter(|n| {
-                n.strip_prefix('S')
-                    .is_some_and(|d| d.parse::<u32>().is_ok())
-            })
-            .collect(),
+    let subjects = match subject_dirs(root) {
+        Ok(s) => s,
         Err(e) => {
-            problem(&mut report, root, e.to_string());
+            tree_problem(&mut report, root, e.to_string());
             return report;
         }
     };
-    subjects.sort_by_key(|s| s[1..].parse::<u32>().unwrap_or(0));
     if subjects.is_empty() {
-        problem(
+        tree_problem(
             &mut report,
             root,
             "no subject directory here (S1, S5, ..., each holding MyPoseFeatures/D3_Positions)"
@@ -318,62 +303,93 @@ pub fn check_tree(root: &Path, cameras: &[&str]) -> H36mReport {
         );
     }
     for subject in subjects {
-        let acts = match actions(root, &subject) {
-            Ok(a) => a,
-            Err(e) => {
-                problem(&mut report, &root.join(&subject), e.to_string());
-                continue;
-            }
-        };
-        for action in acts {
-            let seq = match H36mSequence::open(root, &subject, &action, cameras, 1) {
-                Ok(s) => s,
-                Err(e) => {
-                    // The problem line names the file once.
-                    let (path, what) = match &e {
-                        DataError::File { path, what } => (path.clone(), what.clone()),
-                        DataError::Io { path, source } => (path.clone(), source.to_string()),
-                        _ => (pose_file(root, &subject, &action), e.to_string()),
-                    };
-                    problem(&mut report, &path, what);
-                    continue;
-                }
-            };
-            let mut complete = 0;
-            let mut missing: Vec<(usize, usize)> = vec![(usize::MAX, 0); cameras.len()];
-            for f in &seq.frames {
-                let mut all = true;
-                for (c, img) in f.images.iter().enumerate() {
-                    if !img.exists() {
-                        all = false;
-                        missing[c].0 = missing[c].0.min(f.row);
-                        missing[c].1 += 1;
-                    }
-                }
-                complete += all as usize;
-            }
-            for (c, (first, count)) in missing.into_iter().enumerate() {
-                if count > 0 {
-                    let dir = image_file(root, &subject, &action, cameras[c], first);
-                    problem(
-                        &mut report,
-                        &dir,
-                        format!(
-                            "missing image ({count} of the {} frames of camera {} are missing; this is the first)",
-                            seq.frames.len(),
-                            cameras[c]
-                        ),
-                    );
+        match actions(root, &subject) {
+            Ok(acts) => {
+                for action in acts {
+                    check_sequence(&mut report, root, &subject, &action, cameras);
                 }
             }
-            report.sequences.push((
-                subject.clone(),
-                action,
-                seq.rig.len(),
-                seq.frames.len(),
-                complete,
-            ));
+            Err(e) => tree_problem(&mut report, &root.join(&subject), e.to_string()),
         }
     }
     report
+}
+
+fn tree_problem(r: &mut H36mReport, path: &Path, what: String) {
+    r.problems.push(crate::check::Problem {
+        path: path.into(),
+        what,
+    })
+}
+
+/// The subject directories (`S<n>`) under `root`, in subject order.
+fn subject_dirs(root: &Path) -> std::io::Result<Vec<String>> {
+    let mut subjects: Vec<String> = std::fs::read_dir(root)?
+        .filter_map(|e| e.ok())
+        .filter(|e| e.path().is_dir())
+        .filter_map(|e| e.file_name().to_str().map(str::to_string))
+        .filter(|n| {
+            n.strip_prefix('S')
+                .is_some_and(|d| d.parse::<u32>().is_ok())
+        })
+        .collect();
+    subjects.sort_by_key(|s| s[1..].parse::<u32>().unwrap_or(0));
+    Ok(subjects)
+}
+
+/// One action of one subject: its pose file and cameras, and an image per camera for every pose row
+/// (missing ones summarised per camera: the first and the count).
+fn check_sequence(
+    report: &mut H36mReport,
+    root: &Path,
+    subject: &str,
+    action: &str,
+    cameras: &[&str],
+) {
+    let seq = match H36mSequence::open(root, subject, action, cameras, 1) {
+        Ok(s) => s,
+        Err(e) => {
+            // The problem line names the file once.
+            let (path, what) = match &e {
+                DataError::File { path, what } => (path.clone(), what.clone()),
+                DataError::Io { path, source } => (path.clone(), source.to_string()),
+                _ => (pose_file(root, subject, action), e.to_string()),
+            };
+            return tree_problem(report, &path, what);
+        }
+    };
+    let mut complete = 0;
+    let mut missing: Vec<(usize, usize)> = vec![(usize::MAX, 0); cameras.len()];
+    for f in &seq.frames {
+        let mut all = true;
+        for (c, img) in f.images.iter().enumerate() {
+            if !img.exists() {
+                all = false;
+                missing[c].0 = missing[c].0.min(f.row);
+                missing[c].1 += 1;
+            }
+        }
+        complete += all as usize;
+    }
+    for (c, (first, count)) in missing.into_iter().enumerate() {
+        if count > 0 {
+            let dir = image_file(root, subject, action, cameras[c], first);
+            tree_problem(
+                report,
+                &dir,
+                format!(
+                    "missing image ({count} of the {} frames of camera {} are missing; this is the first)",
+                    seq.frames.len(),
+                    cameras[c]
+                ),
+            );
+        }
+    }
+    report.sequences.push((
+        subject.to_string(),
+        action.to_string(),
+        seq.rig.len(),
+        seq.frames.len(),
+        complete,
+    ));
 }
