@@ -9,6 +9,8 @@
 use mvmp_geom::simd::Isa;
 use rayon::prelude::*;
 
+use mvmp_kernels::host::transpose_planes;
+
 use crate::FusionMode;
 
 /// Voxels per block: the accumulator of 16 voxels x 32 channels is 2 KiB.
@@ -233,22 +235,6 @@ fn sample_block_body(
         }
         count[i] += 1;
     }
-}
-
-/// `[N][A][B]` -> `[N][B][A]`: each of `n` planes transposed (channels-first maps to channels-last and
-/// back), planes in parallel.
-fn transpose_planes(src: &[f32], n: usize, a: usize, b: usize) -> Vec<f32> {
-    let mut dst = vec![0f32; n * a * b];
-    dst.par_chunks_mut(a * b)
-        .zip(src.par_chunks(a * b))
-        .for_each(|(dst, src)| {
-            for (i, row) in src.chunks_exact(b).enumerate() {
-                for (j, &x) in row.iter().enumerate() {
-                    dst[j * a + i] = x;
-                }
-            }
-        });
-    dst
 }
 
 /// The bilinear taps of map pixel `(x, y)` (already clamped into the map): the four pixels' indices

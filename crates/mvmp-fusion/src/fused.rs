@@ -18,6 +18,8 @@ use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, Dispatch, Flex, TensorMetadata, backend_extension};
 use burn::tensor::{Device, Tensor, TensorData};
 
+use mvmp_kernels::host::{dims, read_f32};
+
 use crate::FusionMode;
 use crate::cpu::HostGrid;
 
@@ -92,7 +94,7 @@ impl<B: Backend + FuseBackend, C: CheckpointStrategy> FuseBackend for Autodiff<B
     fn fused_views(maps: FloatTensor<Self>, plan: FusePlan) -> FloatTensor<Self> {
         let guards = [maps.node()];
         let maps = maps.into_primitive();
-        let dims = dims5(&maps.shape());
+        let dims = dims(&maps);
         let out = forward::<B>(maps.clone(), &plan);
         match FusedBackward
             .prepare::<C>(guards)
@@ -108,25 +110,11 @@ impl<B: Backend + FuseBackend, C: CheckpointStrategy> FuseBackend for Autodiff<B
     }
 }
 
-fn dims5(shape: &burn::tensor::Shape) -> [usize; 5] {
-    std::array::from_fn(|i| shape[i])
-}
-
-/// A float tensor's values on the host.
-fn host<B: Backend>(t: FloatTensor<B>) -> Vec<f32> {
-    burn::tensor::try_read_sync(B::float_into_data(t))
-        .expect("flex reads synchronously")
-        .expect("a readable tensor")
-        .convert::<f32>()
-        .try_into_vec::<f32>()
-        .expect("float32 after conversion")
-}
-
 fn forward<B: Backend>(maps: FloatTensor<B>, plan: &FusePlan) -> FloatTensor<B> {
     let device = maps.device();
-    let [b, v, c, h, w] = dims5(&maps.shape());
+    let [b, v, c, h, w] = dims(&maps);
     assert_eq!(plan.grids.len(), b, "one sampling grid per batch item");
-    let values = host::<B>(maps);
+    let values = read_f32::<B>(maps);
     let p: usize = plan.shape.iter().product();
     let mode = if plan.max {
         FusionMode::Max
@@ -169,8 +157,8 @@ impl<B: Backend> Backward<B, 1> for FusedBackward {
         let Some(node) = parent else { return };
         let Saved { plan, maps, dims } = ops.state;
         let device = grad.device();
-        let grad = host::<B>(grad);
-        let maps = maps.map(host::<B>);
+        let grad = read_f32::<B>(grad);
+        let maps = maps.map(read_f32::<B>);
         let [b, v, c, h, w] = dims;
         let p: usize = plan.shape.iter().product();
         let per_item = v * c * h * w;

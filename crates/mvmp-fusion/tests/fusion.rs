@@ -372,14 +372,11 @@ fn deformable_fusion_starts_as_mean_fusion_and_learns() {
     assert!(gw > 0.0);
 }
 
-/// The fused CPU pass (`fuse_views` on plain flex) and the tensor ops compute the same volumes: two
-/// batch items with different rigs, channel counts that are not a multiple of the vector width, a voxel
-/// count that is not a multiple of the block, voxels outside or behind a view.
-#[test]
-fn fused_pass_matches_the_tensor_ops() {
-    let d = Device::flex();
+/// Sampling grids of a 7 x 9 x 5 voxel grid (not a multiple of the fused pass's block) for two batch
+/// items with different rigs, each leaving some voxels unseen and some seen by one view only.
+fn two_rigs(d: &Device) -> [SamplingGrid; 2] {
     let voxels = VoxelGrid::new([0.0, 0.0, 1.0], [4.0, 4.0, 2.0], [7, 9, 5]).unwrap();
-    let (_, _, g0) = setup_with(&d, voxels);
+    let (_, _, g0) = setup_with(d, voxels);
     let cams: Vec<Camera> = vec![
         camera("c", [-4.0, 2.0, 2.5], [0.0, 0.0, 1.0], 0.03),
         camera("d", [1.0, 1.0, 1.2], [3.0, 3.0, 1.0], -0.02),
@@ -388,8 +385,17 @@ fn fused_pass_matches_the_tensor_ops() {
         .iter()
         .map(|c| Letterbox::new(c.width, c.height, S).unwrap())
         .collect();
-    let g1 = SamplingGrid::new(&voxels, &cams, &lbs, STRIDE, [MAP, MAP], &d);
-    let grids = [g0, g1];
+    let g1 = SamplingGrid::new(&voxels, &cams, &lbs, STRIDE, [MAP, MAP], d);
+    [g0, g1]
+}
+
+/// The fused CPU pass (`fuse_views` on plain flex) and the tensor ops compute the same volumes: two
+/// batch items with different rigs, channel counts that are not a multiple of the vector width, a voxel
+/// count that is not a multiple of the block, voxels outside or behind a view.
+#[test]
+fn fused_pass_matches_the_tensor_ops() {
+    let d = Device::flex();
+    let grids = two_rigs(&d);
     assert!(grids.iter().all(|g| g.is_fused()));
     // Training on flex takes the fused pass too; other backends keep no host copy (burn-ndarray is
     // deprecated upstream but still a backend here).
@@ -428,18 +434,7 @@ fn fused_pass_matches_the_tensor_ops() {
 #[test]
 fn fused_backward_matches_the_tensor_ops() {
     let d = Device::flex().autodiff();
-    let voxels = VoxelGrid::new([0.0, 0.0, 1.0], [4.0, 4.0, 2.0], [7, 9, 5]).unwrap();
-    let (_, _, g0) = setup_with(&d, voxels);
-    let cams: Vec<Camera> = vec![
-        camera("c", [-4.0, 2.0, 2.5], [0.0, 0.0, 1.0], 0.03),
-        camera("d", [1.0, 1.0, 1.2], [3.0, 3.0, 1.0], -0.02),
-    ];
-    let lbs: Vec<Letterbox> = cams
-        .iter()
-        .map(|c| Letterbox::new(c.width, c.height, S).unwrap())
-        .collect();
-    let g1 = SamplingGrid::new(&voxels, &cams, &lbs, STRIDE, [MAP, MAP], &d);
-    let grids = [g0, g1];
+    let grids = two_rigs(&d);
     let c = 5;
     let n = 2 * 2 * c * MAP * MAP;
     let maps: Vec<f32> = (0..n)

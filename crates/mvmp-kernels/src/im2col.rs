@@ -17,6 +17,8 @@ use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, Dispatch, Flex, TensorMetadata, backend_extension};
 use burn::tensor::{Tensor, TensorData};
 
+use crate::host::{dims, read_f32, transpose_planes};
+
 static FUSED_IM2COL: AtomicBool = AtomicBool::new(true);
 
 /// Whether training on flex builds a product convolution's columns with this operation (the default)
@@ -86,8 +88,8 @@ pub fn columns(x: Tensor<5>, geometry: Columns) -> Tensor<2> {
 pub trait Im2colBackend: Backend {
     fn im2col(x: FloatTensor<Self>, geometry: Columns) -> FloatTensor<Self> {
         let device = x.device();
-        let dims = dims5(&x.shape());
-        let cols = forward_host(&host::<Self>(x), dims, &geometry);
+        let dims = dims(&x);
+        let cols = forward_host(&read_f32::<Self>(x), dims, &geometry);
         let shape = [dims[0] * geometry.outputs(), geometry.taps() * dims[1]];
         Self::float_from_data(TensorData::new(cols, shape), &device)
     }
@@ -99,7 +101,7 @@ impl<B: Backend + Im2colBackend, C: CheckpointStrategy> Im2colBackend for Autodi
     fn im2col(x: FloatTensor<Self>, geometry: Columns) -> FloatTensor<Self> {
         let guards = [x.node()];
         let x = x.into_primitive();
-        let dims = dims5(&x.shape());
+        let dims = dims(&x);
         let out = B::im2col(x, geometry);
         // The state is two shapes: nothing a checkpointing strategy could save by recomputing.
         match Col2im.prepare::<C>(guards).compute_bound().stateful() {
@@ -107,20 +109,6 @@ impl<B: Backend + Im2colBackend, C: CheckpointStrategy> Im2colBackend for Autodi
             OpsKind::UnTracked(prep) => prep.finish(out),
         }
     }
-}
-
-fn dims5(shape: &burn::tensor::Shape) -> [usize; 5] {
-    std::array::from_fn(|i| shape[i])
-}
-
-/// A float tensor's values on the host.
-fn host<B: Backend>(t: FloatTensor<B>) -> Vec<f32> {
-    burn::tensor::try_read_sync(B::float_into_data(t))
-        .expect("flex reads synchronously")
-        .expect("a readable tensor")
-        .convert::<f32>()
-        .try_into_vec::<f32>()
-        .expect("float32 after conversion")
 }
 
 #[derive(Debug)]
@@ -135,7 +123,7 @@ impl<B: Backend> Backward<B, 1> for Col2im {
         let Some(node) = parent else { return };
         let (dims, geometry) = ops.state;
         let device = grad.device();
-        let dx = backward_host(&host::<B>(grad), dims, &geometry);
+        let dx = backward_host(&read_f32::<B>(grad), dims, &geometry);
         grads.register::<B>(
             node.id,
             B::float_from_data(TensorData::new(dx, dims), &device),
@@ -143,26 +131,10 @@ impl<B: Backend> Backward<B, 1> for Col2im {
     }
 }
 
-/// `[B][C][P]` <-> `[B][P][C]`, batch items in parallel.
-fn transpose_items(src: &[f32], b: usize, rows: usize, cols: usize) -> Vec<f32> {
-    use rayon::prelude::*;
-    let mut dst = vec![0f32; b * rows * cols];
-    dst.par_chunks_mut(rows * cols)
-        .zip(src.par_chunks(rows * cols))
-        .for_each(|(dst, src)| {
-            for (r, row) in src.chunks_exact(cols).enumerate() {
-                for (k, &v) in row.iter().enumerate() {
-                    dst[k * rows + r] = v;
-                }
-            }
-        });
-    dst
-}
-
 fn forward_host(x: &[f32], [b, c, d, h, w]: [usize; 5], g: &Columns) -> Vec<f32> {
     use rayon::prelude::*;
     let size = d * h * w;
-    let last = transpose_items(x, b, c, size); // [B][P][C]
+    let last = transpose_planes(x, b, c, size); // [B][P][C]
     let (taps, outputs) = (g.taps(), g.outputs());
     let width = taps * c;
     let mut cols = vec![0f32; b * outputs * width];
@@ -204,5 +176,5 @@ fn backward_host(grad: &[f32], [b, c, d, h, w]: [usize; 5], g: &Columns) -> Vec<
                 }
             }
         });
-    transpose_items(&acc, b, size, c)
+    transpose_planes(&acc, b, size, c)
 }

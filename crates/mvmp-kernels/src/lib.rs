@@ -6,6 +6,7 @@
 
 pub mod attention;
 pub mod conv;
+pub mod host;
 pub mod im2col;
 pub mod recompute;
 
