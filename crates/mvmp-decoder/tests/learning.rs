@@ -3,8 +3,9 @@
 //! bend error below half of what predicting no bend costs. It guards the path from the volume to the pose
 //! heads, which twice failed without a test noticing. Measured with this test (L1 on the rotations, as the
 //! parameter loss): with `query_norm` off the error stayed at 1.00 of the no-bend error at learning rates
-//! 3e-5 to 1e-3, and after 1000 steps at 1e-4; with it, 0.21-0.27 over four initial seeds at 1e-4, but
-//! 1.00 at 3e-4 and 1e-3 (an L2 loss learned at 1e-3 too: 0.29).
+//! 3e-5 to 1e-3, and after 1000 steps at 1e-4; with it, 0.21-0.27 over four initial seeds at 1e-4. With
+//! ReLU heads it stayed at 1.00 at 3e-4 and 1e-3: their hidden units fell silent. GELU heads learn at
+//! both rates (0.27 at 1e-4 and 0.28 at 1e-3, this seed), so the test runs at both.
 use burn::optim::{AdamConfig, GradientsParams};
 use burn::tensor::{Bool, Device, Tensor, TensorData};
 use mvmp_decoder::DecoderConfig;
@@ -66,12 +67,13 @@ fn targets(bends: &[[f32; 3]], d: &Device) -> Tensor<5> {
     Tensor::from_data(TensorData::new(m, [1, bends.len(), 21, 3, 3]), d)
 }
 
-#[test]
-fn the_decoder_learns_each_persons_pose_from_the_volume() {
+/// Trains a fresh decoder for 300 steps at `lr` and returns its held-out bend error and the error of
+/// predicting no bend.
+fn bend_error(lr: f64) -> (f32, f32) {
     let d = Device::flex().autodiff();
     d.seed(7);
     let grid = VoxelGrid::new([0.0, 0.0, 1.0], [8.0, 8.0, 2.0], [32, 32, 8]).unwrap();
-    let (lr, steps) = (1e-4, 300);
+    let steps = 300;
     let mut dec = DecoderConfig::new(32)
         .with_dim(128)
         .with_heads(4)
@@ -118,9 +120,18 @@ fn the_decoder_learns_each_persons_pose_from_the_volume() {
             }
         }
     }
-    eprintln!("bend error {:.3} of predicting none", err / base);
-    assert!(
-        err < 0.5 * base,
-        "bend error {err} against {base} for predicting none"
-    );
+    (err, base)
+}
+
+#[test]
+fn the_decoder_learns_each_persons_pose_from_the_volume() {
+    // 1e-4 and the tiny config's stage-2 rate.
+    for lr in [1e-4, 1e-3] {
+        let (err, base) = bend_error(lr);
+        eprintln!("lr {lr}: bend error {:.3} of predicting none", err / base);
+        assert!(
+            err < 0.5 * base,
+            "lr {lr}: bend error {err} against {base} for predicting none"
+        );
+    }
 }
