@@ -593,6 +593,9 @@ fn eval_command(e: EvalCli, device: &Device) -> anyhow::Result<()> {
         "matched {} of {} ground-truth people, {} predictions",
         m.matched, m.ground_truth, m.predictions
     );
+    if let Some(parts) = run::error_parts(&m) {
+        println!("{parts}");
+    }
     if let Some(o) = &out {
         println!("report {}", o.display());
     }

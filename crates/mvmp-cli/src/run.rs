@@ -61,6 +61,9 @@ pub fn protocol(gate: f64, joints: JointSet) -> serde_json::Value {
         "mpjpe": "mean joint L2 on matched pairs, world frame, mm, no alignment",
         "pve": "mean vertex L2 on matched pairs, world frame, mm, no alignment",
         "pa_pve": "mean vertex L2 after a similarity Procrustes alignment (scale, rotation, translation) per person, mm",
+        "root": "root (pelvis) L2 on matched pairs, mm: where people are",
+        "rr_mpjpe": "mean joint L2 with each person's root at the origin (root-relative MPJPE), mm: orientation and pose",
+        "pa_mpjpe": "mean joint L2 after a similarity Procrustes alignment per person (PA-MPJPE), mm: pose alone",
         "ap_thresholds_mm": AP_THRESHOLDS,
         "ap": "VOC-style AP: predictions by descending score, each to its nearest ground truth by MPJPE",
         "recall_500": "fraction of ground-truth people with a prediction within 500 mm MPJPE",
@@ -154,6 +157,15 @@ pub fn table(rows: &[(String, Metrics)]) -> String {
         );
     }
     s
+}
+
+/// The parts of the joint error, a line (`None` without matched people): where people are, how they
+/// are turned and stand, how they stand.
+pub fn error_parts(m: &Metrics) -> Option<String> {
+    Some(format!(
+        "joint error in parts: root {:.1} mm, root-relative MPJPE {:.1} mm, PA-MPJPE {:.1} mm",
+        m.root_mm?, m.rr_mpjpe_mm?, m.pa_mpjpe_mm?
+    ))
 }
 
 /// Run an evaluation; returns the overall figures and the report.
@@ -362,6 +374,9 @@ fn finish_report(
     report["mpjpe_mm"] = json!(overall.mpjpe_mm);
     report["pve_mm"] = json!(overall.pve_mm);
     report["pa_pve_mm"] = json!(overall.pa_pve_mm);
+    report["root_mm"] = json!(overall.root_mm);
+    report["rr_mpjpe_mm"] = json!(overall.rr_mpjpe_mm);
+    report["pa_mpjpe_mm"] = json!(overall.pa_mpjpe_mm);
     report["recall_500"] = json!(overall.recall_500);
     report["ap"] = json!(overall.ap);
     report["matched"] = json!(overall.matched);
@@ -592,10 +607,15 @@ pub fn demo(out: &Path, seed: u64, device: &Device) -> Result<()> {
         "{}",
         table(&[
             ("untrained model".into(), m_untrained),
-            ("mean pose at GT pelvis".into(), m_mean),
-            ("trained (this demo)".into(), m_trained),
+            ("mean pose at GT pelvis".into(), m_mean.clone()),
+            ("trained (this demo)".into(), m_trained.clone()),
         ])
     );
+    for (name, m) in [("mean pose at GT pelvis", &m_mean), ("trained", &m_trained)] {
+        if let Some(parts) = error_parts(m) {
+            println!("{name:<23} {parts}");
+        }
+    }
     println!("\ndataset      {}", data.display());
     println!(
         "run          {}  (metrics.jsonl, checkpoints/, model.bpk)",

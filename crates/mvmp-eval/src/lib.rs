@@ -42,18 +42,43 @@ pub struct PersonPose {
 pub fn joint_error_mm(pred: &PersonPose, gt: &PersonPose) -> f64 {
     match &gt.valid {
         None => mean_error_mm(&pred.joints, &gt.joints),
-        Some(v) => {
-            let (a, b): (Vec<[f64; 3]>, Vec<[f64; 3]>) = pred
-                .joints
-                .iter()
-                .zip(&gt.joints)
-                .zip(v)
-                .filter(|(_, ok)| **ok)
-                .map(|((p, g), _)| (*p, *g))
-                .unzip();
+        Some(_) => {
+            let (a, b) = annotated_joints(pred, gt);
             mean_error_mm(&a, &b)
         }
     }
+}
+
+/// The (predicted, ground-truth) joints of the joints the ground truth annotates.
+fn annotated_joints(pred: &PersonPose, gt: &PersonPose) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
+    pred.joints
+        .iter()
+        .zip(&gt.joints)
+        .enumerate()
+        .filter(|(j, _)| gt.valid.as_ref().is_none_or(|v| v[*j]))
+        .map(|(_, (p, g))| (*p, *g))
+        .unzip()
+}
+
+/// How a matched pair's joint error divides (mm): the root's distance (where the person is), the mean
+/// joint error with each person's root moved to the origin (root-relative MPJPE: orientation and pose),
+/// and after a similarity Procrustes alignment of the joints (PA-MPJPE: pose alone). A model that has
+/// learned where people are but not how they stand has a small first figure and a PA-MPJPE near the
+/// mean pose's. `None` when the ground truth does not annotate the root.
+pub fn error_parts_mm(pred: &PersonPose, gt: &PersonPose, root: usize) -> Option<[f64; 3]> {
+    if gt.valid.as_ref().is_some_and(|v| !v[root]) {
+        return None;
+    }
+    let (pr, gr) = (pred.joints[root], gt.joints[root]);
+    let (a, b) = annotated_joints(pred, gt);
+    let centre = |x: &[[f64; 3]], r: [f64; 3]| -> Vec<[f64; 3]> {
+        x.iter()
+            .map(|p| [p[0] - r[0], p[1] - r[1], p[2] - r[2]])
+            .collect()
+    };
+    let relative = mean_error_mm(&centre(&a, pr), &centre(&b, gr));
+    let pa = pa_error_mm(&a, &b)?;
+    Some([dist(pr, gr) * 1000.0, relative, pa])
 }
 
 fn dist(a: [f64; 3], b: [f64; 3]) -> f64 {
@@ -107,6 +132,10 @@ pub struct Metrics {
     pub mpjpe_mm: Option<f64>,
     pub pve_mm: Option<f64>,
     pub pa_pve_mm: Option<f64>,
+    /// The parts of the joint error ([`error_parts_mm`]): root distance, root-relative MPJPE, PA-MPJPE.
+    pub root_mm: Option<f64>,
+    pub rr_mpjpe_mm: Option<f64>,
+    pub pa_mpjpe_mm: Option<f64>,
     pub recall_500: Option<f64>,
     /// AP per threshold, keyed by the threshold in mm ("25", "50", ...).
     pub ap: BTreeMap<String, f64>,
@@ -120,6 +149,8 @@ struct Acc {
     joint_err: Vec<f64>,
     vert_err: Vec<f64>,
     pa_err: Vec<f64>,
+    /// [`error_parts_mm`] of each matched pair.
+    parts: Vec<[f64; 3]>,
     gt: usize,
     reached_500: usize,
     /// (score, mpjpe to nearest GT, frame-unique GT id) per prediction.
@@ -160,6 +191,9 @@ impl Evaluator {
         };
         for &(pi, gi) in &pairs {
             frame.joint_err.push(joint_error_mm(&pred[pi], &gt[gi]));
+            frame
+                .parts
+                .extend(error_parts_mm(&pred[pi], &gt[gi], self.root));
             if let (Some(pv), Some(gv)) = (&pred[pi].vertices, &gt[gi].vertices) {
                 frame.vert_err.push(mean_error_mm(pv, gv));
                 if let Some(e) = pa_error_mm(pv, gv) {
@@ -192,6 +226,7 @@ impl Evaluator {
             acc.joint_err.extend(&frame.joint_err);
             acc.vert_err.extend(&frame.vert_err);
             acc.pa_err.extend(&frame.pa_err);
+            acc.parts.extend(&frame.parts);
             acc.gt += frame.gt;
             acc.reached_500 += frame.reached_500;
             acc.dets.extend(&frame.dets);
@@ -256,6 +291,9 @@ fn metrics(a: &Acc) -> Metrics {
         mpjpe_mm: mean(&a.joint_err),
         pve_mm: mean(&a.vert_err),
         pa_pve_mm: mean(&a.pa_err),
+        root_mm: mean(&a.parts.iter().map(|p| p[0]).collect::<Vec<_>>()),
+        rr_mpjpe_mm: mean(&a.parts.iter().map(|p| p[1]).collect::<Vec<_>>()),
+        pa_mpjpe_mm: mean(&a.parts.iter().map(|p| p[2]).collect::<Vec<_>>()),
         recall_500: (a.gt > 0).then(|| a.reached_500 as f64 / a.gt as f64),
         ap: AP_THRESHOLDS
             .iter()

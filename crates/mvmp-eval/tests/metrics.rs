@@ -115,3 +115,36 @@ fn unannotated_ground_truth_joints_do_not_count() {
     ev.add_frame("s", &[pred], &[gt]);
     assert!((ev.overall().mpjpe_mm.unwrap() - 30.0).abs() < 1e-9);
 }
+
+#[test]
+fn error_parts_by_hand() {
+    let gt = person([0.0, 0.0, 0.0], 0.0);
+    // The ground truth turned a half turn about the vertical through its root (joint 0, at the origin's
+    // column) and moved 0.3 m, 0.4 m: root 500 mm; root-relative, each joint is off by twice its
+    // horizontal distance from the root's column; after alignment nothing is left.
+    let turned: Vec<[f64; 3]> = gt
+        .joints
+        .iter()
+        .map(|p| [-p[0] + 0.3, -p[1] + 0.4, p[2]])
+        .collect();
+    let pred = PersonPose {
+        joints: turned,
+        ..gt.clone()
+    };
+    let [root, rel, pa] = error_parts_mm(&pred, &gt, 0).unwrap();
+    let want_rel = (0.0 + 0.2 + 0.2 + 0.1 + 0.0) / 5.0 * 1000.0;
+    assert!((root - 500.0).abs() < 1e-9, "{root}");
+    assert!((rel - want_rel).abs() < 1e-9, "{rel} against {want_rel}");
+    assert!(pa < 1e-6, "{pa}");
+    // Without an annotated root there are no parts.
+    let unrooted = PersonPose {
+        valid: Some(vec![false, true, true, true, true]),
+        ..gt.clone()
+    };
+    assert!(error_parts_mm(&pred, &unrooted, 0).is_none());
+    let mut ev = Evaluator::new(DEFAULT_GATE);
+    ev.add_frame("s", &[pred], &[gt]);
+    let m = ev.overall();
+    assert!((m.root_mm.unwrap() - 500.0).abs() < 1e-9);
+    assert!((m.rr_mpjpe_mm.unwrap() - want_rel).abs() < 1e-9);
+}

@@ -150,6 +150,26 @@ pub fn mesh_3d_loss_weighted(points: Tensor<4>, gt: Tensor<4>, weight: Tensor<3>
     sum_all((points - gt).abs() * w.clone()) / (sum_all(w) * 3.0).clamp_min(1.0)
 }
 
+/// Points `[B, K, N, 3]` in each body's own frame: `R^T (p - pelvis)` for the body's pelvis `[B, K, 3]`
+/// and global rotation `rot` `[B, K, 3, 3]` (body to world). A body's translation and heading then leave
+/// its points where they were; only its pose and shape move them.
+pub fn to_body_frame(points: Tensor<4>, pelvis: Tensor<3>, rot: Tensor<4>) -> Tensor<4> {
+    let [b, k, n, _] = points.dims();
+    let centred = points - pelvis.reshape([b, k, 1, 3]);
+    // Row vectors: (R^T x)^T = x^T R.
+    centred
+        .reshape([b * k, n, 3])
+        .matmul(rot.reshape([b * k, 3, 3]))
+        .reshape([b, k, n, 3])
+}
+
+/// Translation loss: L1 between predicted and ground-truth pelvis positions `[B, K, 3]` (world metres)
+/// over the pairs where `mask` `[B, K]` is 1. It supervises where a body is when the mesh terms compare
+/// points in the body's own frame ([`MeshFrame::Body`]).
+pub fn translation_loss(pelvis: Tensor<3>, gt_pelvis: Tensor<3>, mask: Tensor<2>) -> Tensor<1> {
+    masked_mean((pelvis - gt_pelvis).abs(), mask)
+}
+
 /// 2D mesh loss of one view: predicted world points `[B, K, N, 3]` projected with each sample's camera
 /// (with its letterbox, into network pixels of an `S x S` input), L1 against ground-truth pixels
 /// `[B, K, N, 2]`, counting only ground-truth points inside the image (`0 <= u, v < S`) of valid pairs.
@@ -322,6 +342,24 @@ pub fn heatmap_target(
     out
 }
 
+/// Where the 3D mesh term and the joint-density term compare predicted and ground-truth points.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum MeshFrame {
+    /// In the world, as the paper: a body's translation and heading errors enter every one of its points,
+    /// so that early in training they outweigh, and steer, what the terms say about its pose.
+    #[default]
+    World,
+    /// Centred on each body's pelvis (the prediction on its own, the ground truth on its own): the
+    /// translation error is taken out, the heading error stays; the pelvis is supervised by the
+    /// `translation` term.
+    Pelvis,
+    /// In each body's own frame ([`to_body_frame`]: the prediction in its own pelvis and global rotation,
+    /// the ground truth in its own), so that these terms see pose and shape alone; the pelvis is
+    /// supervised by the `translation` term, the global rotation by the parameter and orientation terms.
+    Body,
+}
+
 /// Loss weights and density-loss settings (the `[loss]` table of a training config). A weight of 0 switches
 /// its term off (ablations). Defaults are the paper's.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -354,6 +392,11 @@ pub struct LossWeights {
     pub heatmap_sigma: f32,
     /// Weight of [`facing_loss`] in both stages, for a model with a facing head (not one of the five).
     pub facing: f32,
+    /// The frame of the 3D mesh and density terms (the paper: the world).
+    pub mesh_frame: MeshFrame,
+    /// Weight of [`translation_loss`], added to the mesh term (the paper: 0; the world-frame mesh term
+    /// carries the translation there).
+    pub translation: f32,
 }
 
 impl Default for LossWeights {
@@ -374,6 +417,8 @@ impl Default for LossWeights {
             heatmap_2d: 1.0,
             heatmap_sigma: 2.0,
             facing: 0.1,
+            mesh_frame: MeshFrame::World,
+            translation: 0.0,
         }
     }
 }
@@ -392,6 +437,7 @@ impl LossWeights {
             ("detection_offset", self.detection_offset),
             ("detection_positive", self.detection_positive),
             ("facing", self.facing),
+            ("translation", self.translation),
         ] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(format!(

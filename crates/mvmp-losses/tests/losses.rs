@@ -339,3 +339,55 @@ fn facing_loss_by_hand() {
     let pred = t(vec![1.0, 9.0, 0.0, 9.0], [1, 1, 2, 1, 2], &d);
     assert!((scalar(facing_loss(pred, target, weight)) - e0).abs() < 1e-6);
 }
+
+#[test]
+fn body_frame_by_hand() {
+    let d = Device::flex();
+    // A quarter turn about z (body x -> world y) at pelvis (2, 3, 4): the body point (1, 0, 0) is the
+    // world point (2, 4, 4) and the body point (0, 0, 1) is (2, 3, 5).
+    let rot = t(vec![0., -1., 0., 1., 0., 0., 0., 0., 1.], [1, 1, 3, 3], &d);
+    let pelvis = t(vec![2., 3., 4.], [1, 1, 3], &d);
+    let world = t(vec![2., 4., 4., 2., 3., 5.], [1, 1, 2, 3], &d);
+    let body: Vec<f32> = to_body_frame(world, pelvis, rot)
+        .into_data()
+        .try_into_vec()
+        .unwrap();
+    let want = [1., 0., 0., 0., 0., 1.];
+    for (a, w) in body.iter().zip(want) {
+        assert!((a - w).abs() < 1e-6, "{body:?} against {want:?}");
+    }
+}
+
+#[test]
+fn body_frame_takes_out_any_rigid_motion() {
+    let d = Device::flex();
+    let pts = joints(7, 3); // 6 points
+    let local = t(pts.clone(), [1, 1, 6, 3], &d);
+    let r = nalgebra::Rotation3::from_euler_angles(0.3, -1.1, 2.4);
+    let m: Vec<f32> = r.matrix().iter().map(|&x| x as f32).collect(); // column-major
+    let rot = t(m, [1, 1, 3, 3], &d).swap_dims(2, 3); // row-major R
+    let shift = [0.7f32, -2.5, 1.2];
+    let moved: Vec<f32> = pts
+        .chunks(3)
+        .flat_map(|p| {
+            let q = r * Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+            (0..3).map(move |i| q[i] as f32 + shift[i])
+        })
+        .collect();
+    let back = to_body_frame(
+        t(moved, [1, 1, 6, 3], &d),
+        t(shift.to_vec(), [1, 1, 3], &d),
+        rot,
+    );
+    let err = scalar((back - local).abs().max());
+    assert!(err < 1e-5, "body frame off by {err}");
+}
+
+#[test]
+fn translation_loss_by_hand_skips_masked_pairs() {
+    let d = Device::flex();
+    let pred = t(vec![0.1, 0.0, -0.2, 9.0, 9.0, 9.0], [1, 2, 3], &d);
+    let gt = t(vec![0.0; 6], [1, 2, 3], &d);
+    let l = scalar(translation_loss(pred, gt, mask(vec![1.0, 0.0], 1, 2, &d)));
+    assert!((l - 0.1).abs() < 1e-6, "{l}");
+}

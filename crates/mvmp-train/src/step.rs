@@ -8,9 +8,9 @@ use mvmp_fusion::roots::{gaussian_target, root_voxel_and_offset};
 use mvmp_geom::CameraTensors;
 use mvmp_geom::rotation::axis_angle_to_matrix;
 use mvmp_losses::{
-    LossTerms, LossWeights, density_grid, density_loss, detection_loss_weighted,
+    LossTerms, LossWeights, MeshFrame, density_grid, density_loss, detection_loss_weighted,
     detection_positive_loss, facing_loss, heatmap_loss, heatmap_target, mesh_2d_loss_weighted,
-    mesh_3d_loss_weighted, orientation_loss, parameter_loss,
+    mesh_3d_loss_weighted, orientation_loss, parameter_loss, to_body_frame, translation_loss,
 };
 use mvmp_model::facing::{facing_readout, relative_heading};
 use mvmp_model::{Detection, ModelConfig, MvmpHmr, MvmpOutput, RigGrids, roots_tensor};
@@ -512,7 +512,7 @@ pub fn stage2_loss(
         detection: on(weights.detection).then(|| d * weights.detection),
         parameters: on(weights.parameters)
             .then(|| parameters_term(&out, batch, &t, device) * weights.parameters),
-        mesh: (on(weights.mesh_3d) || on(weights.mesh_2d))
+        mesh: (on(weights.mesh_3d) || on(weights.mesh_2d) || on(weights.translation))
             .then(|| mesh_term(&out, batch, &t, weights, device))
             .flatten(),
         orientation: on(weights.orientation)
@@ -647,7 +647,8 @@ fn parameters_term(
 }
 
 /// The mesh loss (weighted): 3D and reprojected 2D errors of the joints and, where the batch has ground
-/// truth vertices, of the vertices. `None` when neither weight is on.
+/// truth vertices, of the vertices, and the pelvis's translation error. The 3D errors are measured in the
+/// world or in each body's own frame (`mesh_frame`). `None` when no weight is on.
 fn mesh_term(
     out: &MvmpOutput,
     batch: &FrameBatch,
@@ -655,7 +656,41 @@ fn mesh_term(
     weights: &LossWeights,
     device: &Device,
 ) -> Option<Tensor<1>> {
-    // (predicted, ground truth, weight per point)
+    let points = mesh_points(out, batch, t);
+    let mut mesh: Option<Tensor<1>> = None;
+    let mut add = |x: Tensor<1>| mesh = Some(mesh.take().map_or(x.clone(), |m| m + x));
+    if weights.mesh_3d > 0.0 {
+        let frames = BodyFrames::new(out, batch, t, weights.mesh_frame);
+        for (pred, g, w) in &points {
+            let (pred, g, w) = match &frames {
+                Some(f) => (f.pred(pred.clone()), f.gt(g.clone()), w.clone() * f.ok3()),
+                None => (pred.clone(), g.clone(), w.clone()),
+            };
+            add(mesh_3d_loss_weighted(pred, g, w) * weights.mesh_3d);
+        }
+    }
+    if weights.mesh_2d > 0.0
+        && let Some(s) = mesh_2d_sum(batch, &points, t, device)
+    {
+        let views = batch.cameras[0].len();
+        add(s * (weights.mesh_2d / views as f32));
+    }
+    if weights.translation > 0.0 {
+        let (b, k) = (t.at.b, t.at.k);
+        let gt = t.joints.clone().narrow(2, 0, 1).reshape([b, k, 3]);
+        let mask = t.joint_weight.clone().narrow(2, 0, 1).reshape([b, k]);
+        add(translation_loss(out.transl.clone(), gt, mask) * weights.translation);
+    }
+    mesh
+}
+
+/// The (predicted, ground truth, weight per point) sets the mesh loss compares: the joints, and the
+/// vertices where the batch has them.
+fn mesh_points(
+    out: &MvmpOutput,
+    batch: &FrameBatch,
+    t: &QueryTargets,
+) -> Vec<(Tensor<4>, Tensor<4>, Tensor<3>)> {
     let mut points = vec![(out.joints.clone(), t.joints.clone(), t.joint_weight.clone())];
     if let Some(v) = &batch.vertices {
         let nv = v.dims()[2];
@@ -666,20 +701,81 @@ fn mesh_term(
             .repeat_dim(2, nv);
         points.push((out.vertices.clone(), t.at.pick4(v.clone()), w));
     }
-    let mut mesh: Option<Tensor<1>> = None;
-    let mut add = |x: Tensor<1>| mesh = Some(mesh.take().map_or(x.clone(), |m| m + x));
-    if weights.mesh_3d > 0.0 {
-        for (pred, g, w) in &points {
-            add(mesh_3d_loss_weighted(pred.clone(), g.clone(), w.clone()) * weights.mesh_3d);
-        }
+    points
+}
+
+/// Each query's body frame, predicted and true ([`MeshFrame`]): the pelvis (joint 0) and, for
+/// [`MeshFrame::Body`], the global rotation (identity for [`MeshFrame::Pelvis`]). People without SMPL-X
+/// ground truth have no true global rotation; their truth is turned by the prediction's (detached), so
+/// that for them the frame takes out the translation alone.
+struct BodyFrames {
+    pred_pelvis: Tensor<3>,
+    pred_rot: Tensor<4>,
+    gt_pelvis: Tensor<3>,
+    gt_rot: Tensor<4>,
+    /// 1 where the true pelvis is annotated `[B, K]`: without it there is no frame to compare in.
+    ok: Tensor<2>,
+}
+
+impl BodyFrames {
+    /// `None` for [`MeshFrame::World`].
+    fn new(
+        out: &MvmpOutput,
+        batch: &FrameBatch,
+        t: &QueryTargets,
+        frame: MeshFrame,
+    ) -> Option<Self> {
+        let (b, k) = (t.at.b, t.at.k);
+        let pelvis = |j: Tensor<4>| j.narrow(2, 0, 1).reshape([b, k, 3]);
+        let (pred_rot, gt_rot) = match frame {
+            MeshFrame::World => return None,
+            MeshFrame::Pelvis => {
+                let eye = Tensor::<2>::eye(3, &out.joints.device()).reshape([1, 1, 3, 3]);
+                let eye = eye.repeat_dim(0, b).repeat_dim(1, k);
+                (eye.clone(), eye)
+            }
+            MeshFrame::Body => Self::rotations(out, batch, t),
+        };
+        Some(BodyFrames {
+            pred_pelvis: pelvis(out.joints.clone()),
+            pred_rot,
+            gt_pelvis: pelvis(t.joints.clone()),
+            gt_rot,
+            ok: t.joint_weight.clone().narrow(2, 0, 1).reshape([b, k]),
+        })
     }
-    if weights.mesh_2d > 0.0
-        && let Some(s) = mesh_2d_sum(batch, &points, t, device)
-    {
-        let views = batch.cameras[0].len();
-        add(s * (weights.mesh_2d / views as f32));
+
+    /// The predicted and the true global rotations `[B, K, 3, 3]`.
+    fn rotations(out: &MvmpOutput, batch: &FrameBatch, t: &QueryTargets) -> (Tensor<4>, Tensor<4>) {
+        let (b, k, p) = (t.at.b, t.at.k, t.at.p);
+        let pred_rot = out.rotmats.clone().narrow(2, 0, 1).reshape([b, k, 3, 3]);
+        let global = batch
+            .pose
+            .clone()
+            .reshape([b * p, NUM_JOINTS * 3])
+            .narrow(1, 0, 3);
+        let true_rot = axis_angle_to_matrix(global)
+            .reshape([b * p, 9])
+            .select(0, t.at.rows.clone())
+            .reshape([b, k, 3, 3]);
+        let s = t.smplx.clone().reshape([b, k, 1, 1]);
+        let gt_rot = true_rot * s.clone() + pred_rot.clone().detach() * (s.neg() + 1.0);
+        (pred_rot, gt_rot)
     }
-    mesh
+
+    fn pred(&self, points: Tensor<4>) -> Tensor<4> {
+        to_body_frame(points, self.pred_pelvis.clone(), self.pred_rot.clone())
+    }
+
+    fn gt(&self, points: Tensor<4>) -> Tensor<4> {
+        to_body_frame(points, self.gt_pelvis.clone(), self.gt_rot.clone())
+    }
+
+    /// [`BodyFrames::ok`] as a weight per point `[B, K, 1]`.
+    fn ok3(&self) -> Tensor<3> {
+        let [b, k] = self.ok.dims();
+        self.ok.clone().reshape([b, k, 1])
+    }
 }
 
 /// The 2D mesh loss summed over views and point sets: predictions and ground truth projected into each
@@ -733,6 +829,17 @@ fn density_term(
     device: &Device,
 ) -> Tensor<1> {
     let grid = density_grid(weights.density_grid, weights.density_extent, device);
+    if let Some(f) = BodyFrames::new(out, batch, t, weights.mesh_frame) {
+        let [b, k] = f.ok.dims();
+        return density_loss(
+            f.pred(out.joints.clone()),
+            f.gt(t.joints.clone()),
+            Tensor::zeros([b, k, 3], device),
+            grid,
+            weights.density_sigma,
+            t.smplx.clone() * f.ok.clone(),
+        );
+    }
     density_loss(
         out.joints.clone(),
         t.joints.clone(),

@@ -19,6 +19,7 @@ use mvmp_eval::joint_sets::JointSet;
 use mvmp_geom::VoxelGrid;
 use mvmp_infer::output::{read_people_npz, write_frame, write_people_npz};
 use mvmp_infer::{PersonPrediction, Predictor, load_weights};
+use mvmp_losses::MeshFrame;
 use mvmp_model::{ModelConfig, MvmpHmr};
 use mvmp_smplx::SmplxLayer;
 use mvmp_train::step::{stage1_loss, stage2_loss};
@@ -1563,4 +1564,80 @@ fn a_torn_log_line_and_stale_temporaries_do_not_stop_a_resume() {
         .collect();
     left.sort();
     assert_eq!(left, vec!["step0000004.bpk".to_string()]);
+}
+
+/// The mesh and density terms in each body's own frame, on a batch of an SMPL-X person set and a
+/// joints-only one: every term finite, the frame changes the mesh and density terms alone, and the
+/// translation term joins the mesh term; the gradients stay finite.
+#[test]
+fn body_frame_mesh_terms_run_on_smplx_and_joint_people() {
+    let root = tempfile::tempdir().unwrap();
+    panoptic_fixture(root.path(), "160906_pizza1", 1);
+    let ad = Device::flex().autodiff();
+    let cfg = model_config();
+    let model = mvmp_train::seeded_init(&cfg, &ad, 2);
+    let pan = match panoptic_source(root.path(), 2)
+        .open_training(ViewChoice::Fixed(vec![0, 1]), 64)
+        .unwrap()
+    {
+        mvmp_data::sources::SourceDataset::Joints(d) => d,
+        _ => unreachable!(),
+    };
+    let ds =
+        FrameDataset::open(dataset(), Split::Train, ViewChoice::Fixed(vec![0, 1]), 64).unwrap();
+    let body = ds.layout().body_model().unwrap();
+    let layer = SmplxLayer::new(&body, &ad);
+    let batch = FrameBatcher::with_vertices(body)
+        .batch(vec![ds.load(0).unwrap(), pan.load(0).unwrap()], &ad);
+    let terms = |weights: &mvmp_losses::LossWeights| {
+        let l = stage2_loss(
+            &model,
+            &batch,
+            &cfg,
+            &layer,
+            weights,
+            QueryMode::Gt,
+            0.5,
+            &ad,
+        );
+        let t: std::collections::BTreeMap<&str, f32> = l
+            .terms
+            .iter()
+            .map(|(n, t)| (*n, t.clone().into_scalar::<f32>()))
+            .collect();
+        (l, t)
+    };
+    let world = mvmp_losses::LossWeights::default();
+    let (_, w) = terms(&world);
+    for frame in [MeshFrame::Pelvis, MeshFrame::Body] {
+        let local = mvmp_losses::LossWeights {
+            mesh_frame: frame,
+            ..world.clone()
+        };
+        let (_, t) = terms(&local);
+        for name in ["parameters", "orientation", "detection"] {
+            assert_eq!(t[name], w[name], "{frame:?} {name}");
+        }
+        for name in ["mesh", "density"] {
+            assert!(t[name].is_finite() && t[name] > 0.0, "{frame:?}: {t:?}");
+            assert_ne!(t[name], w[name], "{frame:?} {name}");
+        }
+        let with_t = mvmp_losses::LossWeights {
+            translation: 100.0,
+            ..local
+        };
+        let (l, t2) = terms(&with_t);
+        assert!(t2["mesh"] > t["mesh"], "{t2:?} against {t:?}");
+        let grads = l.total.backward();
+        let g = model
+            .decoder
+            .offset_head
+            .fc2
+            .weight
+            .val()
+            .grad(&grads)
+            .expect("the translation reaches the offset head");
+        let g: Vec<f32> = g.into_data().convert::<f32>().try_into_vec().unwrap();
+        assert!(g.iter().all(|x| x.is_finite()) && g.iter().any(|x| *x != 0.0));
+    }
 }
