@@ -1092,25 +1092,67 @@ fn panoptic_frames_become_samples_with_their_joints_in_smplx_slots() {
 /// Stage 2 on a batch of joint-annotated people: the SMPL-X terms (parameters, density; orientation needs
 /// spine1, which Panoptic lacks) are exactly zero and the joint terms are finite and positive; in a batch
 /// with an MVMP-HMR frame beside it every term is active and gradients are finite.
-#[test]
-fn joint_annotated_people_get_joint_losses_only() {
+/// Each weighted term of a step's loss by name.
+fn term_values(l: &mvmp_train::step::StepLoss) -> std::collections::BTreeMap<&'static str, f32> {
+    l.terms
+        .iter()
+        .map(|(n, t)| (*n, t.clone().into_scalar::<f32>()))
+        .collect()
+}
+
+/// A model and the two kinds of people to train it on: the synthetic set's (SMPL-X ground truth) and a
+/// one-frame Panoptic fixture's (joints only), two views each.
+struct TwoKinds {
+    _root: tempfile::TempDir,
+    ad: Device,
+    cfg: ModelConfig,
+    model: MvmpHmr,
+    layer: SmplxLayer,
+    batcher: FrameBatcher,
+    smplx: FrameDataset,
+    joints: mvmp_data::sources::JointFrameDataset,
+}
+
+fn two_kinds() -> TwoKinds {
     let root = tempfile::tempdir().unwrap();
     panoptic_fixture(root.path(), "160906_pizza1", 1);
     let ad = Device::flex().autodiff();
     let cfg = model_config();
     let model = mvmp_train::seeded_init(&cfg, &ad, 2);
-    let pan = match panoptic_source(root.path(), 2)
+    let joints = match panoptic_source(root.path(), 2)
         .open_training(ViewChoice::Fixed(vec![0, 1]), 64)
         .unwrap()
     {
         mvmp_data::sources::SourceDataset::Joints(d) => d,
         _ => unreachable!(),
     };
-    let ds =
+    let smplx =
         FrameDataset::open(dataset(), Split::Train, ViewChoice::Fixed(vec![0, 1]), 64).unwrap();
-    let body = ds.layout().body_model().unwrap();
-    let layer = SmplxLayer::new(&body, &ad);
-    let batcher = FrameBatcher::with_vertices(body);
+    let body = smplx.layout().body_model().unwrap();
+    TwoKinds {
+        _root: root,
+        layer: SmplxLayer::new(&body, &ad),
+        batcher: FrameBatcher::with_vertices(body),
+        ad,
+        cfg,
+        model,
+        smplx,
+        joints,
+    }
+}
+
+#[test]
+fn joint_annotated_people_get_joint_losses_only() {
+    let TwoKinds {
+        _root,
+        ad,
+        cfg,
+        model,
+        layer,
+        batcher,
+        smplx: ds,
+        joints: pan,
+    } = two_kinds();
     let weights = mvmp_losses::LossWeights::default();
     let terms = |batch: &mvmp_data::loader::FrameBatch| {
         let l = stage2_loss(
@@ -1123,11 +1165,7 @@ fn joint_annotated_people_get_joint_losses_only() {
             0.5,
             &ad,
         );
-        let t: std::collections::BTreeMap<&str, f32> = l
-            .terms
-            .iter()
-            .map(|(n, t)| (*n, t.clone().into_scalar::<f32>()))
-            .collect();
+        let t = term_values(&l);
         (l, t)
     };
     let joints_only = batcher.batch(vec![pan.load(0).unwrap()], &ad);
@@ -1571,40 +1609,15 @@ fn a_torn_log_line_and_stale_temporaries_do_not_stop_a_resume() {
 /// translation term joins the mesh term; the gradients stay finite.
 #[test]
 fn body_frame_mesh_terms_run_on_smplx_and_joint_people() {
-    let root = tempfile::tempdir().unwrap();
-    panoptic_fixture(root.path(), "160906_pizza1", 1);
-    let ad = Device::flex().autodiff();
-    let cfg = model_config();
-    let model = mvmp_train::seeded_init(&cfg, &ad, 2);
-    let pan = match panoptic_source(root.path(), 2)
-        .open_training(ViewChoice::Fixed(vec![0, 1]), 64)
-        .unwrap()
-    {
-        mvmp_data::sources::SourceDataset::Joints(d) => d,
-        _ => unreachable!(),
-    };
-    let ds =
-        FrameDataset::open(dataset(), Split::Train, ViewChoice::Fixed(vec![0, 1]), 64).unwrap();
-    let body = ds.layout().body_model().unwrap();
-    let layer = SmplxLayer::new(&body, &ad);
-    let batch = FrameBatcher::with_vertices(body)
-        .batch(vec![ds.load(0).unwrap(), pan.load(0).unwrap()], &ad);
+    let k = two_kinds();
+    let (ad, cfg, model, layer) = (&k.ad, &k.cfg, &k.model, &k.layer);
+    let batch = k.batcher.batch(
+        vec![k.smplx.load(0).unwrap(), k.joints.load(0).unwrap()],
+        ad,
+    );
     let terms = |weights: &mvmp_losses::LossWeights| {
-        let l = stage2_loss(
-            &model,
-            &batch,
-            &cfg,
-            &layer,
-            weights,
-            QueryMode::Gt,
-            0.5,
-            &ad,
-        );
-        let t: std::collections::BTreeMap<&str, f32> = l
-            .terms
-            .iter()
-            .map(|(n, t)| (*n, t.clone().into_scalar::<f32>()))
-            .collect();
+        let l = stage2_loss(model, &batch, cfg, layer, weights, QueryMode::Gt, 0.5, ad);
+        let t = term_values(&l);
         (l, t)
     };
     let world = mvmp_losses::LossWeights::default();
