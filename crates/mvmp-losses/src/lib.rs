@@ -388,6 +388,9 @@ pub struct LossWeights {
     pub detection_sigma: f64,
     /// Weight of the 2D heatmap loss of stage 1 (the pose network's pre-training; not one of the five).
     pub heatmap_2d: f32,
+    /// Weight of the 2D heatmap loss in stage 2 (the paper: 0, stage 1 only). Without it HRNet, whose
+    /// features the facing head shares, is trained in stage 2 by the detection term alone.
+    pub heatmap_2d_stage2: f32,
     /// Width of the 2D heatmap targets in heatmap pixels (HRNet: 2).
     pub heatmap_sigma: f32,
     /// Weight of [`facing_loss`] in both stages, for a model with a facing head (not one of the five).
@@ -415,6 +418,7 @@ impl Default for LossWeights {
             detection_positive: 0.0,
             detection_sigma: 0.2,
             heatmap_2d: 1.0,
+            heatmap_2d_stage2: 0.0,
             heatmap_sigma: 2.0,
             facing: 0.1,
             mesh_frame: MeshFrame::World,
@@ -434,6 +438,7 @@ impl LossWeights {
             ("orientation", self.orientation),
             ("density", self.density),
             ("heatmap_2d", self.heatmap_2d),
+            ("heatmap_2d_stage2", self.heatmap_2d_stage2),
             ("detection_offset", self.detection_offset),
             ("detection_positive", self.detection_positive),
             ("facing", self.facing),

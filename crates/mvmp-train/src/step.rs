@@ -521,6 +521,10 @@ pub fn stage2_loss(
             .then(|| density_term(&out, batch, &t, weights, device) * weights.density),
     };
     let mut named = terms.named();
+    if weights.heatmap_2d_stage2 > 0.0 {
+        let h = heatmap_term(&det, &gt, cfg, weights.heatmap_sigma, device);
+        named.push(("heatmap_2d", h * weights.heatmap_2d_stage2));
+    }
     if weights.facing > 0.0
         && let Some(f) = facing_term(&det, &gt, batch, weights.heatmap_sigma, device)
     {

@@ -20,6 +20,7 @@ use mvmp_data::sources::{
     JointFrameDataset, SourceDataset, SourceFormat, SourceSpec, TrainingSet, covered_slots,
 };
 use mvmp_eval::{Evaluator, PersonPose};
+use mvmp_losses::LossWeights;
 use mvmp_model::{ModelConfig, MvmpHmr};
 use mvmp_smplx::{BodyModel, SmplxLayer};
 
@@ -579,6 +580,13 @@ impl<'a> Trainer<'a> {
         if stage == Stage::Whole && sc.freeze_backbone {
             model.vit = model.vit.clone().no_grad();
         }
+        if stage == Stage::Whole && sc.freeze_detection {
+            // Frozen rather than only without gradients: HRNet's batch norms then keep the running
+            // statistics stage 1 left instead of updating them in every forward.
+            model.hrnet = model.hrnet.clone().freeze();
+            model.rootnet = model.rootnet.clone().freeze();
+            model.facing = model.facing.clone().map(|f| f.freeze());
+        }
         let spe = self.steps_per_epoch();
         let done = self.cursor.epoch * spe + self.cursor.step_in_epoch;
         mon.stage(stage, sc.epochs, spe, done);
@@ -671,6 +679,7 @@ impl<'a> Trainer<'a> {
         let batch = self.batcher.batch(items, &self.ad);
         clock.lap("load");
         let (cfg, ad) = (self.cfg, &self.ad);
+        let stage2_weights = stage2_weights(&cfg.loss, sc);
         let loss_of = |model: &MvmpHmr| match stage {
             Stage::Detection => stage1_loss(model, &batch, self.model_cfg, &cfg.loss, ad),
             Stage::Whole => stage2_loss(
@@ -678,7 +687,7 @@ impl<'a> Trainer<'a> {
                 &batch,
                 self.model_cfg,
                 &self.layer,
-                &cfg.loss,
+                &stage2_weights,
                 cfg.queries,
                 cfg.match_gate,
                 ad,
@@ -903,6 +912,20 @@ fn prune_checkpoints(
     Ok(())
 }
 
+/// Stage 2's loss weights: without the detection, heatmap and facing terms when the stage keeps detection
+/// fixed.
+fn stage2_weights(w: &LossWeights, sc: &StageConfig) -> LossWeights {
+    match sc.freeze_detection {
+        true => LossWeights {
+            detection: 0.0,
+            facing: 0.0,
+            heatmap_2d_stage2: 0.0,
+            ..w.clone()
+        },
+        false => w.clone(),
+    }
+}
+
 /// Validation on the test split: root error and recall in stage 1, the mesh metrics in stage 2.
 #[allow(clippy::too_many_arguments)]
 fn validate(
@@ -964,6 +987,15 @@ fn validate(
             ("heading_spread_deg", spread::heading_spread_deg(&headings)),
             ("body_pose_spread_deg", spread::pose_spread_deg(&body)),
         ])
+        .into_iter()
+        // The detector's own recall and the facing head's error at the true roots, as in stage 1:
+        // whether stage 2 keeps what stage 1 taught them.
+        .chain(
+            root_metrics(&pred, data, &opts)?
+                .into_iter()
+                .filter(|(k, _)| k == "root_recall" || k == "facing_deg"),
+        )
+        .collect()
     };
     Ok(metrics)
 }

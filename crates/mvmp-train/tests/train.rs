@@ -149,7 +149,7 @@ fn new_run(
 }
 
 /// Every float parameter, in visiting order.
-fn weights(m: &MvmpHmr) -> Vec<f32> {
+fn weights<M: Module>(m: &M) -> Vec<f32> {
     struct All(Vec<f32>);
     impl ModuleVisitor for All {
         fn visit_float<const D: usize>(&mut self, p: &Param<Tensor<D>>) {
@@ -486,6 +486,10 @@ fn bad_configs_name_the_key() {
         (
             ("[stage1]", "[loss]\nfacing = 0.0\n[stage1]"),
             "loss.facing",
+        ),
+        (
+            ("lr = 1e-3", "lr = 1e-3\nfreeze_detection = true"),
+            "stage1.freeze_detection",
         ),
         (("test_views = 3", "test_views = 1000000"), "test_views"),
         (("train_views = 2", "train_views = 0"), "train_views"),
@@ -1604,9 +1608,10 @@ fn a_torn_log_line_and_stale_temporaries_do_not_stop_a_resume() {
     assert_eq!(left, vec!["step0000004.bpk".to_string()]);
 }
 
-/// The mesh and density terms in each body's own frame, on a batch of an SMPL-X person set and a
-/// joints-only one: every term finite, the frame changes the mesh and density terms alone, and the
-/// translation term joins the mesh term; the gradients stay finite.
+/// Stage 2's loss options on a batch of an SMPL-X person set and a joints-only one: the 2D heatmap term
+/// joins when asked; with the mesh and density terms in each body's own frame every term is finite, the
+/// frame changes those two terms alone, and the translation term joins the mesh term; the gradients stay
+/// finite.
 #[test]
 fn body_frame_mesh_terms_run_on_smplx_and_joint_people() {
     let k = two_kinds();
@@ -1622,6 +1627,16 @@ fn body_frame_mesh_terms_run_on_smplx_and_joint_people() {
     };
     let world = mvmp_losses::LossWeights::default();
     let (_, w) = terms(&world);
+    // Stage 1's 2D heatmap term joins stage 2 only when asked.
+    assert!(!w.contains_key("heatmap_2d"), "{w:?}");
+    let (_, h) = terms(&mvmp_losses::LossWeights {
+        heatmap_2d_stage2: 1.0,
+        ..world.clone()
+    });
+    assert!(
+        h["heatmap_2d"].is_finite() && h["heatmap_2d"] > 0.0,
+        "{h:?}"
+    );
     for frame in [MeshFrame::Pelvis, MeshFrame::Body] {
         let local = mvmp_losses::LossWeights {
             mesh_frame: frame,
@@ -1652,5 +1667,38 @@ fn body_frame_mesh_terms_run_on_smplx_and_joint_people() {
             .expect("the translation reaches the offset head");
         let g: Vec<f32> = g.into_data().convert::<f32>().try_into_vec().unwrap();
         assert!(g.iter().all(|x| x.is_finite()) && g.iter().any(|x| *x != 0.0));
+    }
+}
+
+/// A stage 2 that keeps detection fixed leaves HRNet, the RootNet and the facing head as they were and
+/// trains the rest; its log has no detection or facing term.
+#[test]
+fn stage_two_can_keep_detection_fixed() {
+    let dir = tempfile::tempdir().unwrap();
+    let (run, cfg, model_cfg) = new_run(dir.path(), "run", &|t| {
+        t.replace("[stage1]\nepochs = 1", "[stage1]\nepochs = 0")
+            .replace("[stage2]\n", "[stage2]\nfreeze_detection = true\n")
+    });
+    assert!(cfg.stage2.freeze_detection && cfg.stage1.epochs == 0);
+    let out = mvmp_train::train(&run, &cfg, &model_cfg, &options(None), &mut Quiet).unwrap();
+    assert_eq!(out, Outcome::Finished);
+    let start = mvmp_train::seeded_init(&model_cfg, &Device::flex(), cfg.seed);
+    let mut end = mvmp_train::seeded_init(&model_cfg, &Device::flex(), 0);
+    load_weights(&mut end, &run.root.join("model.bpk")).unwrap();
+    assert_eq!(weights(&end.hrnet), weights(&start.hrnet));
+    assert_eq!(weights(&end.rootnet), weights(&start.rootnet));
+    assert_eq!(weights(&end.facing), weights(&start.facing));
+    assert_ne!(weights(&end.decoder), weights(&start.decoder));
+    let log = std::fs::read_to_string(run.metrics_path()).unwrap();
+    let steps: Vec<serde_json::Value> = log
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .filter(|v: &serde_json::Value| v["kind"] == "step")
+        .collect();
+    assert!(!steps.is_empty());
+    for s in &steps {
+        assert!(s.get("detection").is_none(), "{s}");
+        assert!(s.get("facing").is_none(), "{s}");
+        assert!(s.get("mesh").is_some(), "{s}");
     }
 }
