@@ -40,13 +40,8 @@ pub struct PersonPose {
 
 /// Mean joint error (mm) of a prediction against a ground-truth person over its annotated joints.
 pub fn joint_error_mm(pred: &PersonPose, gt: &PersonPose) -> f64 {
-    match &gt.valid {
-        None => mean_error_mm(&pred.joints, &gt.joints),
-        Some(_) => {
-            let (a, b) = annotated_joints(pred, gt);
-            mean_error_mm(&a, &b)
-        }
-    }
+    let (a, b) = annotated_joints(pred, gt);
+    mean_error_mm(&a, &b)
 }
 
 /// The (predicted, ground-truth) joints of the joints the ground truth annotates.
@@ -287,13 +282,14 @@ pub fn average_precision(dets: &[(f64, f64, usize)], total_gt: usize, threshold_
 }
 
 fn metrics(a: &Acc) -> Metrics {
+    let part = |i: usize| mean(&a.parts.iter().map(|p| p[i]).collect::<Vec<_>>());
     Metrics {
         mpjpe_mm: mean(&a.joint_err),
         pve_mm: mean(&a.vert_err),
         pa_pve_mm: mean(&a.pa_err),
-        root_mm: mean(&a.parts.iter().map(|p| p[0]).collect::<Vec<_>>()),
-        rr_mpjpe_mm: mean(&a.parts.iter().map(|p| p[1]).collect::<Vec<_>>()),
-        pa_mpjpe_mm: mean(&a.parts.iter().map(|p| p[2]).collect::<Vec<_>>()),
+        root_mm: part(0),
+        rr_mpjpe_mm: part(1),
+        pa_mpjpe_mm: part(2),
         recall_500: (a.gt > 0).then(|| a.reached_500 as f64 / a.gt as f64),
         ap: AP_THRESHOLDS
             .iter()

@@ -123,7 +123,7 @@ pub struct StageConfig {
     /// Keep what stage 1 trained fixed in stage 2: HRNet, the RootNet and the facing head; stage 2 then
     /// drops the detection and facing terms, which would train nothing (stage 2 only). Without the 2D
     /// heatmap loss of stage 1 their shared features drift under stage 2's other terms: on the demo the
-    /// facing head's error at the true roots went from 34.9 degrees after stage 1 to 45.6-56.2 in stage 2
+    /// facing head's error at the true roots went from 34.9 degrees after stage 1 to 45.6-66.9 in stage 2 (seed 0)
     /// (docs/architecture.md, Training).
     #[serde(default)]
     pub freeze_detection: bool,

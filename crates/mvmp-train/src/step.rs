@@ -500,6 +500,7 @@ pub fn stage2_loss(
     });
     let queries: usize = slots.iter().map(Vec::len).sum();
     let t = QueryTargets::new(batch, &slots, out.roots.dims()[1], device);
+    let frames = BodyFrames::new(&out, batch, &t, weights.mesh_frame);
     let det = Detection {
         heatmaps: out.heatmaps.clone(),
         likelihood: out.likelihood.clone(),
@@ -513,12 +514,13 @@ pub fn stage2_loss(
         parameters: on(weights.parameters)
             .then(|| parameters_term(&out, batch, &t, device) * weights.parameters),
         mesh: (on(weights.mesh_3d) || on(weights.mesh_2d) || on(weights.translation))
-            .then(|| mesh_term(&out, batch, &t, weights, device))
+            .then(|| mesh_term(&out, batch, &t, frames.as_ref(), weights, device))
             .flatten(),
         orientation: on(weights.orientation)
             .then(|| orientation_term(&out, &t) * weights.orientation),
-        density: on(weights.density)
-            .then(|| density_term(&out, batch, &t, weights, device) * weights.density),
+        density: on(weights.density).then(|| {
+            density_term(&out, batch, &t, frames.as_ref(), weights, device) * weights.density
+        }),
     };
     let mut named = terms.named();
     if weights.heatmap_2d_stage2 > 0.0 {
@@ -652,11 +654,12 @@ fn parameters_term(
 
 /// The mesh loss (weighted): 3D and reprojected 2D errors of the joints and, where the batch has ground
 /// truth vertices, of the vertices, and the pelvis's translation error. The 3D errors are measured in the
-/// world or in each body's own frame (`mesh_frame`). `None` when no weight is on.
+/// world, or in each body's own frame when `frames` are given (`mesh_frame`). `None` when no weight is on.
 fn mesh_term(
     out: &MvmpOutput,
     batch: &FrameBatch,
     t: &QueryTargets,
+    frames: Option<&BodyFrames>,
     weights: &LossWeights,
     device: &Device,
 ) -> Option<Tensor<1>> {
@@ -664,9 +667,8 @@ fn mesh_term(
     let mut mesh: Option<Tensor<1>> = None;
     let mut add = |x: Tensor<1>| mesh = Some(mesh.take().map_or(x.clone(), |m| m + x));
     if weights.mesh_3d > 0.0 {
-        let frames = BodyFrames::new(out, batch, t, weights.mesh_frame);
         for (pred, g, w) in &points {
-            let (pred, g, w) = match &frames {
+            let (pred, g, w) = match frames {
                 Some(f) => (f.pred(pred.clone()), f.gt(g.clone()), w.clone() * f.ok3()),
                 None => (pred.clone(), g.clone(), w.clone()),
             };
@@ -829,11 +831,12 @@ fn density_term(
     out: &MvmpOutput,
     batch: &FrameBatch,
     t: &QueryTargets,
+    frames: Option<&BodyFrames>,
     weights: &LossWeights,
     device: &Device,
 ) -> Tensor<1> {
     let grid = density_grid(weights.density_grid, weights.density_extent, device);
-    if let Some(f) = BodyFrames::new(out, batch, t, weights.mesh_frame) {
+    if let Some(f) = frames {
         let [b, k] = f.ok.dims();
         return density_loss(
             f.pred(out.joints.clone()),
