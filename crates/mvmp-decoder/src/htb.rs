@@ -46,6 +46,25 @@ pub struct DecoderConfig {
     /// decoder's learning test). false (the paper) keeps the raw sample.
     #[config(default = false)]
     pub query_norm: bool,
+    /// Points per axis (x, y, z) of a lattice centred on each root where the volume is sampled for its
+    /// query; `[1, 1, 1]` (the paper) samples the root alone. A person's own column of features reaches
+    /// the heads directly, instead of only through cross-attention that starts uniform over the volume.
+    #[config(default = "[1, 1, 1]")]
+    pub query_lattice: [usize; 3],
+    /// Metres from the lattice's first point to its last along each axis (ignored where it has one).
+    #[config(default = "[0.0, 0.0, 0.0]")]
+    pub query_span: [f64; 3],
+    /// Joints of a joint heatmap volume whose centroids near each root join its query (see
+    /// [`QueryInputs::joints`]); 0 (the paper) reads none.
+    #[config(default = 0)]
+    pub joint_channels: usize,
+    /// Points per axis of the lattice centred on each root over which each joint's centroid is taken.
+    #[config(default = "[5, 5, 8]")]
+    pub joint_lattice: [usize; 3],
+    /// Metres from that lattice's first point to its last per axis: the box around the root where a
+    /// person's joints are looked for.
+    #[config(default = "[1.0, 1.0, 1.75]")]
+    pub joint_span: [f64; 3],
     /// Side of the score tiles of cross-attention (`mvmp_kernels::attention`); 0 computes the whole score
     /// matrix with burn's ops.
     #[config(default = "mvmp_kernels::DEFAULT_BLOCK")]
@@ -170,6 +189,15 @@ pub struct Decoder {
     pub heading_proj: Option<Linear>,
     /// Present with [`DecoderConfig::query_norm`].
     pub query_norm: Option<LayerNorm>,
+    /// Offsets from the root of the query's sample points (see [`DecoderConfig::query_lattice`]).
+    #[module(skip)]
+    pub lattice: Vec<[f32; 3]>,
+    /// Offsets from the root over which joint centroids are taken (see [`DecoderConfig::joint_lattice`]).
+    #[module(skip)]
+    pub joint_lattice: Vec<[f32; 3]>,
+    /// Half the joint box per axis (metres): centroids are given as fractions of it.
+    #[module(skip)]
+    pub joint_half: [f32; 3],
     /// Where the residual heads start: the mean parameters `[PARAM_DIM]` (set from the training data,
     /// kept in checkpoints, never trained).
     pub mean: Param<Tensor<1>>,
@@ -179,6 +207,19 @@ pub struct Decoder {
 /// A parameter that is saved and loaded but not trained.
 fn constant(t: Tensor<1>) -> Param<Tensor<1>> {
     Param::from_tensor(t).set_require_grad(false)
+}
+
+/// What a query reads beside the feature volume.
+#[derive(Debug, Clone, Default)]
+pub struct QueryInputs {
+    /// Each person's heading (a horizontal unit direction in the world) `[B, K, 2]`, which
+    /// `heading_proj` adds to the query (a decoder without `heading_proj` ignores it).
+    pub heading: Option<Tensor<3>>,
+    /// A joint heatmap volume `[B, E, X, Y, Z]` on the features' grid (`E` the config's
+    /// `joint_channels`). Each joint's centroid in the box around a root (its likelihood squared as the
+    /// weight) joins the query as an offset from the root: where a person's knees or hands are, a few
+    /// numbers a head reads directly, rather than a pattern spread over many voxels' features.
+    pub joints: Option<Tensor<5>>,
 }
 
 /// Decoder output for `K` query slots.
@@ -247,7 +288,11 @@ impl DecoderConfig {
     pub fn init(&self, device: &Device) -> Decoder {
         let d = self.dim;
         Decoder {
-            query_proj: LinearConfig::new(self.volume_channels + PARAM_DIM, d).init(device),
+            query_proj: LinearConfig::new(
+                self.sample_width() + 3 * self.joint_channels + PARAM_DIM,
+                d,
+            )
+            .init(device),
             token_proj: LinearConfig::new(self.volume_channels, d).init(device),
             pos_proj: LinearConfig::new(6 * POS_FREQS, d).init(device),
             blocks: if self.use_htb {
@@ -269,14 +314,100 @@ impl DecoderConfig {
             heading_proj: self.heading.then(|| LinearConfig::new(2, d).init(device)),
             query_norm: self
                 .query_norm
-                .then(|| LayerNormConfig::new(self.volume_channels).init(device)),
+                .then(|| LayerNormConfig::new(self.sample_width()).init(device)),
+            lattice: lattice_offsets(self.query_lattice, self.query_span),
+            joint_lattice: lattice_offsets(self.joint_lattice, self.joint_span),
+            joint_half: self.joint_span.map(|s| (s / 2.0).max(1e-3) as f32),
             mean: constant(mean_params(device)),
             pool: self.pool.max(1),
         }
     }
 }
 
+impl DecoderConfig {
+    /// Channels of a query's volume sample: every lattice point's.
+    fn sample_width(&self) -> usize {
+        self.volume_channels * self.query_lattice.iter().product::<usize>()
+    }
+}
+
+/// The offsets from a root of a lattice of `shape` points spanning `span` metres per axis, centred on
+/// it, x slowest and z fastest.
+fn lattice_offsets(shape: [usize; 3], span: [f64; 3]) -> Vec<[f32; 3]> {
+    let axis = |a: usize| -> Vec<f32> {
+        let n = shape[a].max(1);
+        if n == 1 {
+            return vec![0.0];
+        }
+        (0..n)
+            .map(|i| (span[a] * (i as f64 / (n - 1) as f64 - 0.5)) as f32)
+            .collect()
+    };
+    let (xs, ys, zs) = (axis(0), axis(1), axis(2));
+    let mut out = Vec::with_capacity(xs.len() * ys.len() * zs.len());
+    for &x in &xs {
+        for &y in &ys {
+            out.extend(zs.iter().map(|&z| [x, y, z]));
+        }
+    }
+    out
+}
+
+/// `volume [B, C, X, Y, Z]` at `offsets` around each root `[B, K, 3]` -> `[B, K, L, C]`.
+fn sample_at(
+    volume: Tensor<5>,
+    roots: Tensor<3>,
+    offsets: &[[f32; 3]],
+    grid: &VoxelGrid,
+) -> Tensor<4> {
+    let [b, k, _] = roots.dims();
+    let c = volume.dims()[1];
+    let l = offsets.len();
+    let flat: Vec<f32> = offsets.iter().flatten().copied().collect();
+    let offsets = Tensor::<1>::from_data(TensorData::new(flat, [l * 3]), &roots.device());
+    let points = roots.reshape([b, k, 1, 3]) + offsets.reshape([1, 1, l, 3]);
+    trilinear_sample(volume, points.reshape([b, k * l, 3]), grid).reshape([b, k, l, c])
+}
+
 impl Decoder {
+    /// The volume `[B, C, X, Y, Z]` at every lattice point around each root `[B, K, 3]` -> `[B, K, L * C]`.
+    pub fn sample_lattice(
+        &self,
+        volume: Tensor<5>,
+        roots: Tensor<3>,
+        grid: &VoxelGrid,
+    ) -> Tensor<3> {
+        let [b, k, _] = roots.dims();
+        if self.lattice.len() <= 1 {
+            return trilinear_sample(volume, roots, grid);
+        }
+        let s = sample_at(volume, roots, &self.lattice, grid);
+        let [_, _, l, c] = s.dims();
+        s.reshape([b, k, l * c])
+    }
+
+    /// Each joint's centroid in the box around each root, from a joint heatmap volume `[B, E, X, Y, Z]`:
+    /// the lattice's offsets weighted by the squared (non-negative) likelihood there, as fractions of
+    /// the box's half sides -> `[B, K, E * 3]` (0 for a joint with no likelihood in the box).
+    pub fn joint_centroids(
+        &self,
+        joints: Tensor<5>,
+        roots: Tensor<3>,
+        grid: &VoxelGrid,
+    ) -> Tensor<3> {
+        let [b, k, _] = roots.dims();
+        let s = sample_at(joints, roots.clone(), &self.joint_lattice, grid); // [B, K, L, E]
+        let [_, _, l, e] = s.dims();
+        let w = s.clamp_min(0.0).powi_scalar(2).swap_dims(2, 3); // [B, K, E, L]
+        let total = w.clone().sum_dim(3).clamp_min(1e-6); // [B, K, E, 1]
+        let scaled: Vec<f32> = (self.joint_lattice.iter())
+            .flat_map(|o| std::array::from_fn::<f32, 3, _>(|a| o[a] / self.joint_half[a]))
+            .collect();
+        let offsets = Tensor::<2>::from_data(TensorData::new(scaled, [l, 3]), &roots.device());
+        let centroid = w.reshape([b * k, e, l]).matmul(offsets.unsqueeze::<3>()); // [B*K, E, 3]
+        (centroid.reshape([b, k, e, 3]) / total).reshape([b, k, e * 3])
+    }
+
     /// The same decoder starting its regression from `mean` `[PARAM_DIM]` (see [`params_vector`]).
     ///
     /// [`params_vector`]: crate::queries::params_vector
@@ -304,15 +435,15 @@ impl Decoder {
         roots: Tensor<3>,
         present: Tensor<2, Bool>,
     ) -> DecoderOutput {
-        self.forward_with(volume, None, grid, roots, present)
+        let extra = QueryInputs::default();
+        self.forward_with(volume, extra, grid, roots, present)
     }
 
-    /// [`Decoder::forward`] with each person's heading `[B, K, 2]`, which `heading_proj` adds to the
-    /// queries (a decoder without `heading_proj` ignores it).
+    /// [`Decoder::forward`] with what a query may read beside the volume (see [`QueryInputs`]).
     pub fn forward_with(
         &self,
         volume: Tensor<5>,
-        heading: Option<Tensor<3>>,
+        inputs: QueryInputs,
         grid: &VoxelGrid,
         roots: Tensor<3>,
         present: Tensor<2, Bool>,
@@ -320,9 +451,14 @@ impl Decoder {
         let [b, c, nx, ny, nz] = volume.dims();
         let k = roots.dims()[1];
         let device = volume.device();
-        let mut sampled = trilinear_sample(volume.clone(), roots.clone(), grid); // [B, K, C]
+        let QueryInputs { heading, joints } = inputs;
+        let mut sampled = self.sample_lattice(volume.clone(), roots.clone(), grid); // [B, K, L * C]
         if let Some(norm) = &self.query_norm {
             sampled = norm.forward(sampled);
+        }
+        if let Some(j) = joints {
+            let centroids = self.joint_centroids(j, roots.clone(), grid); // [B, K, E * 3]
+            sampled = Tensor::cat(vec![sampled, centroids], 2);
         }
         let mean = self.mean.val().detach().reshape([1, 1, PARAM_DIM]);
         let q_in = Tensor::cat(

@@ -42,6 +42,122 @@ fn trilinear_sampling_reproduces_a_linear_field() {
     }
 }
 
+/// A query's lattice samples the volume at the root plus each offset (x slowest, z fastest, spanning
+/// `query_span` from end to end): on a linear field every sample is the field's value there.
+#[test]
+fn the_query_lattice_samples_the_volume_around_each_root() {
+    let d = Device::flex();
+    let g = VoxelGrid::new([0.5, -1.0, 1.0], [4.0, 3.0, 2.0], [8, 6, 4]).unwrap();
+    let f = |p: [f64; 3]| 2.0 * p[0] + 3.0 * p[1] - p[2] + 1.0;
+    let field: Vec<f32> = g.centers().iter().map(|c| f(*c) as f32).collect();
+    let vol = Tensor::<5>::from_data(TensorData::new(field, [1, 1, 8, 6, 4]), &d);
+    let dec = DecoderConfig::new(1)
+        .with_dim(8)
+        .with_heads(2)
+        .with_query_lattice([2, 1, 3])
+        .with_query_span([1.0, 0.7, 0.5])
+        .init(&d);
+    let want_offsets = [
+        [-0.5, 0.0, -0.25],
+        [-0.5, 0.0, 0.0],
+        [-0.5, 0.0, 0.25],
+        [0.5, 0.0, -0.25],
+        [0.5, 0.0, 0.0],
+        [0.5, 0.0, 0.25],
+    ];
+    assert_eq!(dec.lattice, want_offsets);
+    let roots = [[0.3, -0.8, 1.0], [1.1, 0.2, 0.9]];
+    let flat: Vec<f32> = roots.iter().flatten().map(|&x| x as f32).collect();
+    let roots_t = Tensor::<3>::from_data(TensorData::new(flat, [1, 2, 3]), &d);
+    let out = dec.sample_lattice(vol, roots_t, &g);
+    assert_eq!(out.dims(), [1, 2, 6]);
+    let out = vals(out);
+    for (k, r) in roots.iter().enumerate() {
+        for (l, o) in want_offsets.iter().enumerate() {
+            let p: [f64; 3] = std::array::from_fn(|a| r[a] + o[a] as f64);
+            let got = out[k * 6 + l] as f64;
+            assert!(
+                (got - f(p)).abs() < 1e-4,
+                "root {k} point {l}: {got} vs {}",
+                f(p)
+            );
+        }
+    }
+}
+
+/// A joint's centroid in the box around a root, by hand: a likelihood that is 1 in one voxel of the
+/// box and 0 elsewhere puts the centroid of the lattice points around that voxel (weights: the squared
+/// trilinear sample) at the voxel's offset; a joint absent from the box gives 0.
+#[test]
+fn joint_centroids_find_a_joint_in_the_box() {
+    let d = Device::flex();
+    let g = VoxelGrid::new([0.0, 0.0, 1.0], [4.0, 4.0, 2.0], [16, 16, 8]).unwrap();
+    let dec = DecoderConfig::new(1)
+        .with_dim(8)
+        .with_heads(2)
+        .with_joint_channels(2)
+        .with_joint_lattice([9, 9, 9])
+        .with_joint_span([2.0, 2.0, 2.0])
+        .init(&d);
+    // Joint 0 at the centre of voxel (10, 6, 5): x 0.625, y -0.375, z 1.375; joint 1 nowhere.
+    let mut vol = vec![0f32; 2 * 16 * 16 * 8];
+    vol[(10 * 16 + 6) * 8 + 5] = 1.0;
+    let vol = Tensor::<5>::from_data(TensorData::new(vol, [1, 2, 16, 16, 8]), &d);
+    let root = [0.125f32, 0.125, 1.125];
+    let roots = Tensor::<3>::from_data(TensorData::new(root.to_vec(), [1, 1, 3]), &d);
+    let c = vals(dec.joint_centroids(vol, roots, &g));
+    assert_eq!(c.len(), 6);
+    // Offsets as fractions of the box's half side (1 m); the lattice (0.25 m apart) is symmetric about
+    // the voxel's centre, so the weighted mean is that centre.
+    let want = [0.625 - 0.125, -0.375 - 0.125, 1.375 - 1.125];
+    for a in 0..3 {
+        assert!(
+            (c[a] - want[a]).abs() < 1e-4,
+            "axis {a}: {} vs {}",
+            c[a],
+            want[a]
+        );
+        assert_eq!(c[3 + a], 0.0, "an absent joint");
+    }
+}
+
+/// The joints' centroids widen the query's input by three numbers per joint and reach every head:
+/// moving a joint within the box changes each present person's output.
+#[test]
+fn joint_centroids_join_every_query() {
+    let d = Device::flex();
+    let dec = DecoderConfig::new(8)
+        .with_dim(32)
+        .with_heads(4)
+        .with_pool(2)
+        .with_joint_channels(3)
+        .with_query_norm(true)
+        .init(&d);
+    assert_eq!(dec.query_proj.weight.dims()[0], 8 + 3 * 3 + 53 * 6 + 20);
+    let (vol, roots, present, g) = inputs(&d, [1.5, 1.5, 1.0]);
+    let run = |shift: usize| {
+        let joints: Vec<f32> = (0..2 * 3 * 8 * 8 * 4)
+            .map(|i: usize| f32::from(u8::from((i + shift).is_multiple_of(7))))
+            .collect();
+        let joints = Tensor::<5>::from_data(TensorData::new(joints, [2, 3, 8, 8, 4]), &d);
+        let inputs = QueryInputs {
+            heading: None,
+            joints: Some(joints),
+        };
+        vals(
+            dec.forward_with(vol.clone(), inputs, &g, roots.clone(), present.clone())
+                .betas,
+        )
+    };
+    let (a, b) = (run(0), run(3));
+    for slot in [0usize, 1, 3] {
+        let change = (0..10)
+            .map(|i| (a[slot * 10 + i] - b[slot * 10 + i]).abs())
+            .fold(0.0, f32::max);
+        assert!(change > 1e-6, "slot {slot}: the joints changed nothing");
+    }
+}
+
 #[test]
 fn mean_parameters_are_upright_identity_and_zero() {
     let d = Device::flex();
@@ -79,12 +195,20 @@ fn inputs(d: &Device, third_root: [f32; 3]) -> (Tensor<5>, Tensor<3>, Tensor<2, 
 #[test]
 fn shapes_and_masking_of_absent_people() {
     let d = Device::flex();
-    for (use_htb, pool) in [(true, 1), (true, 2), (false, 1)] {
+    let lattices = [([1, 1, 1], [0.0; 3]), ([3, 2, 2], [0.5, 0.5, 1.0])];
+    for (use_htb, pool, (lattice, span)) in [
+        (true, 1, lattices[0]),
+        (true, 2, lattices[0]),
+        (false, 1, lattices[0]),
+        (true, 2, lattices[1]),
+    ] {
         let dec = DecoderConfig::new(8)
             .with_dim(32)
             .with_heads(4)
             .with_pool(pool)
             .with_use_htb(use_htb)
+            .with_query_lattice(lattice)
+            .with_query_span(span)
             .init(&d);
         let (vol, roots, present, g) = inputs(&d, [1.5, 1.5, 1.0]);
         let out = dec.forward(vol.clone(), &g, roots, present.clone());

@@ -43,6 +43,39 @@ impl PrimaryJoint {
     }
 }
 
+/// Most sample points of a query's lattice: each adds the volume's channels to every query's input.
+pub const MAX_LATTICE: usize = 512;
+
+/// A lattice of points per axis spanning metres per axis: `key` names the lattice; its span is the key
+/// with `_lattice` read as `_span`.
+fn check_lattice(
+    key: &'static str,
+    lattice: [usize; 3],
+    span: [f64; 3],
+) -> Result<(), (&'static str, String)> {
+    let points = lattice.iter().try_fold(1usize, |n, &a| n.checked_mul(a));
+    if !points.is_some_and(|n| (1..=MAX_LATTICE).contains(&n)) {
+        return Err((
+            key,
+            format!(
+                "{lattice:?}: every axis needs at least one point and at most {MAX_LATTICE} in all"
+            ),
+        ));
+    }
+    if let Some(s) = span.iter().find(|s| !(s.is_finite() && **s >= 0.0)) {
+        let span_key = if key == "decoder.query_lattice" {
+            "decoder.query_span"
+        } else {
+            "decoder.joint_span"
+        };
+        return Err((
+            span_key,
+            format!("{s}: a span must be finite and non-negative (metres)"),
+        ));
+    }
+    Ok(())
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct DecoderSection {
@@ -58,6 +91,18 @@ pub struct DecoderSection {
     /// Layer-normalise each root's volume sample before it joins the query (`DecoderConfig::query_norm`;
     /// false, the paper, keeps it raw).
     pub query_norm: bool,
+    /// Points per axis of the lattice around each root where its query samples the volume
+    /// (`DecoderConfig::query_lattice`; `[1, 1, 1]`, the paper, samples the root alone).
+    pub query_lattice: [usize; 3],
+    /// Metres from the lattice's first point to its last per axis.
+    pub query_span: [f64; 3],
+    /// Each heatmap joint's centroid near the root, from the joint heatmap volume (the RootNet's input),
+    /// joins the query (`QueryInputs::joints`). false (the paper) reads the feature volume alone.
+    pub query_joints: bool,
+    /// Points per axis of the box around the root where the centroids are taken.
+    pub joint_lattice: [usize; 3],
+    /// Metres the box spans per axis.
+    pub joint_span: [f64; 3],
 }
 
 impl Default for DecoderSection {
@@ -71,6 +116,11 @@ impl Default for DecoderSection {
             pool: d.pool,
             use_htb: d.use_htb,
             query_norm: d.query_norm,
+            query_lattice: d.query_lattice,
+            query_span: d.query_span,
+            query_joints: false,
+            joint_lattice: d.joint_lattice,
+            joint_span: d.joint_span,
         }
     }
 }
@@ -322,6 +372,12 @@ impl ModelConfig {
         }
         if d.pool == 0 {
             return Err(("decoder.pool", "must be at least 1".into()));
+        }
+        for (key, lattice, span) in [
+            ("decoder.query_lattice", d.query_lattice, d.query_span),
+            ("decoder.joint_lattice", d.joint_lattice, d.joint_span),
+        ] {
+            check_lattice(key, lattice, span)?;
         }
         Ok(())
     }

@@ -7,9 +7,9 @@
 //! person to the camera; read at a person's chest in every view and turned by each camera's direction,
 //! the views agree on one heading in the world.
 use burn::module::Module;
-use burn::nn::PaddingConfig2d;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
-use burn::tensor::activation::relu;
+use burn::nn::{GroupNorm, GroupNormConfig, PaddingConfig2d};
+use burn::tensor::activation::gelu;
 use burn::tensor::ops::{GridSampleOptions, GridSamplePaddingMode, InterpolateMode};
 use burn::tensor::{Device, Tensor, TensorData};
 use mvmp_kernels::conv::conv2d;
@@ -29,13 +29,20 @@ pub(crate) const HIDDEN: usize = 32;
 /// The facing head: its own two stride-2 convolutions on the image (HRNet's features, trained for
 /// joints, carry too little of a person's colours), joined with HRNet's highest-resolution features,
 /// two 3 x 3 convolutions and a 1 x 1: `[N, 3, S, S]` and `[N, width, S/4, S/4]` -> `[N, 2, S/4, S/4]`
-/// (relative cosine and sine).
+/// (relative cosine and sine). Each hidden convolution is group-normalised (4 channels a group) and
+/// followed by a GELU: with plain ReLUs the head trained from scratch at stage 1's rate sometimes
+/// learned (median error 28-35 degrees at the true roots after 8 epochs) and sometimes stayed near chance
+/// (54-69) from one initialisation to the next.
 #[derive(Module, Debug)]
 pub struct FacingHead {
     pub down1: Conv2d,
+    pub norm1: GroupNorm,
     pub down2: Conv2d,
+    pub norm2: GroupNorm,
     pub conv1: Conv2d,
+    pub norm3: GroupNorm,
     pub conv2: Conv2d,
+    pub norm4: GroupNorm,
     pub out: Conv2d,
 }
 
@@ -47,20 +54,26 @@ impl FacingHead {
                 .with_padding(PaddingConfig2d::Explicit(1, 1, 1, 1))
                 .init(device)
         };
+        let norm = |c: usize| GroupNormConfig::new(c / 4, c).init(device);
         FacingHead {
             down1: conv3(3, HIDDEN / 2, 2),
+            norm1: norm(HIDDEN / 2),
             down2: conv3(HIDDEN / 2, HIDDEN, 2),
+            norm2: norm(HIDDEN),
             conv1: conv3(HIDDEN + width, HIDDEN, 1),
+            norm3: norm(HIDDEN),
             conv2: conv3(HIDDEN, HIDDEN, 1),
+            norm4: norm(HIDDEN),
             out: Conv2dConfig::new([HIDDEN, 2], [1, 1]).init(device),
         }
     }
 
     pub fn forward(&self, image: Tensor<4>, features: Tensor<4>) -> Tensor<4> {
-        let x = relu(conv2d(&self.down1, image));
-        let x = relu(conv2d(&self.down2, x));
-        let x = relu(conv2d(&self.conv1, Tensor::cat(vec![x, features], 1)));
-        let x = relu(conv2d(&self.conv2, x));
+        let x = gelu(self.norm1.forward(conv2d(&self.down1, image)));
+        let x = gelu(self.norm2.forward(conv2d(&self.down2, x)));
+        let x = Tensor::cat(vec![x, features], 1);
+        let x = gelu(self.norm3.forward(conv2d(&self.conv1, x)));
+        let x = gelu(self.norm4.forward(conv2d(&self.conv2, x)));
         conv2d(&self.out, x)
     }
 }

@@ -18,7 +18,7 @@ use crate::ModelConfig;
 use crate::facing::{FacingHead, facing_readout, turn_to_heading};
 use mvmp_backbone::vit::PATCH;
 use mvmp_backbone::{HRNet, ViT};
-use mvmp_decoder::{Decoder, DecoderConfig};
+use mvmp_decoder::{Decoder, DecoderConfig, QueryInputs};
 use mvmp_fusion::{
     DeformableFusion, DeformableFusionConfig, FusionMode, Root, RootNet, RootNetConfig,
     SamplingGrid, extract_roots, fuse_views,
@@ -149,6 +149,15 @@ impl ModelConfig {
                 .with_pool(self.decoder.pool)
                 .with_use_htb(self.decoder.use_htb)
                 .with_query_norm(self.decoder.query_norm)
+                .with_query_lattice(self.decoder.query_lattice)
+                .with_query_span(self.decoder.query_span)
+                .with_joint_channels(if self.decoder.query_joints {
+                    self.heatmap_joints.len()
+                } else {
+                    0
+                })
+                .with_joint_lattice(self.decoder.joint_lattice)
+                .with_joint_span(self.decoder.joint_span)
                 .with_heading(self.facing)
                 .with_attention_tile(self.attention_tile)
                 .init(device),
@@ -197,6 +206,11 @@ impl MvmpHmr {
 
     /// The detection branch alone: HRNet heatmaps, their mean fusion and the RootNet.
     pub fn detect(&self, images: Tensor<5>, grids: &[RigGrids]) -> Detection {
+        self.detect_with_volume(images, grids).0
+    }
+
+    /// [`MvmpHmr::detect`] and the heatmap volume `[B, J, X, Y, Z]` the RootNet read.
+    fn detect_with_volume(&self, images: Tensor<5>, grids: &[RigGrids]) -> (Detection, Tensor<5>) {
         let [b, v, _, s, _] = images.dims();
         let mut images = images.reshape([b * v, 3, s, s]);
         // The grids say what size the heatmaps must be (`hrnet_downsample` in the config).
@@ -214,13 +228,14 @@ impl MvmpHmr {
             .map(|f| f.forward(images, x).reshape([b, v, 2, hh, hw]));
         let hgrids: Vec<SamplingGrid> = grids.iter().map(|g| g.heatmaps.clone()).collect();
         let hvol = fuse_views(heatmaps.clone(), &hgrids, FusionMode::Mean);
-        let (likelihood, offset) = self.rootnet.forward(hvol);
-        Detection {
+        let (likelihood, offset) = self.rootnet.forward(hvol.clone());
+        let det = Detection {
             heatmaps,
             likelihood,
             offset,
             facing,
-        }
+        };
+        (det, hvol)
     }
 
     /// Forward. `grids`: one [`RigGrids`] per batch item. `roots`: decode at these roots `[B, K, 3]` with
@@ -265,12 +280,15 @@ impl MvmpHmr {
             Some(d) => d.forward(feats, &fgrids),
             None => fuse_views(feats, &fgrids, cfg.fusion),
         };
-        let Detection {
-            heatmaps,
-            likelihood,
-            offset,
-            facing,
-        } = self.detect(images, grids);
+        let (
+            Detection {
+                heatmaps,
+                likelihood,
+                offset,
+                facing,
+            },
+            hvol,
+        ) = self.detect_with_volume(images, grids);
         let detections = detect_roots(likelihood.clone().detach(), offset.clone().detach(), cfg);
         let (roots, present) = select(&detections);
         let kk = roots.dims()[1];
@@ -278,13 +296,14 @@ impl MvmpHmr {
         let heading = facing
             .clone()
             .map(|f| facing_readout(f.detach(), grids, &cfg.grid, roots.clone()));
-        let dec = self.decoder.forward_with(
-            volume,
-            heading.clone(),
-            &cfg.grid,
-            roots.clone(),
-            present.clone(),
-        );
+        // The joint heatmap volume, where the decoder reads it, is trained by the detection's terms alone.
+        let inputs = QueryInputs {
+            heading: heading.clone(),
+            joints: cfg.decoder.query_joints.then(|| hvol.detach()),
+        };
+        let dec =
+            self.decoder
+                .forward_with(volume, inputs, &cfg.grid, roots.clone(), present.clone());
         let n = b * kk;
         let rotmats = rot6d_to_matrix(dec.rot6d.clone().reshape([n * NUM_REGRESSED, 6])).reshape([
             n,

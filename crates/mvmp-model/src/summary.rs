@@ -178,7 +178,17 @@ pub fn summarize(cfg: &ModelConfig, views: usize, device: &Device) -> Summary {
             } else {
                 1.0
             });
+    // The query projection reads every lattice point of the features (and the joints' centroids).
+    let lattice = cfg.decoder.query_lattice.iter().product::<usize>() as f64;
+    let sampled = lattice * cf
+        + if cfg.decoder.query_joints {
+            3.0 * j
+        } else {
+            0.0
+        };
+    let query_macs = k * (sampled + mvmp_decoder::queries::PARAM_DIM as f64) * d;
     let dec_macs = tokens * cf * d
+        + query_macs
         + if cfg.decoder.use_htb {
             cfg.decoder.depth as f64
                 * (8.0 * k * d * d + 2.0 * tokens * d * d + 2.0 * k * tokens * d + 8.0 * k * d * d)

@@ -227,13 +227,25 @@ fn view_features_equal_the_reduce_convolution() {
 type Edit = fn(&mut ModelConfig);
 
 #[test]
-fn unusable_people_caps_and_thresholds_name_the_key() {
-    let cases: [(&str, Edit); 5] = [
+fn unusable_people_caps_thresholds_and_lattices_name_the_key() {
+    let cases: [(&str, Edit); 9] = [
         ("max_people", |c| c.max_people = 100_000_000),
         ("max_people", |c| c.max_people = 0),
         ("root_threshold", |c| c.root_threshold = f32::NAN),
         ("root_threshold", |c| c.root_threshold = f32::INFINITY),
         ("root_threshold", |c| c.root_threshold = 1.5),
+        ("decoder.query_lattice", |c| {
+            c.decoder.query_lattice = [3, 0, 8]
+        }),
+        ("decoder.query_lattice", |c| {
+            c.decoder.query_lattice = [usize::MAX, 2, 1]
+        }),
+        ("decoder.query_span", |c| {
+            c.decoder.query_span = [1.0, f64::NAN, 1.0]
+        }),
+        ("decoder.query_span", |c| {
+            c.decoder.query_span = [-1.0, 1.0, 1.0]
+        }),
     ];
     for (key, edit) in cases {
         let mut c = ModelConfig::default();

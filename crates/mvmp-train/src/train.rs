@@ -6,9 +6,9 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use burn::data::dataloader::batcher::Batcher;
-use burn::module::Module;
+use burn::module::{Module, ModuleVisitor, Param};
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
-use burn::tensor::Device;
+use burn::tensor::{Device, Tensor};
 use rand::SeedableRng;
 use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
@@ -576,7 +576,7 @@ impl<'a> Trainer<'a> {
         if self.cursor.epoch >= sc.epochs {
             return Ok((model, None));
         }
-        let mut optim = self.optimizer(&sc)?;
+        let mut optim = self.optimizer()?;
         if stage == Stage::Whole && sc.freeze_backbone {
             model.vit = model.vit.clone().no_grad();
         }
@@ -604,15 +604,11 @@ impl<'a> Trainer<'a> {
         Ok((model, None))
     }
 
-    /// Adam for a stage, with the stage's gradient clipping and, on resume, the saved state.
-    fn optimizer(&mut self, sc: &StageConfig) -> Result<ModuleOptimizer, TrainError> {
-        let mut adam = AdamConfig::new();
-        if sc.grad_clip > 0.0 {
-            adam = adam.with_grad_clipping(Some(
-                burn::grad_clipping::GradientClippingConfig::Norm(sc.grad_clip),
-            ));
-        }
-        let optim: ModuleOptimizer = adam.init();
+    /// Adam for a stage, with, on resume, the saved state.
+    fn optimizer(&mut self) -> Result<ModuleOptimizer, TrainError> {
+        // Clipping is the trainer's own (`scale_gradients`): burn's clips each parameter's gradient
+        // apart, not the norm of all of them.
+        let optim: ModuleOptimizer = AdamConfig::new().init();
         match self.resume_optim.take() {
             Some(p) => optim
                 .load(&p)
@@ -713,9 +709,15 @@ impl<'a> Trainer<'a> {
         let (at, total) = (epoch * spe + bi, sc.epochs * spe);
         let (lr, decoder_lr) = (sc.lr_at(at, total), sc.decoder_lr_at(at, total));
         // The decoder's gradients stepped apart at its own rate; Adam's state is per parameter.
-        let decoder_grads =
+        let mut decoder_grads =
             decoder_lr.map(|_| GradientsParams::from_module(&mut grads, &model.decoder));
-        let grads = GradientsParams::from_grads(grads, &model);
+        let mut grads = GradientsParams::from_grads(grads, &model);
+        if let Some(factor) = clip_factor(&grad_norm, sc.grad_clip) {
+            scale_gradients(&model, &mut grads, factor);
+            if let Some(g) = decoder_grads.as_mut() {
+                scale_gradients(&model.decoder, g, factor);
+            }
+        }
         let mut model = optim.step(lr, model, grads);
         if let (Some(dlr), Some(g)) = (decoder_lr, decoder_grads) {
             model = optim.step(dlr, model, g);
@@ -882,6 +884,29 @@ impl PhaseClock {
 }
 
 /// Only the newest optimizer state is needed; model weights: the newest `keep` (never `weights`).
+/// The factor that brings the global gradient norm (over the modules' norms) down to `clip`; `None`
+/// when it is within it or clipping is off (0).
+fn clip_factor(norms: &[(&'static str, f32)], clip: f32) -> Option<f32> {
+    let global = norms.iter().map(|(_, n)| n * n).sum::<f32>().sqrt();
+    (clip > 0.0 && global > clip).then(|| clip / global)
+}
+
+/// Multiplies every gradient of `module`'s parameters in `grads` by `factor`.
+fn scale_gradients<M: Module>(module: &M, grads: &mut GradientsParams, factor: f32) {
+    struct Scale<'a> {
+        grads: &'a mut GradientsParams,
+        factor: f32,
+    }
+    impl ModuleVisitor for Scale<'_> {
+        fn visit_float<const D: usize>(&mut self, p: &Param<Tensor<D>>) {
+            if let Some(g) = self.grads.remove::<D>(p.id) {
+                self.grads.register(p.id, g * self.factor);
+            }
+        }
+    }
+    module.visit(&mut Scale { grads, factor });
+}
+
 fn prune_checkpoints(
     dir: &Path,
     weights: &Path,
@@ -1129,4 +1154,51 @@ fn root_metrics_of(
         out.push(("facing_deg".into(), facing[facing.len() / 2]));
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::nn::LinearConfig;
+
+    /// Clipping scales every gradient by one factor, so that their joint norm is the bound: the ratio
+    /// between two layers' gradients stays what it was (burn's own clipping bounds each apart).
+    #[test]
+    fn clipping_scales_all_gradients_by_one_factor() {
+        let d = Device::flex().autodiff();
+        let (a, b) = (
+            LinearConfig::new(3, 2).init(&d),
+            LinearConfig::new(2, 1).init(&d),
+        );
+        let x = Tensor::<2>::from_data([[1.0, -2.0, 0.5], [0.3, 0.1, -1.0]], &d);
+        let loss = b.forward(a.forward(x)).powi_scalar(2).sum() * 100.0;
+        let g = loss.backward();
+        let norm = |w: &Param<Tensor<2>>, gp: &GradientsParams| -> f32 {
+            let t: Tensor<2> = gp.get(w.id).expect("a gradient");
+            t.powi_scalar(2).sum().into_scalar::<f32>().sqrt()
+        };
+        let mut gp = GradientsParams::new();
+        for (p, grad) in [
+            (&a.weight, a.weight.grad(&g)),
+            (&b.weight, b.weight.grad(&g)),
+        ] {
+            gp.register(p.id, grad.expect("a gradient"));
+        }
+        let (na, nb) = (norm(&a.weight, &gp), norm(&b.weight, &gp));
+        let norms = [("a", na), ("b", nb)];
+        let global = (na * na + nb * nb).sqrt();
+        assert_eq!(clip_factor(&norms, 0.0), None);
+        assert_eq!(clip_factor(&norms, global * 2.0), None);
+        let f = clip_factor(&norms, 1.0).expect("above the bound");
+        assert!(
+            (f - 1.0 / global).abs() < 1e-6 * f,
+            "{f} vs {}",
+            1.0 / global
+        );
+        scale_gradients(&a, &mut gp, f);
+        scale_gradients(&b, &mut gp, f);
+        let (ca, cb) = (norm(&a.weight, &gp), norm(&b.weight, &gp));
+        assert!(((ca * ca + cb * cb).sqrt() - 1.0).abs() < 1e-5);
+        assert!((ca / cb - na / nb).abs() < 1e-4 * (na / nb));
+    }
 }
