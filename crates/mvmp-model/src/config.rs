@@ -46,10 +46,9 @@ impl PrimaryJoint {
 /// Most sample points of a query's lattice: each adds the volume's channels to every query's input.
 pub const MAX_LATTICE: usize = 512;
 
-/// A lattice of points per axis spanning metres per axis: `key` names the lattice; its span is the key
-/// with `_lattice` read as `_span`.
+/// A lattice of points per axis (key `key`) spanning metres per axis (key `span_key`).
 fn check_lattice(
-    key: &'static str,
+    (key, span_key): (&'static str, &'static str),
     lattice: [usize; 3],
     span: [f64; 3],
 ) -> Result<(), (&'static str, String)> {
@@ -63,11 +62,6 @@ fn check_lattice(
         ));
     }
     if let Some(s) = span.iter().find(|s| !(s.is_finite() && **s >= 0.0)) {
-        let span_key = if key == "decoder.query_lattice" {
-            "decoder.query_span"
-        } else {
-            "decoder.joint_span"
-        };
         return Err((
             span_key,
             format!("{s}: a span must be finite and non-negative (metres)"),
@@ -373,12 +367,16 @@ impl ModelConfig {
         if d.pool == 0 {
             return Err(("decoder.pool", "must be at least 1".into()));
         }
-        for (key, lattice, span) in [
-            ("decoder.query_lattice", d.query_lattice, d.query_span),
-            ("decoder.joint_lattice", d.joint_lattice, d.joint_span),
-        ] {
-            check_lattice(key, lattice, span)?;
-        }
+        check_lattice(
+            ("decoder.query_lattice", "decoder.query_span"),
+            d.query_lattice,
+            d.query_span,
+        )?;
+        check_lattice(
+            ("decoder.joint_lattice", "decoder.joint_span"),
+            d.joint_lattice,
+            d.joint_span,
+        )?;
         Ok(())
     }
 }
