@@ -7,7 +7,7 @@ use std::path::Path;
 
 use anyhow::{Context, Result};
 use burn::tensor::Device;
-use mvmp_train::{RunDir, TrainConfig, TrainOptions};
+use mvmp_train::{RunDir, Stage, TrainConfig, TrainOptions};
 use serde_json::Value;
 
 use crate::run::write_demo_configs;
@@ -66,7 +66,7 @@ pub fn bench_train(args: &BenchTrainArgs, device: &Device) -> Result<()> {
     } else {
         &[true]
     };
-    for stage in [1u8, 2] {
+    for stage in Stage::ALL {
         let mut times = Vec::new();
         for &fused in paths {
             set_fused_passes(fused);
@@ -74,11 +74,15 @@ pub fn bench_train(args: &BenchTrainArgs, device: &Device) -> Result<()> {
             set_fused_passes(true);
             let (line, s_per_step) = timed?;
             let path = if fused { "fused" } else { "tensor-ops" };
-            println!("{stage:>5}  {path:<10} {line}");
+            println!("{:>5}  {path:<10} {line}", stage.number());
             times.push(s_per_step);
         }
         if let [fused, ops] = times[..] {
-            println!("{stage:>5}  tensor-ops / fused: {:.2}x", ops / fused);
+            println!(
+                "{:>5}  tensor-ops / fused: {:.2}x",
+                stage.number(),
+                ops / fused
+            );
         }
     }
     Ok(())
@@ -93,7 +97,7 @@ fn set_fused_passes(on: bool) {
 /// One stage trained alone for the warm-up and timed steps: its table line (without the stage and the
 /// path) and its median seconds per step.
 fn time_stage(
-    stage: u8,
+    stage: Stage,
     cfg: &TrainConfig,
     model: &mvmp_model::ModelConfig,
     tmp: &Path,
@@ -102,7 +106,7 @@ fn time_stage(
 ) -> Result<(String, f64)> {
     let mut c = cfg.clone();
     // Only this stage trains, and validation (at epoch ends) reads one frame.
-    let other = if stage == 1 {
+    let other = if stage == Stage::Detection {
         &mut c.stage2
     } else {
         &mut c.stage1
@@ -118,7 +122,7 @@ fn time_stage(
         stop_after_steps: Some((WARM_UP + args.steps) as u64),
         stop_after_time: None,
     };
-    eprintln!("stage {stage}: {} steps", WARM_UP + args.steps);
+    eprintln!("stage {}: {} steps", stage.number(), WARM_UP + args.steps);
     let base = crate::GLOBAL.reset_peak();
     mvmp_train::train(&run, &c, &m, &opts, &mut mvmp_train::Quiet)?;
     let peak = crate::GLOBAL.peak().saturating_sub(base);

@@ -81,13 +81,14 @@ pub fn forward(model: Option<&Path>, params: &Path, out: &Path, device: &Device)
     let bodies = SmplxParams::read_json(params)?;
     let model = load_model(model)?;
     let (verts, joints) = pose(&model, &bodies, device)?;
-    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    // Every file is written to a staging directory, moved into place once all are written.
+    let staged = mvmp_geom::io::StagedDir::new(out)?;
+    let dir = staged.path();
     let n = bodies.len();
     let nv = verts[0].len();
     let nj = joints[0].len();
     // output.npz: vertices [N, V, 3], joints [N, J, 3], float32 metres.
-    let npz_path = out.join("output.npz");
-    write_atomic_with(&npz_path, |w| {
+    write_atomic_with(&dir.join("output.npz"), |w| {
         let mut npz = npyz::npz::NpzWriter::new(std::io::Cursor::new(Vec::new()));
         for (name, data, k) in [("vertices", &verts, nv), ("joints", &joints, nj)] {
             let mut a = npz
@@ -101,15 +102,16 @@ pub fn forward(model: Option<&Path>, params: &Path, out: &Path, device: &Device)
         let bytes = npz.zip_writer().finish()?.into_inner();
         w.write_all(&bytes)
     })?;
-    let json_path = out.join("output.json");
     let json = serde_json::json!({ "vertices": verts, "joints": joints, "units": "m" });
-    write_atomic_with(&json_path, |w| {
+    write_atomic_with(&dir.join("output.json"), |w| {
         serde_json::to_writer(w, &json).map_err(std::io::Error::other)
     })?;
     for (i, v) in verts.iter().enumerate() {
-        write_obj(&out.join(format!("body_{i:03}.obj")), v, &model.faces)?;
-        write_ply(&out.join(format!("body_{i:03}.ply")), v, &model.faces)?;
+        write_obj(&dir.join(format!("body_{i:03}.obj")), v, &model.faces)?;
+        write_ply(&dir.join(format!("body_{i:03}.ply")), v, &model.faces)?;
     }
+    staged.finish()?;
+    let (npz_path, json_path) = (out.join("output.npz"), out.join("output.json"));
     println!(
         "posed {n} bod{} ({nv} vertices, {nj} joints each); wrote {}, {} and body_000..{:03}.obj/.ply in {}",
         if n == 1 { "y" } else { "ies" },

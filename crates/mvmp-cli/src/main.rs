@@ -21,6 +21,7 @@ mod device;
 mod import;
 mod learn;
 mod model;
+mod probe;
 mod progress;
 mod run;
 mod train;
@@ -40,6 +41,24 @@ fn positive(
 /// A count flag that must be at least 1 (0 views would project into no camera at all).
 fn at_least_one() -> clap::builder::RangedU64ValueParser<usize> {
     clap::builder::RangedU64ValueParser::<usize>::new().range(1..)
+}
+
+/// A count flag from 1 to `max`: where a count sizes an allocation, the cap keeps a typo from aborting
+/// on memory.
+fn up_to(max: usize) -> clap::builder::RangedU64ValueParser<usize> {
+    clap::builder::RangedU64ValueParser::<usize>::new().range(1..=max as u64)
+}
+
+/// Most minutes a time flag takes (a year and more): a larger one would overflow the duration it sets.
+const MAX_MINUTES: f64 = 1e6;
+
+/// A positive number of minutes, at most [`MAX_MINUTES`].
+fn minutes() -> impl Fn(&str) -> Result<f64, String> + Clone + Send + Sync + 'static {
+    let positive = positive("minutes");
+    move |s| match positive(s)? {
+        v if v <= MAX_MINUTES => Ok(v),
+        v => Err(format!("{v}: expected at most {MAX_MINUTES} minutes")),
+    }
 }
 
 #[derive(Parser)]
@@ -128,7 +147,7 @@ enum Command {
         stop_after_steps: Option<u64>,
         /// Stop with a checkpoint once this call has trained this many minutes (wall time; the step in
         /// flight finishes first). `--resume` continues such a run.
-        #[arg(long, value_parser = positive("minutes"), allow_negative_numbers = true)]
+        #[arg(long, value_parser = minutes(), allow_negative_numbers = true)]
         stop_after_minutes: Option<f64>,
     },
 }
@@ -152,7 +171,7 @@ enum ImportCommand {
         #[arg(long, default_value = "hrnet_w32")]
         variant: mvmp_backbone::HrnetVariant,
         /// Heatmap joints of the checkpoint's head (17 for COCO).
-        #[arg(long, allow_negative_numbers = true, default_value_t = 17)]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 17, value_parser = up_to(1024))]
         joints: usize,
         #[arg(long)]
         from: PathBuf,
@@ -169,7 +188,7 @@ enum ModelCommand {
         #[arg(long)]
         config: PathBuf,
         /// Views per sample.
-        #[arg(long, allow_negative_numbers = true, default_value_t = 5, value_parser = at_least_one())]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 5, value_parser = up_to(mvmp_train::config::MAX_VIEWS))]
         views: usize,
         /// Also estimate a training step's peak memory per stage on flex (weights, Adam's moments,
         /// activations, gradients, the backward's working memory, the body model) from measured steps
@@ -177,10 +196,10 @@ enum ModelCommand {
         #[arg(long)]
         training: bool,
         /// Samples per training step, for --training.
-        #[arg(long, allow_negative_numbers = true, default_value_t = 1, value_parser = at_least_one())]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 1, value_parser = up_to(mvmp_train::config::MAX_BATCH))]
         batch: usize,
         /// People per sample, for --training (default: the config's max_people).
-        #[arg(long, allow_negative_numbers = true, value_parser = at_least_one())]
+        #[arg(long, allow_negative_numbers = true, value_parser = up_to(mvmp_model::config::MAX_PEOPLE))]
         people: Option<usize>,
     },
 }
@@ -204,7 +223,7 @@ struct EvalCli {
     #[arg(long, default_value = "test")]
     split: String,
     /// Views per frame (the first N cameras; default: the run's test_views).
-    #[arg(long, allow_negative_numbers = true, value_parser = at_least_one())]
+    #[arg(long, allow_negative_numbers = true, value_parser = up_to(mvmp_train::config::MAX_VIEWS))]
     views: Option<usize>,
     /// Score only the first N frames (0 = all).
     #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
@@ -231,7 +250,7 @@ struct EvalCli {
     #[arg(long, default_value = "mvmp")]
     format: SourceFormat,
     /// Keep every N-th frame (panoptic: default the split's stride; h36m: default 5, i.e. 10 Hz).
-    #[arg(long, allow_negative_numbers = true, value_parser = at_least_one())]
+    #[arg(long, allow_negative_numbers = true, value_parser = up_to(1_000_000))]
     stride: Option<usize>,
     /// Panoptic and h36m: SMPL-X pseudo-ground-truth fits, DIR/<sequence>/<frame>/people.npz (infer's
     /// layout; <sequence> is S9/<action> for h36m, <frame> the 8-digit Panoptic index or the 6-digit
@@ -352,7 +371,7 @@ enum BenchCommand {
     Fusion {
         #[arg(long)]
         config: PathBuf,
-        #[arg(long, allow_negative_numbers = true, default_value_t = 5, value_parser = at_least_one())]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 5, value_parser = up_to(mvmp_train::config::MAX_VIEWS))]
         views: usize,
         /// Timed repetitions after the warm-up.
         #[arg(long, allow_negative_numbers = true, default_value_t = 5, value_parser = at_least_one())]
@@ -364,7 +383,7 @@ enum BenchCommand {
     /// (table, the paper's directions) and OUT/curves.png.
     Learn {
         /// The full model's training time, minutes: the schedule every variant trains is sized to it.
-        #[arg(long, allow_negative_numbers = true, default_value_t = 40.0, value_parser = positive("minutes"))]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 40.0, value_parser = minutes())]
         minutes: f64,
         /// One-frame scenes of the synthetic set (two thirds train, one third held out).
         #[arg(long, allow_negative_numbers = true, default_value_t = 96, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(3..=10000))]
@@ -401,7 +420,7 @@ enum BenchCommand {
     Model {
         #[arg(long)]
         config: PathBuf,
-        #[arg(long, allow_negative_numbers = true, default_value_t = 4, value_parser = at_least_one())]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 4, value_parser = up_to(mvmp_train::config::MAX_VIEWS))]
         views: usize,
         #[arg(long, allow_negative_numbers = true, default_value_t = 3, value_parser = at_least_one())]
         iters: usize,

@@ -1,5 +1,7 @@
 //! `mvmp model summary`, `mvmp bench model` and `mvmp bench fusion`.
 use mvmp_smplx::names::NUM_REGRESSED;
+
+use crate::probe::{ring_rig, ring_roots};
 use std::path::Path;
 use std::time::Instant;
 
@@ -7,11 +9,8 @@ use anyhow::{Result, bail};
 use burn::tensor::module::avg_pool2d;
 use burn::tensor::ops::AvgPoolOptions;
 use burn::tensor::{Bool, Device, Tensor, TensorData};
-use nalgebra::Vector3;
 
-use mvmp_data::synth::look_at;
 use mvmp_fusion::{FusionMode, Subvoxel, extract_roots, fuse_views};
-use mvmp_geom::{Camera, Letterbox};
 use mvmp_model::summary::summarize;
 use mvmp_model::{ModelConfig, MvmpHmr, RigGrids};
 use mvmp_smplx::{SmplxLayer, Translation, regressed_to_full_pose};
@@ -148,32 +147,6 @@ pub fn training_summary(
         }
     }
     Ok(())
-}
-
-/// `views` 1920 x 1080 cameras on a ring around the config's grid, looking at its centre, letterboxed to
-/// the config's input size.
-pub(crate) fn ring_rig(cfg: &ModelConfig, views: usize) -> Result<(Vec<Camera>, Vec<Letterbox>)> {
-    let g = &cfg.grid;
-    let cams: Vec<Camera> = (0..views)
-        .map(|i| {
-            let a = i as f64 / views as f64 * std::f64::consts::TAU;
-            let r = 0.75 * g.size[0].max(g.size[1]);
-            look_at(
-                format!("cam{i}"),
-                Vector3::new(g.center[0] + r * a.cos(), g.center[1] + r * a.sin(), 3.0),
-                Vector3::new(g.center[0], g.center[1], 1.0),
-                60.0,
-                0.0,
-                [1920, 1080],
-                [0.0, 0.0],
-            )
-        })
-        .collect::<Result<_, _>>()?;
-    let lbs = cams
-        .iter()
-        .map(|_| Letterbox::new(1920, 1080, cfg.image_size))
-        .collect::<Result<_, _>>()?;
-    Ok((cams, lbs))
 }
 
 /// Projection and fusion alone at a config's scale: the sampling grids of a ring rig, then the fusion of
@@ -422,20 +395,6 @@ impl StageBench<'_> {
                 .vertices
         });
     }
-}
-
-/// `k` roots on a circle of 1 m round the grid's centre, at pelvis height, `[k * 3]`.
-pub(crate) fn ring_roots(g: &mvmp_geom::VoxelGrid, k: usize) -> Vec<f32> {
-    (0..k)
-        .flat_map(|i| {
-            let a = i as f64 * 2.4;
-            [
-                (g.center[0] + a.cos()) as f32,
-                (g.center[1] + a.sin()) as f32,
-                0.9,
-            ]
-        })
-        .collect()
 }
 
 /// The table of `bench model`: per stage its time, GFLOP/s and share of flex's GEMM speed.

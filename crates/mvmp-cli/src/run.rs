@@ -188,11 +188,7 @@ pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, s
             return eval_joint_dataset(args, ds, device, quiet);
         }
     }
-    let split_name = match args.split {
-        Split::Train => "train",
-        Split::Test => "test",
-        Split::All => "all",
-    };
+    let split_name = args.split.name();
     let layout = mvmp_data::DatasetLayout::open(args.data)?;
     let min_views = layout.scenes.iter().map(|s| s.rig.len()).min().unwrap_or(0);
     if let Some(v) = args.views.filter(|&v| v > min_views) {
@@ -718,8 +714,6 @@ fn demo_infer(data: &Path, run_dir: &Path, infer_dir: &Path, device: &Device) ->
     )
 }
 
-/// `mvmp eval --format panoptic`: a run on CMU Panoptic sequences read in place. `--split` is `test`
-/// (VoxelPose's validation split), `train`, a split's name, or comma-separated sequences (every frame).
 /// The pseudo-ground-truth meshes of a joint-annotated evaluation, posed with `--body-model` (default: the
 /// run's body model), and the report's line on what PVE used.
 fn pseudo_gt(args: &EvalArgs, pred: &Predictor, device: &Device) -> Result<Option<PseudoGt>> {

@@ -83,7 +83,7 @@ fn parameter_bytes<M: Module>(m: &M) -> (f64, f64) {
 /// image's centre: the losses' tensors depend on their number, not on where they stand.
 fn people(cfg: &ModelConfig, views: usize, people: usize) -> Vec<PersonGt> {
     let half = cfg.image_size as f32 / 2.0;
-    crate::model::ring_roots(&cfg.grid, people)
+    crate::probe::ring_roots(&cfg.grid, people)
         .chunks(3)
         .enumerate()
         .map(|(i, r)| {
@@ -105,7 +105,7 @@ fn people(cfg: &ModelConfig, views: usize, people: usize) -> Vec<PersonGt> {
 
 /// One frame of a ring rig with `n` people and mid-grey images.
 fn sample(cfg: &ModelConfig, views: usize, n: usize) -> Result<FrameSample> {
-    let (cameras, letterboxes) = crate::model::ring_rig(cfg, views)?;
+    let (cameras, letterboxes) = crate::probe::ring_rig(cfg, views)?;
     let s = cfg.image_size as usize;
     Ok(FrameSample {
         scene: "probe".into(),

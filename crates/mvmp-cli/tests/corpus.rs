@@ -164,6 +164,34 @@ fn toml_cases(
     cases
 }
 
+/// One case per `(key, value)`: `value` (TOML) put at `key` of `base`.
+fn capped_cases(
+    base: &str,
+    file: &Path,
+    values: &[(&str, &str)],
+    command: &dyn Fn() -> (Vec<String>, Option<PathBuf>),
+) -> Vec<(Case, String)> {
+    let doc: toml::Value = toml::from_str(base).unwrap();
+    values
+        .iter()
+        .map(|&(key, value)| {
+            let mut d = doc.clone();
+            let v: toml::Value =
+                toml::from_str::<toml::Table>(&format!("v = {value}")).unwrap()["v"].clone();
+            *toml_at(&mut d, key) = v;
+            let (args, out) = command();
+            let case = Case {
+                file: file.to_path_buf(),
+                key: key.into(),
+                value: value.into(),
+                args,
+                out,
+            };
+            (case, toml::to_string(&d).unwrap())
+        })
+        .collect()
+}
+
 /// A JSON pointer as a key path: `/people/0/smplx/betas/0` -> `people[0].smplx.betas[0]`.
 fn dotted(pointer: &str) -> String {
     let mut out = String::new();
@@ -381,6 +409,23 @@ fn no_malformed_input_gets_through() {
         toml_cases(&model, &p("model.toml"), &floats, &model_cmd),
         &mut failures,
     );
+    // Counts within their type that would exhaust memory or overflow a step count.
+    n += run_all(
+        capped_cases(
+            &model,
+            &p("model.toml"),
+            &[
+                ("image_size", "100000"),
+                ("feature_channels", "100000000"),
+                ("max_people", "100000000"),
+                ("grid.shape", "[4096, 4096, 4096]"),
+                ("decoder.dim", "1073741824"),
+                ("decoder.depth", "100000000"),
+            ],
+            &model_cmd,
+        ),
+        &mut failures,
+    );
     let train_text = std::fs::read_to_string(p("train.toml")).unwrap();
     let train_cmd = || {
         let args = [
@@ -398,6 +443,20 @@ fn no_malformed_input_gets_through() {
         toml_cases(&train_text, &p("train.toml"), &floats, &train_cmd),
         &mut failures,
     );
+    n += run_all(
+        capped_cases(
+            &train_text,
+            &p("train.toml"),
+            &[
+                ("batch_size", "1000000000"),
+                ("stage1.epochs", "1000000000000000000"),
+                ("stage2.warmup_steps", "1000000000000000000"),
+                ("loss.density_grid", "100000"),
+            ],
+            &train_cmd,
+        ),
+        &mut failures,
+    );
     let synth_cmd = || {
         let args = [
             "data",
@@ -411,6 +470,19 @@ fn no_malformed_input_gets_through() {
     };
     n += run_all(
         toml_cases(SYNTH, &p("synth.toml"), &floats, &synth_cmd),
+        &mut failures,
+    );
+    n += run_all(
+        capped_cases(
+            SYNTH,
+            &p("synth.toml"),
+            &[
+                ("scenes", "1000000000000000"),
+                ("frames_per_scene", "1000000000000000"),
+                ("cameras.rings", "[{ height = 1e9, radius = 5.0 }]"),
+            ],
+            &synth_cmd,
+        ),
         &mut failures,
     );
 
@@ -1037,6 +1109,67 @@ fn no_malformed_image_rig_run_or_flag_gets_through() {
                 "nan",
             ]),
             "--stop-after-minutes",
+        ),
+        // Counts that size an allocation, and a duration past what a timer holds.
+        (
+            owned(&[
+                "train",
+                "--config",
+                &s(&p("train.toml")),
+                "--out",
+                &s(&p("run2")),
+                "--stop-after-minutes",
+                "1e18",
+            ]),
+            "--stop-after-minutes",
+        ),
+        (
+            owned(&[
+                "model",
+                "summary",
+                "--config",
+                &tiny,
+                "--training",
+                "--people",
+                "100000000",
+            ]),
+            "--people",
+        ),
+        (
+            owned(&[
+                "model",
+                "summary",
+                "--config",
+                &tiny,
+                "--views",
+                "100000000",
+            ]),
+            "--views",
+        ),
+        (
+            owned(&["bench", "fusion", "--config", &tiny, "--views", "100000000"]),
+            "--views",
+        ),
+        (
+            owned(&["bench", "attention", "--tokens", "1000000000000"]),
+            "--tokens",
+        ),
+        (
+            owned(&["bench", "attention", "--head-dim", "1000000000"]),
+            "--head-dim",
+        ),
+        (
+            owned(&[
+                "import",
+                "hrnet",
+                "--joints",
+                "1000000000",
+                "--from",
+                "x.pth",
+                "--out",
+                "y.bpk",
+            ]),
+            "--joints",
         ),
     ];
     for (args, flag) in flags {

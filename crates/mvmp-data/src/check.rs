@@ -41,13 +41,22 @@ pub fn open_image(path: &Path) -> Result<image::DynamicImage, String> {
         .map_err(|e| format!("does not decode: {e}"))?;
     let img = image::load_from_memory_with_format(&bytes, format)
         .map_err(|e| format!("does not decode: {e}"))?;
-    if format == image::ImageFormat::Jpeg {
-        let end = bytes.iter().rposition(|&b| b != 0).map_or(0, |i| i + 1);
-        if !bytes[..end].ends_with(&[0xFF, 0xD9]) {
-            return Err("the JPEG ends before its end-of-image marker (cut short)".into());
-        }
+    if format == image::ImageFormat::Jpeg && !jpeg_complete(&bytes) {
+        return Err("the JPEG ends before its end-of-image marker (cut short)".into());
     }
     Ok(img)
+}
+
+/// Whether the last scan of a JPEG is followed by an end-of-image marker. Inside entropy-coded data
+/// every 0xFF byte is stuffed (0xFF 0x00), so the markers cannot occur there; an EXIF thumbnail's own
+/// markers come before the main image's scan, and data some cameras append after the end marker is
+/// allowed.
+fn jpeg_complete(bytes: &[u8]) -> bool {
+    let marker = |m: u8| move |w: &[u8]| w == [0xFF, m];
+    let Some(scan) = bytes.windows(2).rposition(marker(0xDA)) else {
+        return false;
+    };
+    bytes[scan..].windows(2).any(marker(0xD9))
 }
 
 /// Check an image file: present, a readable image header, the expected size and colour type; with
@@ -191,4 +200,38 @@ pub fn check_dataset(root: &Path, deep: bool) -> CheckReport {
         check_scene(&mut r, &root.join(name), joints, &index.body_model, deep);
     }
     r
+}
+
+#[cfg(test)]
+mod tests {
+    use super::open_image;
+
+    /// A JPEG as a camera writes it, with trailing bytes after its end marker, and cut in half.
+    #[test]
+    fn a_jpeg_is_complete_with_trailing_bytes_and_incomplete_when_cut() {
+        let img =
+            image::RgbImage::from_fn(64, 48, |x, y| image::Rgb([x as u8 * 3, y as u8 * 5, 90]));
+        let mut jpeg = Vec::new();
+        image::DynamicImage::ImageRgb8(img)
+            .write_to(
+                &mut std::io::Cursor::new(&mut jpeg),
+                image::ImageFormat::Jpeg,
+            )
+            .unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        let write = |name: &str, bytes: &[u8]| {
+            let p = dir.path().join(name);
+            std::fs::write(&p, bytes).unwrap();
+            p
+        };
+        assert!(open_image(&write("whole.jpg", &jpeg)).is_ok());
+        let mut trailing = jpeg.clone();
+        trailing.extend_from_slice(b"vendor metadata after the end marker");
+        assert!(open_image(&write("trailing.jpg", &trailing)).is_ok());
+        let e = open_image(&write("cut.jpg", &jpeg[..jpeg.len() / 2])).unwrap_err();
+        assert!(
+            e.contains("cut short") || e.contains("does not decode"),
+            "{e}"
+        );
+    }
 }

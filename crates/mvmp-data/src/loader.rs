@@ -27,6 +27,29 @@ pub enum ViewChoice {
     Random { count: usize, seed: u64 },
 }
 
+/// The seed of one random draw of a training sample: a mix of the run's seed, the epoch and the sample's
+/// number, so that a resumed run draws the same.
+pub fn draw_seed(seed: u64, epoch: u64, index: usize) -> u64 {
+    seed ^ epoch.wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        ^ (index as u64).wrapping_mul(0xD6E8_FEB8_6659_FD93)
+}
+
+/// The views of sample `index` (shared by every dataset so that draws depend on the seed, epoch and index).
+pub fn select_views(views: &ViewChoice, epoch: u64, index: usize, available: usize) -> Vec<usize> {
+    use rand::SeedableRng;
+    use rand::seq::SliceRandom;
+    match views {
+        ViewChoice::Fixed(v) => v.clone(),
+        ViewChoice::Random { count, seed } => {
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(draw_seed(*seed, epoch, index));
+            let mut all: Vec<usize> = (0..available).collect();
+            all.shuffle(&mut rng);
+            all.truncate(*count);
+            all
+        }
+    }
+}
+
 /// A dataset split.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Split {
@@ -35,16 +58,41 @@ pub enum Split {
     All,
 }
 
+impl Split {
+    pub const ALL: [Split; 3] = [Split::Train, Split::Test, Split::All];
+
+    /// The split's name, as configs and flags spell it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Split::Train => "train",
+            Split::Test => "test",
+            Split::All => "all",
+        }
+    }
+}
+
+impl std::fmt::Display for Split {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
 impl std::str::FromStr for Split {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "train" => Ok(Split::Train),
-            "test" => Ok(Split::Test),
-            "all" => Ok(Split::All),
-            _ => Err(format!("{s:?} is not a split; expected train, test or all")),
-        }
+        (Split::ALL.into_iter().find(|x| x.name() == s))
+            .ok_or_else(|| format!("{s:?} is not a split; expected train, test or all"))
     }
+}
+
+/// The frames of a split's scenes ([`split_scenes`]), read without opening an image.
+pub fn split_frames(layout: &DatasetLayout, split: Split) -> Result<Vec<FrameRef>, DataError> {
+    let scenes = split_scenes(layout, split)?;
+    Ok(layout
+        .frames()
+        .into_iter()
+        .filter(|f| scenes.contains(&f.scene))
+        .collect())
 }
 
 /// The scenes of a split: scenes sorted by their mean people count (then by name), every third one to test,
@@ -130,12 +178,7 @@ impl FrameDataset {
         size: u32,
     ) -> Result<Self, DataError> {
         let layout = DatasetLayout::open(root)?;
-        let scenes = split_scenes(&layout, split)?;
-        let frames = layout
-            .frames()
-            .into_iter()
-            .filter(|f| scenes.contains(&f.scene))
-            .collect();
+        let frames = split_frames(&layout, split)?;
         let min_views = layout.scenes.iter().map(|s| s.rig.len()).min().unwrap_or(0);
         match &views {
             ViewChoice::Fixed(v) => {
@@ -199,7 +242,7 @@ impl FrameDataset {
 
     fn select_views(&self, index: usize, available: usize) -> Vec<usize> {
         let epoch = self.epoch.load(std::sync::atomic::Ordering::Relaxed);
-        crate::sources::select_views(&self.views, epoch, index, available)
+        select_views(&self.views, epoch, index, available)
     }
 
     /// The chosen views of frame `f`: its images letterboxed and normalised `[V][3][S][S]`, their
@@ -449,7 +492,7 @@ impl Batcher<FrameSample, FrameBatch> for FrameBatcher {
             .flat_map(|i| i.people.first())
             .map(|q| q.joints_3d.len())
             .next()
-            .unwrap_or(127);
+            .unwrap_or(mvmp_smplx::names::NUM_JOINTS_WITH_LANDMARKS);
         let h = Padded::new(&items, [b, v, s, p, j]);
         let t = |data: Vec<f32>, shape: Vec<usize>| TensorData::new(data, shape);
         // Only people with SMPL-X ground truth have vertices; a batch of joint-annotated frames needs none.

@@ -16,7 +16,9 @@ use serde::{Deserialize, Serialize};
 use crate::DataError;
 use crate::augment::Photometric;
 use crate::h36m::H36mSequence;
-use crate::loader::{FrameDataset, FrameSample, PersonGt, Split, ViewChoice, letterbox_into};
+use crate::loader::{
+    FrameDataset, FrameSample, PersonGt, Split, ViewChoice, draw_seed, letterbox_into, select_views,
+};
 use crate::panoptic::PanopticSequence;
 use mvmp_geom::{Camera, Letterbox};
 use mvmp_smplx::joint_sets::JointSet;
@@ -205,29 +207,6 @@ pub fn person_from_joints(
         joints_2d,
         joint_valid: valid,
         smplx: false,
-    }
-}
-
-/// The seed of one random draw of a training sample: a mix of the run's seed, the epoch and the sample's
-/// number, so that a resumed run draws the same.
-pub fn draw_seed(seed: u64, epoch: u64, index: usize) -> u64 {
-    seed ^ epoch.wrapping_mul(0x9E37_79B9_7F4A_7C15)
-        ^ (index as u64).wrapping_mul(0xD6E8_FEB8_6659_FD93)
-}
-
-/// The views of sample `index` (shared by every dataset so that draws depend on the seed, epoch and index).
-pub fn select_views(views: &ViewChoice, epoch: u64, index: usize, available: usize) -> Vec<usize> {
-    use rand::SeedableRng;
-    use rand::seq::SliceRandom;
-    match views {
-        ViewChoice::Fixed(v) => v.clone(),
-        ViewChoice::Random { count, seed } => {
-            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(draw_seed(*seed, epoch, index));
-            let mut all: Vec<usize> = (0..available).collect();
-            all.shuffle(&mut rng);
-            all.truncate(*count);
-            all
-        }
     }
 }
 

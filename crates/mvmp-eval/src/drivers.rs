@@ -261,9 +261,10 @@ pub fn mean_vector(m: &MeanParams, device: &Device) -> Tensor<1> {
 
 /// The mean parameters of a dataset's training split (`None` when it has no people there).
 pub fn training_mean(data: &Path) -> Result<Option<MeanParams>, InferError> {
-    let set = FrameDataset::open(data, Split::Train, ViewChoice::Fixed(vec![0]), 28)?;
+    let layout = mvmp_data::DatasetLayout::open(data)?;
+    let frames = mvmp_data::loader::split_frames(&layout, Split::Train)?;
     let mut acc = MeanAccumulator::default();
-    acc.add_frames(set.layout(), set.frames())?;
+    acc.add_frames(&layout, &frames)?;
     Ok(acc.finish())
 }
 

@@ -6,7 +6,7 @@
 //! gathers all its views' bilinear samples while its `[voxels][C]` accumulator is in L1, then writes the
 //! finished values once, channels-first, into the output. Same arithmetic as the tensor path: border
 //! padding, align_corners = false, views that do not see a voxel left out, 0 where none does.
-use mvmp_geom::simd::Isa;
+use mvmp_kernels::cpu::{Isa, SendPtr};
 use rayon::prelude::*;
 
 use mvmp_kernels::host::transpose_planes;
@@ -72,19 +72,6 @@ impl HostGrid {
             voxels,
             map_hw,
         }
-    }
-}
-
-#[derive(Clone, Copy)]
-struct SendPtr(*mut f32);
-// SAFETY: used only for writes to disjoint voxel columns (see `fuse`).
-unsafe impl Send for SendPtr {}
-unsafe impl Sync for SendPtr {}
-
-impl SendPtr {
-    /// A method, so that closures capture the whole (Send) wrapper rather than its raw field.
-    fn get(self) -> *mut f32 {
-        self.0
     }
 }
 

@@ -12,6 +12,10 @@ pub const ROTATION_TOLERANCE: f64 = 1e-5;
 /// sized to it would not fit in memory.
 pub const MAX_CENTRE_DISTANCE: f64 = 1e5;
 
+/// Widest and tallest image a camera may have (pixels): ten times the 4K a capture rig records, so that
+/// a picture of the rig's frames stays within memory.
+pub const MAX_IMAGE_SIDE: u32 = 40_000;
+
 /// Largest magnitude of an entry of K (pixels): a telephoto lens on a large sensor has a focal length
 /// of some 10^4 to 10^5 pixels.
 pub const MAX_INTRINSIC: f64 = 1e7;
@@ -116,9 +120,10 @@ impl Camera {
         if det <= 0.0 {
             return Err(self.invalid(format!("R has determinant {det:.6}, expected +1")));
         }
-        if self.width == 0 || self.height == 0 {
+        let side = 1..=MAX_IMAGE_SIDE;
+        if !(side.contains(&self.width) && side.contains(&self.height)) {
             return Err(self.invalid(format!(
-                "image size (resolution) must be positive, got {} x {}",
+                "image size (resolution) must be 1 to {MAX_IMAGE_SIDE} pixels a side, got {} x {}",
                 self.width, self.height
             )));
         }

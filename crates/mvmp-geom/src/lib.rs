@@ -14,7 +14,6 @@ pub mod project;
 pub mod raster;
 pub mod rig;
 pub mod rotation;
-pub mod simd;
 pub mod voxel;
 
 pub use camera::Camera;

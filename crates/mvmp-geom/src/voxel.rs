@@ -15,6 +15,12 @@ pub struct VoxelGrid {
     pub shape: [usize; 3],
 }
 
+/// Most voxels along one axis (the paper's grid has 300).
+pub const MAX_GRID_SIDE: usize = 4096;
+/// Most voxels in a grid: 2^25, 18 times the paper's 300 x 300 x 20; a 32-channel f32 volume over it is
+/// already 4 GiB.
+pub const MAX_VOXELS: usize = 1 << 25;
+
 impl VoxelGrid {
     pub fn new(center: [f64; 3], size: [f64; 3], shape: [usize; 3]) -> Result<Self, GeomError> {
         let g = VoxelGrid {
@@ -40,9 +46,20 @@ impl VoxelGrid {
                     self.size[a]
                 )));
             }
-            if self.shape[a] == 0 {
-                return Err(GeomError::InvalidGrid(format!("shape[{a}] = 0")));
+            if self.shape[a] == 0 || self.shape[a] > MAX_GRID_SIDE {
+                return Err(GeomError::InvalidGrid(format!(
+                    "shape[{a}] = {}: expected 1 to {MAX_GRID_SIDE} voxels",
+                    self.shape[a]
+                )));
             }
+        }
+        // Each side is at most 2^12, so the product cannot overflow.
+        let n: usize = self.shape.iter().product();
+        if n > MAX_VOXELS {
+            return Err(GeomError::InvalidGrid(format!(
+                "shape = {:?}: {n} voxels, more than the {MAX_VOXELS} allowed",
+                self.shape
+            )));
         }
         Ok(())
     }

@@ -2,12 +2,15 @@
 //! each backend runs the forward in its own ops, and under autodiff the backward is the one written
 //! here rather than the one burn would derive from the forward's ops: tiled attention, and a transformer
 //! block recomputed in its backward, and a convolution's columns (im2col) on flex. `conv` holds
-//! convolutions written as matrix products for training.
+//! convolutions written as matrix products for training. `cpu` and `panel` hold what the fused CPU passes
+//! share: instruction-set dispatch, the pointer of their parallel writes, and the SMPL-X panel products.
 
 pub mod attention;
 pub mod conv;
+pub mod cpu;
 pub mod host;
 pub mod im2col;
+pub mod panel;
 pub mod recompute;
 
 pub use attention::{DEFAULT_BLOCK, attention, plain_attention};

@@ -427,6 +427,10 @@ impl Default for LossWeights {
     }
 }
 
+/// Most points per side of the density loss's cube: every joint of every person is evaluated at each
+/// of its side^3 points (the default is 16).
+pub const MAX_DENSITY_GRID: usize = 64;
+
 impl LossWeights {
     /// Check values; errors name the key and the value.
     pub fn validate(&self) -> Result<(), String> {
@@ -468,11 +472,16 @@ impl LossWeights {
                 self.heatmap_sigma
             ));
         }
-        if self.density_grid == 0 || !(self.density_extent.is_finite() && self.density_extent > 0.0)
-        {
+        if self.density_grid == 0 || self.density_grid > MAX_DENSITY_GRID {
             return Err(format!(
-                "loss.density_grid = {}, loss.density_extent = {}: must be positive",
-                self.density_grid, self.density_extent
+                "loss.density_grid = {}: expected 1 to {MAX_DENSITY_GRID} points a side",
+                self.density_grid
+            ));
+        }
+        if !(self.density_extent.is_finite() && self.density_extent > 0.0) {
+            return Err(format!(
+                "loss.density_extent = {}: must be positive",
+                self.density_extent
             ));
         }
         Ok(())
@@ -481,29 +490,24 @@ impl LossWeights {
 
 /// The weighted terms of one step, each already multiplied by its weight (0-weight terms are skipped and
 /// reported as `None`), and their sum.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Default)]
 pub struct LossTerms {
     pub detection: Option<Tensor<1>>,
     pub parameters: Option<Tensor<1>>,
     pub mesh: Option<Tensor<1>>,
     pub orientation: Option<Tensor<1>>,
     pub density: Option<Tensor<1>>,
+    /// Stage 1's 2D heatmap term (in stage 2 where `heatmap_2d_stage2` asks for it).
+    pub heatmap_2d: Option<Tensor<1>>,
+    /// The facing head's term, for a model with one.
+    pub facing: Option<Tensor<1>>,
 }
 
 impl LossTerms {
-    /// The total `L_D + w_P L_P + L_mesh + w_O L_O + w_den L_denj3d`.
+    /// The total `L_D + w_P L_P + L_mesh + w_O L_O + w_den L_denj3d` and the two auxiliary terms, summed
+    /// in the order of [`LossTerms::named`].
     pub fn total(&self) -> Option<Tensor<1>> {
-        [
-            &self.detection,
-            &self.parameters,
-            &self.mesh,
-            &self.orientation,
-            &self.density,
-        ]
-        .into_iter()
-        .flatten()
-        .cloned()
-        .reduce(|a, b| a + b)
+        (self.named().into_iter().map(|(_, t)| t)).reduce(|a, b| a + b)
     }
 
     /// (name, value) of every active term, for logs.
@@ -514,6 +518,8 @@ impl LossTerms {
             ("mesh", &self.mesh),
             ("orientation", &self.orientation),
             ("density", &self.density),
+            ("heatmap_2d", &self.heatmap_2d),
+            ("facing", &self.facing),
         ]
         .into_iter()
         .filter_map(|(n, t)| t.clone().map(|t| (n, t)))

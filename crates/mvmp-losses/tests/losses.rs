@@ -244,12 +244,15 @@ fn weights_default_to_the_paper_and_terms_add_up() {
         mesh: one(2.5),
         orientation: one(0.5),
         density: None,
+        heatmap_2d: None,
+        facing: one(0.25),
     };
-    assert_eq!(scalar(terms.total().unwrap()), 4.0);
+    assert_eq!(scalar(terms.total().unwrap()), 4.25);
     assert_eq!(
         terms.named().iter().map(|(n, _)| *n).collect::<Vec<_>>(),
-        ["detection", "mesh", "orientation"]
+        ["detection", "mesh", "orientation", "facing"]
     );
+    assert!(LossTerms::default().total().is_none());
 }
 
 #[test]

@@ -8,6 +8,7 @@ use mvmp_backbone::{HRNetConfig, HrnetVariant, ViTConfig, VitVariant};
 use mvmp_decoder::DecoderConfig;
 use mvmp_fusion::{FusionMode, RootRefine, VolumeNorm};
 use mvmp_geom::VoxelGrid;
+use mvmp_smplx::names::NUM_JOINTS_WITH_LANDMARKS;
 
 #[derive(Debug, thiserror::Error)]
 pub enum ModelConfigError {
@@ -172,6 +173,13 @@ pub struct ModelConfig {
     pub block_recompute: bool,
 }
 
+/// Largest network input side (the paper's is 1288).
+pub const MAX_IMAGE_SIZE: u32 = 4096;
+/// Most channels of the feature volume and of the decoder's width.
+pub const MAX_WIDTH: usize = 4096;
+/// Most Human Transformer Blocks (the paper has 2).
+pub const MAX_DEPTH: usize = 64;
+
 /// The most people a config may decode per scene: 1000 slots of 10475 vertices are 126 MB of meshes per
 /// batch item, which every stage after the decoder holds several times.
 pub const MAX_PEOPLE: usize = 1000;
@@ -272,11 +280,14 @@ impl ModelConfig {
     /// key and why.
     fn check_inputs(&self) -> Result<(), (&'static str, String)> {
         // Heatmaps are exactly S/4; a multiple of 14 also uses every pixel in the ViT (the paper: 1288).
-        if self.image_size < 28 || !self.image_size.is_multiple_of(4) {
+        if self.image_size < 28
+            || self.image_size > MAX_IMAGE_SIZE
+            || !self.image_size.is_multiple_of(4)
+        {
             return Err((
                 "image_size",
                 format!(
-                    "{}: must be a multiple of 4 of at least 28",
+                    "{}: must be a multiple of 4 from 28 to {MAX_IMAGE_SIZE}",
                     self.image_size
                 ),
             ));
@@ -292,14 +303,22 @@ impl ModelConfig {
                 ),
             ));
         }
-        if self.feature_channels == 0 {
-            return Err(("feature_channels", "must be positive".into()));
+        if self.feature_channels == 0 || self.feature_channels > MAX_WIDTH {
+            return Err((
+                "feature_channels",
+                format!("{}: expected 1 to {MAX_WIDTH}", self.feature_channels),
+            ));
         }
-        if self.heatmap_joints.is_empty() || self.heatmap_joints.iter().any(|&j| j >= 127) {
+        if self.heatmap_joints.is_empty()
+            || self
+                .heatmap_joints
+                .iter()
+                .any(|&j| j >= NUM_JOINTS_WITH_LANDMARKS)
+        {
             return Err((
                 "heatmap_joints",
                 format!(
-                    "{:?}: a non-empty list of SMPL-X joint indices below 127",
+                    "{:?}: a non-empty list of SMPL-X joint indices below {NUM_JOINTS_WITH_LANDMARKS}",
                     self.heatmap_joints
                 ),
             ));
@@ -355,13 +374,19 @@ impl ModelConfig {
             ));
         }
         let d = &self.decoder;
-        if d.dim == 0 || d.heads == 0 || !d.dim.is_multiple_of(d.heads) {
+        if d.dim == 0 || d.dim > MAX_WIDTH || d.heads == 0 || !d.dim.is_multiple_of(d.heads) {
             return Err((
                 "decoder.dim",
                 format!(
-                    "{} must be a positive multiple of decoder.heads = {}",
+                    "{} must be a multiple of decoder.heads = {} from 1 to {MAX_WIDTH}",
                     d.dim, d.heads
                 ),
+            ));
+        }
+        if d.depth > MAX_DEPTH {
+            return Err((
+                "decoder.depth",
+                format!("{}: expected 0 to {MAX_DEPTH} blocks", d.depth),
             ));
         }
         if d.pool == 0 {

@@ -5,6 +5,7 @@ use burn::tensor::{Device, Tensor};
 
 use crate::ModelConfig;
 use mvmp_backbone::vit::PATCH;
+use mvmp_smplx::names::{NUM_JOINTS, NUM_VERTICES};
 
 /// One row of the summary.
 #[derive(Debug, Clone)]
@@ -195,7 +196,8 @@ pub fn summarize(cfg: &ModelConfig, views: usize, device: &Device) -> Summary {
         } else {
             k * d * d * 2.0
         };
-    let smplx_macs = k * (486.0 * 31425.0 + 12.0 * 55.0 * 10475.0 + 20.0 * 31425.0);
+    let (nj, nv) = (NUM_JOINTS as f64, NUM_VERTICES as f64);
+    let smplx_macs = k * (486.0 * 3.0 * nv + 12.0 * nj * nv + 20.0 * 3.0 * nv);
     let mut rows = vec![
         ("vit", count(&net.vit), vit_macs),
         ("reduce", count(&net.reduce), v * (c * cf) * (n - 1.0)),
@@ -251,7 +253,7 @@ pub fn summarize(cfg: &ModelConfig, views: usize, device: &Device) -> Summary {
                 b(cfg.decoder.heads as f64 * k.min(t as f64) * tokens.min(t as f64)),
             ),
         },
-        ("meshes [K, 10475, 3]".into(), b(k * 10475.0 * 3.0)),
+        (format!("meshes [K, {NUM_VERTICES}, 3]"), b(k * nv * 3.0)),
     ];
     Summary { rows, activations }
 }

@@ -19,18 +19,8 @@ use crate::fused::FusedLbs;
 use crate::names::{
     EXTRA_VERTEX_JOINTS, NUM_BETAS, NUM_EXPRESSION, NUM_JOINTS, NUM_POSE_JOINTS, NUM_REGRESSED,
 };
+pub use crate::params::Translation;
 use mvmp_geom::rotation::axis_angle_to_matrix;
-
-/// How the translation places the body.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub enum Translation {
-    /// smplx's `transl`: added to the model's own origin (the pelvis then sits at `J_0(betas) + transl`).
-    #[default]
-    Standard,
-    /// The paper's `T_wld` (docs/architecture.md, SMPL-X): the translation is the pelvis position in the
-    /// world.
-    Pelvis,
-}
 
 /// Output of the layer.
 #[derive(Debug, Clone)]
@@ -100,7 +90,7 @@ impl SmplxLayer {
         let parents: Vec<usize> = (0..NUM_JOINTS)
             .map(|j| model.parents[j].max(0) as usize)
             .collect();
-        let fused = mvmp_geom::simd::runs_fused(device)
+        let fused = mvmp_kernels::cpu::runs_fused(device)
             .then(|| FusedLbs::new(model, j_template.clone(), j_sd.clone(), taps));
         let f2 = |d: Vec<f32>, s: [usize; 2]| Tensor::<2>::from_data(TensorData::new(d, s), device);
         SmplxLayer {

@@ -13,6 +13,8 @@ pub const NUM_BETAS: usize = 10;
 pub const NUM_EXPRESSION: usize = 10;
 /// Joints with the face landmarks: 55 + 21 vertex joints + 51 landmarks.
 pub const NUM_JOINTS_WITH_LANDMARKS: usize = 127;
+/// Vertices of the SMPL-X mesh (the stand-in body model has as many).
+pub const NUM_VERTICES: usize = 10475;
 
 /// The 55 LBS joints in model order.
 pub const JOINT_NAMES: [&str; NUM_JOINTS] = [

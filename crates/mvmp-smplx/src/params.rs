@@ -42,6 +42,20 @@ pub struct SmplxParams {
     pub transl: Vec<f64>,
 }
 
+/// How the translation places the body.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Translation {
+    /// smplx's `transl`: added to the model's own origin (the pelvis then sits at `J_0(betas) + transl`).
+    #[default]
+    Standard,
+    /// The paper's `T_wld` (docs/architecture.md, SMPL-X): the translation is the pelvis position in the
+    /// world.
+    Pelvis,
+}
+
+/// Most bodies one parameter file may hold: they are posed in one batch.
+pub const MAX_BODIES: usize = 4096;
+
 impl SmplxParams {
     fn field(&self, key: &str) -> &Vec<f64> {
         match key {
@@ -202,6 +216,12 @@ impl SmplxParams {
         };
         if bodies.is_empty() {
             return Err(err("the list of bodies is empty".into()));
+        }
+        if bodies.len() > MAX_BODIES {
+            return Err(err(format!(
+                "{} bodies: at most {MAX_BODIES} per file (each is posed at once, 10475 vertices)",
+                bodies.len()
+            )));
         }
         for (i, b) in bodies.iter().enumerate() {
             b.validate(&format!("bodies[{i}]"))

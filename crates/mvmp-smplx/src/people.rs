@@ -92,6 +92,9 @@ pub struct StoredPerson {
     pub pelvis: Option<[f64; 3]>,
 }
 
+/// Most people one stored frame may hold (a model decodes at most 1000): they are posed at once.
+pub const MAX_STORED_PEOPLE: usize = 10_000;
+
 /// Read `people.npz`: the standard smplx keys (missing pose keys are zero; `betas` and `expression` may
 /// have up to 10 columns), optional `scores` (default 1). Any float dtype.
 pub fn read_people_npz(path: &Path) -> Result<Vec<StoredPerson>, SmplxError> {
@@ -105,6 +108,12 @@ pub fn read_people_npz(path: &Path) -> Result<Vec<StoredPerson>, SmplxError> {
         ));
     }
     let n = shape[0] as usize;
+    if n > MAX_STORED_PEOPLE {
+        return Err(npz_err(
+            path,
+            format!("key `transl` holds {n} people; at most {MAX_STORED_PEOPLE} per frame"),
+        ));
+    }
     let mut people: Vec<StoredPerson> = (0..n)
         .map(|i| StoredPerson {
             params: SmplxParams {

@@ -21,7 +21,7 @@ use crate::BodyModel;
 use crate::names::{EXTRA_VERTEX_JOINTS, NUM_JOINTS, NUM_POSE_JOINTS};
 
 /// Vertex count of the stand-in (equal to SMPL-X).
-pub const STANDIN_VERTICES: usize = 10475;
+pub const STANDIN_VERTICES: usize = crate::names::NUM_VERTICES;
 const NUM_SHAPE: usize = 10;
 const NUM_EXPR: usize = 10;
 

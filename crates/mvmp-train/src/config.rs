@@ -55,13 +55,6 @@ impl From<Stage> for u32 {
     }
 }
 
-/// Stages compare with their numbers (`stage == 1`), as logs and `state.json` write them.
-impl PartialEq<u32> for Stage {
-    fn eq(&self, n: &u32) -> bool {
-        self.number() == *n
-    }
-}
-
 impl TryFrom<u32> for Stage {
     type Error = String;
     fn try_from(n: u32) -> Result<Stage, String> {
@@ -158,6 +151,10 @@ impl StageConfig {
 /// The most views per frame a config may ask for (every index is allocated per frame; CMU Panoptic, the
 /// largest rig read here, has 31 HD and 480 VGA cameras).
 pub const MAX_VIEWS: usize = 1000;
+/// Most frames per training step.
+pub const MAX_BATCH: usize = 1024;
+/// Most epochs (and warm-up steps) per stage: step counts stay far from overflowing.
+pub const MAX_EPOCHS: usize = 1_000_000;
 
 /// A training run's configuration.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -279,8 +276,11 @@ impl TrainConfig {
     /// Batch, views, matching gate, checkpoints and augmentation: the offending key and why.
     fn check_run(&self) -> Result<(), (String, String)> {
         let bad = |key: &str, what: String| Err((key.to_string(), what));
-        if self.batch_size == 0 {
-            return bad("batch_size", "0: must be at least 1".into());
+        if !(1..=MAX_BATCH).contains(&self.batch_size) {
+            return bad(
+                "batch_size",
+                format!("{}: expected 1 to {MAX_BATCH}", self.batch_size),
+            );
         }
         for (key, n) in [
             ("train_views", self.train_views),
@@ -312,6 +312,14 @@ impl TrainConfig {
     fn check_stages(&self) -> Result<(), (String, String)> {
         let bad = |key: String, what: String| Err((key, what));
         for (name, s) in [("stage1", &self.stage1), ("stage2", &self.stage2)] {
+            for (key, n) in [("epochs", s.epochs), ("warmup_steps", s.warmup_steps)] {
+                if n > MAX_EPOCHS {
+                    return bad(
+                        format!("{name}.{key}"),
+                        format!("{n}: expected at most {MAX_EPOCHS}"),
+                    );
+                }
+            }
             if !(s.lr.is_finite() && s.lr > 0.0) {
                 return bad(format!("{name}.lr"), format!("{}: must be positive", s.lr));
             }
@@ -451,8 +459,8 @@ mod tests {
 
     #[test]
     fn stages_are_numbered_one_and_two() {
-        assert_eq!(Stage::Detection, 1);
-        assert_eq!(Stage::Whole, 2);
+        assert_eq!(Stage::Detection.number(), 1);
+        assert_eq!(Stage::Whole.number(), 2);
         assert_eq!(serde_json::to_string(&Stage::Whole).unwrap(), "2");
         assert_eq!(
             serde_json::from_str::<Stage>("1").unwrap(),

@@ -16,16 +16,3 @@ pub use train::{
     Monitor, Outcome, Quiet, StepRecord, TrainOptions, ValRecord, check_validation_source,
     open_training_set, seeded_init, train,
 };
-
-/// The former homes of inference and evaluation, kept as paths for existing callers: the predictor is
-/// `mvmp_infer`'s, the drivers are `mvmp_eval::drivers`'.
-pub mod predict {
-    pub use mvmp_eval::drivers::*;
-    pub use mvmp_infer::predictor::*;
-}
-/// See [`predict`]: the per-frame outputs are `mvmp_infer::output`'s.
-pub mod output {
-    pub use mvmp_infer::output::*;
-}
-pub use mvmp_eval::drivers::{EvalOptions, evaluate};
-pub use mvmp_infer::{PersonPrediction, Predictor};

@@ -163,14 +163,21 @@ impl RunDir {
     /// Remove temporary files a kill left in `checkpoints/` (a checkpoint or optimizer state being written);
     /// the checkpoint the state names was complete before it was named.
     pub fn remove_stale_temporaries(&self) -> Result<(), TrainError> {
-        let dir = self.root.join("checkpoints");
-        let Ok(entries) = std::fs::read_dir(&dir) else {
+        // Checkpoints hold no dot-files of their own; the run's root holds the temporaries of the
+        // state, the log's rewrite, the curves and the model file, beside files a person may keep.
+        let ours = |name: &str| name.starts_with(".tmp") || name.starts_with(".mvmp-partial-");
+        self.remove_dot_files(&self.root.join("checkpoints"), |_| true)?;
+        self.remove_dot_files(&self.root, ours)
+    }
+
+    fn remove_dot_files(&self, dir: &Path, stale: impl Fn(&str) -> bool) -> Result<(), TrainError> {
+        let Ok(entries) = std::fs::read_dir(dir) else {
             return Ok(());
         };
         for e in entries {
-            let p = e.map_err(|e| TrainError::io(&dir, e))?.path();
+            let p = e.map_err(|e| TrainError::io(dir, e))?.path();
             let name = p.file_name().and_then(|f| f.to_str()).unwrap_or("");
-            if name.starts_with('.') && p.is_file() {
+            if name.starts_with('.') && stale(name) && p.is_file() {
                 tracing::warn!("removing {} (left by an interrupted write)", p.display());
                 std::fs::remove_file(&p).map_err(|e| TrainError::io(&p, e))?;
             }

@@ -403,23 +403,40 @@ pub fn stage1_loss(
     let gt = HostGt::new(batch);
     let grids = batch_grids(cfg, batch, device);
     let det = model.detect(batch.images.clone(), &grids);
-    let mut terms = Vec::new();
     let (d, diag) = detection_term(&det, &gt, cfg, weights, device);
-    if weights.detection > 0.0 {
-        terms.push(("detection", d * weights.detection));
+    let terms = LossTerms {
+        detection: (weights.detection > 0.0).then(|| d * weights.detection),
+        heatmap_2d: heatmap_2d_term(&det, &gt, cfg, weights, weights.heatmap_2d, device),
+        facing: facing_weighted(&det, &gt, batch, weights, device),
+        ..Default::default()
+    };
+    finish(terms.named(), 0, diag, device)
+}
+
+/// The 2D heatmap term at `weight` (`None` at 0).
+fn heatmap_2d_term(
+    det: &Detection,
+    gt: &HostGt,
+    cfg: &ModelConfig,
+    weights: &LossWeights,
+    weight: f32,
+    device: &Device,
+) -> Option<Tensor<1>> {
+    (weight > 0.0).then(|| heatmap_term(det, gt, cfg, weights.heatmap_sigma, device) * weight)
+}
+
+/// The facing term at its weight (`None` at 0 or for a model without a facing head).
+fn facing_weighted(
+    det: &Detection,
+    gt: &HostGt,
+    batch: &FrameBatch,
+    weights: &LossWeights,
+    device: &Device,
+) -> Option<Tensor<1>> {
+    if weights.facing <= 0.0 {
+        return None;
     }
-    if weights.heatmap_2d > 0.0 {
-        terms.push((
-            "heatmap_2d",
-            heatmap_term(&det, &gt, cfg, weights.heatmap_sigma, device) * weights.heatmap_2d,
-        ));
-    }
-    if weights.facing > 0.0
-        && let Some(f) = facing_term(&det, &gt, batch, weights.heatmap_sigma, device)
-    {
-        terms.push(("facing", f * weights.facing));
-    }
-    finish(terms, 0, diag, device)
+    facing_term(det, gt, batch, weights.heatmap_sigma, device).map(|f| f * weights.facing)
 }
 
 fn finish(
@@ -521,18 +538,10 @@ pub fn stage2_loss(
         density: on(weights.density).then(|| {
             density_term(&out, batch, &t, frames.as_ref(), weights, device) * weights.density
         }),
+        heatmap_2d: heatmap_2d_term(&det, &gt, cfg, weights, weights.heatmap_2d_stage2, device),
+        facing: facing_weighted(&det, &gt, batch, weights, device),
     };
-    let mut named = terms.named();
-    if weights.heatmap_2d_stage2 > 0.0 {
-        let h = heatmap_term(&det, &gt, cfg, weights.heatmap_sigma, device);
-        named.push(("heatmap_2d", h * weights.heatmap_2d_stage2));
-    }
-    if weights.facing > 0.0
-        && let Some(f) = facing_term(&det, &gt, batch, weights.heatmap_sigma, device)
-    {
-        named.push(("facing", f * weights.facing));
-    }
-    finish(named, queries, diag, device)
+    finish(terms.named(), queries, diag, device)
 }
 
 /// Where each query slot's ground truth sits among the batch's padded people.

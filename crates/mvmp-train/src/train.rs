@@ -279,12 +279,9 @@ pub fn check_validation_source(cfg: &TrainConfig) -> Result<(), TrainError> {
             .unwrap_or("test")
             .parse()
             .map_err(|e: String| TrainError::file(&src.root, e))?;
-        FrameDataset::open(
-            Path::new(&src.root),
-            split,
-            ViewChoice::Fixed((0..cfg.test_views).collect()),
-            14,
-        )?;
+        // The cameras were counted above; the split must have scenes.
+        let layout = mvmp_data::DatasetLayout::open(Path::new(&src.root))?;
+        mvmp_data::loader::split_frames(&layout, split)?;
         return Ok(());
     }
     let seqs = validation_sequences(cfg, &src)?;

@@ -1599,7 +1599,19 @@ fn a_torn_log_line_and_stale_temporaries_do_not_stop_a_resume() {
     ] {
         std::fs::write(ck.join(f), b"x").unwrap();
     }
+    // In the run's root: the temporaries of the state, the log, the curves and the model file go; a
+    // person's own dot-file stays.
+    for f in [".tmpXyZ789", ".mvmp-partial-q1w2.bpk", ".notes"] {
+        std::fs::write(run.root.join(f), b"x").unwrap();
+    }
     run.remove_stale_temporaries().unwrap();
+    for (f, kept) in [
+        (".tmpXyZ789", false),
+        (".mvmp-partial-q1w2.bpk", false),
+        (".notes", true),
+    ] {
+        assert_eq!(run.root.join(f).exists(), kept, "{f}");
+    }
     let mut left: Vec<String> = std::fs::read_dir(&ck)
         .unwrap()
         .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())

@@ -143,11 +143,22 @@ impl SynthConfig {
     /// Scene, frame and people counts, area, images and lighting: the offending key and why.
     fn check_scenes(&self) -> Result<(), (String, String)> {
         let bad = |key: &str, what: String| Err((key.to_string(), what));
-        if self.scenes == 0 {
-            return bad("scenes", "must be at least 1".into());
+        for (key, n) in [
+            ("scenes", self.scenes),
+            ("frames_per_scene", self.frames_per_scene),
+        ] {
+            if !(1..=MAX_COUNT).contains(&n) {
+                return bad(key, format!("{n}: expected 1 to {MAX_COUNT}"));
+            }
         }
-        if self.frames_per_scene == 0 {
-            return bad("frames_per_scene", "must be at least 1".into());
+        if self.scenes * self.frames_per_scene > MAX_COUNT {
+            return bad(
+                "scenes, frames_per_scene",
+                format!(
+                    "{} x {}: at most {MAX_COUNT} frames in all",
+                    self.scenes, self.frames_per_scene
+                ),
+            );
         }
         let [lo, hi] = self.people;
         if lo == 0 || lo > hi || hi > 254 {
@@ -189,6 +200,10 @@ impl SynthConfig {
     }
 }
 
+/// Most scenes, frames per scene, and frames in all, of one synthetic set (a million frames of 4 views
+/// at 256 pixels are about 500 GB).
+pub const MAX_COUNT: usize = 1_000_000;
+
 fn fov_ok(f: f64) -> bool {
     f.is_finite() && (10.0..=150.0).contains(&f)
 }
@@ -228,12 +243,13 @@ impl CameraConfig {
             );
         }
         for (i, l) in c.listed.iter().enumerate() {
-            let finite = l.position.iter().chain(&l.look_at).all(|v| v.is_finite());
+            let finite =
+                (l.position.iter().chain(&l.look_at)).all(|v| v.is_finite() && v.abs() <= 1000.0);
             let k1_ok = l.k1.is_finite() && l.k1.abs() <= 0.5;
             if !finite || !fov_ok(l.fov_deg) || !k1_ok || l.position == l.look_at {
                 return bad(
                     &format!("cameras.listed[{i}]"),
-                    "position and look_at must be finite and distinct, fov_deg 10 to 150, |k1| <= 0.5".into(),
+                    "position and look_at must be distinct and within 1000 m, fov_deg 10 to 150, |k1| <= 0.5".into(),
                 );
             }
         }
@@ -252,11 +268,12 @@ impl CameraConfig {
             return Err(("cameras.rings".into(), "at least one ring is needed".into()));
         }
         for (i, r) in self.rings.iter().enumerate() {
-            if !(r.height.is_finite() && r.height > 0.2 && r.radius.is_finite() && r.radius > 1.0) {
+            let within = |x: f64, lo: f64| x.is_finite() && x > lo && x <= 1000.0;
+            if !(within(r.height, 0.2) && within(r.radius, 1.0)) {
                 return Err((
                     format!("cameras.rings[{i}]"),
                     format!(
-                        "height {} and radius {}: expected > 0.2 m and > 1 m",
+                        "height {} and radius {}: expected 0.2 to 1000 m and 1 to 1000 m",
                         r.height, r.radius
                     ),
                 ));

@@ -1,5 +1,5 @@
-//! Where the fused CPU inference passes (SMPL-X, fusion) run, and the vector instruction set their kernels
-//! use.
+//! What the fused CPU passes (SMPL-X, fusion) share: where they run, the vector instruction set their
+//! kernels use, and the pointer their parallel workers write through.
 use burn::tensor::Device;
 
 /// Whether `device` takes the fused SMPL-X pass: burn's flex backend without autodiff. (`Device` equality
@@ -36,5 +36,20 @@ impl Isa {
             }
         }
         Isa::Portable
+    }
+}
+
+/// A pointer that parallel workers write through, each to its own disjoint part of one output (the
+/// callers say which part is whose).
+#[derive(Clone, Copy)]
+pub struct SendPtr(pub *mut f32);
+// SAFETY: every user writes through it to ranges no other worker touches (see each call site).
+unsafe impl Send for SendPtr {}
+unsafe impl Sync for SendPtr {}
+
+impl SendPtr {
+    /// A method, so that closures capture the whole (Send) wrapper rather than its raw field.
+    pub fn get(self) -> *mut f32 {
+        self.0
     }
 }
