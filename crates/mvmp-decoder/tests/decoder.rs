@@ -358,3 +358,36 @@ fn tiled_cross_attention_equals_burns_attention() {
         );
     }
 }
+
+/// With `pose_trunk` only the body-pose rotations reach the shared query path: a loss on the global
+/// orientation, hands and face, betas, expression and translation leaves the query projection without a
+/// gradient, one on the body rotations gives it one; the output shapes are those of the shared heads.
+#[test]
+fn with_pose_trunk_only_the_body_pose_trains_the_query_path() {
+    let d = Device::flex().autodiff();
+    let g = VoxelGrid::new([0.0, 0.0, 1.0], [4.0, 4.0, 2.0], [8, 8, 4]).unwrap();
+    let dec = DecoderConfig::new(4)
+        .with_dim(8)
+        .with_heads(2)
+        .with_pose_trunk(true)
+        .init(&d);
+    let vol = Tensor::<5>::random([1, 4, 8, 8, 4], burn::tensor::Distribution::Default, &d);
+    let roots = Tensor::<3>::from_data(TensorData::new(vec![0.3f32, -0.2, 0.9], [1, 1, 3]), &d);
+    let present = Tensor::<2, Bool>::from_data(TensorData::new(vec![true], [1, 1]), &d);
+    let grad_of = |pick: &dyn Fn(DecoderOutput) -> Tensor<1>| {
+        let out = dec.forward(vol.clone(), &g, roots.clone(), present.clone());
+        assert_eq!(out.rot6d.dims(), [1, 1, 53, 6]);
+        let grads = pick(out).backward();
+        (dec.query_proj.weight.grad(&grads)).map(|t| t.abs().sum().into_scalar::<f32>())
+    };
+    let rest = grad_of(&|o| {
+        o.rot6d.clone().narrow(2, 0, 1).sum()
+            + o.rot6d.narrow(2, 22, 31).sum()
+            + o.betas.sum()
+            + o.expression.sum()
+            + o.transl.sum()
+    });
+    assert!(rest.is_none_or(|s| s == 0.0), "{rest:?}");
+    let body = grad_of(&|o| o.rot6d.narrow(2, 1, 21).sum());
+    assert!(body.is_some_and(|s| s > 0.0), "{body:?}");
+}

@@ -98,6 +98,9 @@ pub struct DecoderSection {
     pub joint_lattice: [usize; 3],
     /// Metres the box spans per axis.
     pub joint_span: [f64; 3],
+    /// Only the body-pose head trains the decoder's shared path (`DecoderConfig::pose_trunk`; false,
+    /// the paper, shares it among all heads).
+    pub pose_trunk: bool,
 }
 
 impl Default for DecoderSection {
@@ -116,6 +119,7 @@ impl Default for DecoderSection {
             query_joints: false,
             joint_lattice: d.joint_lattice,
             joint_span: d.joint_span,
+            pose_trunk: d.pose_trunk,
         }
     }
 }

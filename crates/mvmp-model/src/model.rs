@@ -158,6 +158,7 @@ impl ModelConfig {
                 })
                 .with_joint_lattice(self.decoder.joint_lattice)
                 .with_joint_span(self.decoder.joint_span)
+                .with_pose_trunk(self.decoder.pose_trunk)
                 .with_heading(self.facing)
                 .with_attention_tile(self.attention_tile)
                 .init(device),
