@@ -20,6 +20,24 @@ fn float_width(data_type: i32) -> Option<usize> {
     }
 }
 
+thread_local! {
+    static DECODING: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+
+/// Whether this thread is inside the CDF decoder, whose panics on a damaged file are caught and
+/// reported as that file's error: a panic hook can keep quiet about them.
+pub fn decoding_on_this_thread() -> bool {
+    DECODING.with(|d| d.get())
+}
+
+/// `f` with its panic caught, marked for [`decoding_on_this_thread`] while it runs.
+fn quietly<R>(f: impl FnOnce() -> R) -> std::thread::Result<R> {
+    DECODING.with(|d| d.set(true));
+    let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(f));
+    DECODING.with(|d| d.set(false));
+    r
+}
+
 /// The values of variable `name` as f64, every record in order, each record's array in row-major order;
 /// with the per-record dimensions.
 pub fn read_variable(path: &Path, name: &str) -> Result<(Vec<f64>, Vec<usize>), DataError> {
@@ -31,7 +49,7 @@ pub fn read_variable(path: &Path, name: &str) -> Result<(Vec<f64>, Vec<usize>), 
     }
     let bad = |what: String| DataError::file(path, what);
     // The decoder indexes into buffers it reads; a damaged file must not take the process down.
-    let decoded = std::panic::catch_unwind(|| cdf::cdf::Cdf::read_cdf_file(path))
+    let decoded = quietly(|| cdf::cdf::Cdf::read_cdf_file(path))
         .map_err(|_| bad("not a readable CDF file (the decoder failed on its structure)".into()))?
         .map_err(|e| bad(format!("not a readable CDF file: {e}")))?;
     if decoded.is_compressed {
