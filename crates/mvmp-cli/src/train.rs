@@ -94,11 +94,29 @@ pub fn stop_flag() -> Arc<AtomicBool> {
     // A handler can only be installed once per process; a failure leaves Ctrl-C at its default.
     let _ = ctrlc::set_handler(move || {
         if s.swap(true, Ordering::SeqCst) {
+            remove_unstarted();
             std::process::exit(130);
         }
         eprintln!("\ninterrupted: writing a checkpoint after this step (Ctrl-C again to quit now)");
     });
     stop
+}
+
+/// A new run's directory while it has no checkpoint: quitting then (a second Ctrl-C) leaves nothing to
+/// resume, so the directory goes too.
+static UNSTARTED: std::sync::Mutex<Option<PathBuf>> = std::sync::Mutex::new(None);
+
+fn remove_unstarted() {
+    let dir = UNSTARTED.lock().ok().and_then(|mut d| d.take());
+    if let Some(dir) = dir.filter(|d| !d.join("state.json").exists()) {
+        match std::fs::remove_dir_all(&dir) {
+            Ok(()) => eprintln!("no checkpoint was written: removed {}", dir.display()),
+            Err(e) => eprintln!(
+                "no checkpoint was written; removing {} failed: {e}",
+                dir.display()
+            ),
+        }
+    }
 }
 
 pub struct TrainArgs<'a> {
@@ -174,7 +192,11 @@ pub fn train(args: TrainArgs, device: &Device, monitor: &mut BarMonitor) -> Resu
             };
             let run = RunDir::create(&out, &cfg, &model, None)?;
             eprintln!("run directory {}", out.display());
-            let (run2, cfg, model) = RunDir::open(&run.root)?;
+            let (run2, cfg, model) =
+                RunDir::open(&run.root).map_err(|e| discard_unstarted(&run, true, e.into()))?;
+            if let Ok(mut d) = UNSTARTED.lock() {
+                *d = Some(run.root.clone());
+            }
             (run2, cfg, model)
         }
         (Some(_), Some(_)) => {
