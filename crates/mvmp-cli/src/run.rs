@@ -430,27 +430,7 @@ fn load_images(paths: &[PathBuf], cams: &[Camera]) -> Result<Vec<image::RgbImage
             cams.len()
         );
     }
-    paths
-        .iter()
-        .zip(cams)
-        .map(|(p, c)| {
-            let img = mvmp_data::check::open_image(p)
-                .map_err(|e| anyhow::anyhow!("{}: unreadable image: {e}", p.display()))?
-                .to_rgb8();
-            if img.dimensions() != (c.width, c.height) {
-                bail!(
-                    "{}: the image is {}x{} but camera {:?} of the rig is {}x{}",
-                    p.display(),
-                    img.width(),
-                    img.height(),
-                    c.name,
-                    c.width,
-                    c.height
-                );
-            }
-            Ok(img)
-        })
-        .collect()
+    Ok(mvmp_data::sources::read_frame_images(paths, cams)?)
 }
 
 /// Infer one frame; returns the number of people.

@@ -47,6 +47,31 @@ pub fn open_image(path: &Path) -> Result<image::DynamicImage, String> {
     Ok(img)
 }
 
+/// A view's image, decoded whole and checked against its camera's resolution: every loader and
+/// `infer` read views through this, with one message for each failure.
+pub fn read_view_image(
+    path: &Path,
+    cam: &mvmp_geom::Camera,
+) -> Result<image::RgbImage, crate::DataError> {
+    let img = open_image(path)
+        .map_err(|e| crate::DataError::file(path, format!("unreadable image: {e}")))?
+        .to_rgb8();
+    if img.dimensions() != (cam.width, cam.height) {
+        return Err(crate::DataError::file(
+            path,
+            format!(
+                "the image is {} x {} but camera {:?} of the rig is {} x {}",
+                img.width(),
+                img.height(),
+                cam.name,
+                cam.width,
+                cam.height
+            ),
+        ));
+    }
+    Ok(img)
+}
+
 /// Whether the last scan of a JPEG is followed by an end-of-image marker. Inside entropy-coded data
 /// every 0xFF byte is stuffed (0xFF 0x00), so the markers cannot occur there; an EXIF thumbnail's own
 /// markers come before the main image's scan, and data some cameras append after the end marker is

@@ -254,34 +254,11 @@ impl FrameDataset {
         ann: &Annotation,
         views: &[usize],
     ) -> Result<LoadedViews, DataError> {
-        let s = self.size as usize;
-        let mut images = vec![0f32; views.len() * 3 * s * s];
-        let mut cameras = Vec::new();
-        let mut letterboxes = Vec::new();
-        for (vi, &v) in views.iter().enumerate() {
-            let cam = rig.cameras[v].clone();
-            let path = f.dir.join(&ann.images[v]);
-            let img = crate::check::open_image(&path)
-                .map_err(|e| DataError::file(&path, format!("unreadable image: {e}")))?
-                .to_rgb8();
-            if img.dimensions() != (cam.width, cam.height) {
-                return Err(DataError::file(
-                    &path,
-                    format!(
-                        "image is {} x {}, camera {} says {} x {}",
-                        img.width(),
-                        img.height(),
-                        cam.name,
-                        cam.width,
-                        cam.height
-                    ),
-                ));
-            }
-            let lb = Letterbox::new(cam.width, cam.height, self.size)?;
-            letterbox_into(&img, &lb, &mut images[vi * 3 * s * s..(vi + 1) * 3 * s * s]);
-            cameras.push(cam);
-            letterboxes.push(lb);
-        }
+        let cameras: Vec<Camera> = views.iter().map(|&v| rig.cameras[v].clone()).collect();
+        let imgs = (views.iter().zip(&cameras))
+            .map(|(&v, cam)| crate::check::read_view_image(&f.dir.join(&ann.images[v]), cam))
+            .collect::<Result<Vec<_>, _>>()?;
+        let (images, letterboxes) = letterbox_views(&imgs, &cameras, self.size)?;
         Ok((images, cameras, letterboxes))
     }
 
@@ -364,6 +341,24 @@ fn person_gt(p: &Person, views: &[usize], letterboxes: &[Letterbox]) -> PersonGt
         joints_2d,
         smplx: true,
     }
+}
+
+/// Views letterboxed into the network's `size` x `size` input: the images `[V * 3 * size * size]`
+/// (planar, normalised) and each view's letterbox.
+pub fn letterbox_views(
+    imgs: &[image::RgbImage],
+    cameras: &[Camera],
+    size: u32,
+) -> Result<(Vec<f32>, Vec<Letterbox>), DataError> {
+    let s = size as usize;
+    let mut images = vec![0f32; imgs.len() * 3 * s * s];
+    let mut letterboxes = Vec::with_capacity(imgs.len());
+    for (vi, (img, cam)) in imgs.iter().zip(cameras).enumerate() {
+        let lb = Letterbox::new(cam.width, cam.height, size)?;
+        letterbox_into(img, &lb, &mut images[vi * 3 * s * s..(vi + 1) * 3 * s * s]);
+        letterboxes.push(lb);
+    }
+    Ok((images, letterboxes))
 }
 
 /// Resize an image into its letterbox (aspect kept, zero padding) and normalise, writing `[3, S, S]`.

@@ -17,7 +17,8 @@ use crate::DataError;
 use crate::augment::Photometric;
 use crate::h36m::H36mSequence;
 use crate::loader::{
-    FrameDataset, FrameSample, PersonGt, Split, ViewChoice, draw_seed, letterbox_into, select_views,
+    FrameDataset, FrameSample, PersonGt, Split, ViewChoice, draw_seed, letterbox_views,
+    select_views,
 };
 use crate::panoptic::PanopticSequence;
 use mvmp_geom::{Camera, Letterbox};
@@ -122,27 +123,9 @@ pub fn read_frame_images(
     paths: &[PathBuf],
     cameras: &[Camera],
 ) -> Result<Vec<image::RgbImage>, DataError> {
-    let mut out = Vec::with_capacity(paths.len());
-    for (path, cam) in paths.iter().zip(cameras) {
-        let img = crate::check::open_image(path)
-            .map_err(|e| DataError::file(path, format!("unreadable image: {e}")))?
-            .to_rgb8();
-        if img.dimensions() != (cam.width, cam.height) {
-            return Err(DataError::file(
-                path,
-                format!(
-                    "the image is {}x{} but camera {} is {}x{} in the calibration",
-                    img.width(),
-                    img.height(),
-                    cam.name,
-                    cam.width,
-                    cam.height
-                ),
-            ));
-        }
-        out.push(img);
-    }
-    Ok(out)
+    (paths.iter().zip(cameras))
+        .map(|(path, cam)| crate::check::read_view_image(path, cam))
+        .collect()
 }
 
 /// The 127 SMPL-X joint slots a joint set fills.
@@ -307,14 +290,7 @@ impl JointFrameDataset {
             &views.iter().map(|&v| paths[v].clone()).collect::<Vec<_>>(),
             &cameras,
         )?;
-        let s = self.size as usize;
-        let mut images = vec![0f32; views.len() * 3 * s * s];
-        let mut letterboxes = Vec::with_capacity(views.len());
-        for (vi, (img, cam)) in imgs.iter().zip(&cameras).enumerate() {
-            let lb = Letterbox::new(cam.width, cam.height, self.size)?;
-            letterbox_into(img, &lb, &mut images[vi * 3 * s * s..(vi + 1) * 3 * s * s]);
-            letterboxes.push(lb);
-        }
+        let (images, letterboxes) = letterbox_views(&imgs, &cameras, self.size)?;
         let set = seq.joint_set();
         let people = seq
             .people(fi)?
@@ -325,7 +301,7 @@ impl JointFrameDataset {
             scene: seq.name(),
             frame: seq.frame_key(fi),
             images,
-            size: s,
+            size: self.size as usize,
             cameras,
             letterboxes,
             people,
