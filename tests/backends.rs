@@ -24,8 +24,7 @@ use mvmp::geom::rotation::{
 use mvmp::geom::{Camera, Letterbox, VoxelGrid};
 use mvmp::model::{ModelConfig, MvmpHmr, RigGrids};
 use mvmp::smplx::{SmplxLayer, Translation, standin_model};
-use mvmp::train::QueryMode;
-use mvmp::train::step::stage2_loss;
+use mvmp::train::step::{Stage2, stage2_loss};
 use nalgebra::{Matrix3, Vector3};
 
 /// Deterministic pseudo-random values in [-a, a] (a hash, not a progression).
@@ -522,9 +521,7 @@ fn model_and_training_step(other: &Device, r: &mut Report) {
             &batch,
             &cfg,
             &layer,
-            &mvmp::losses::LossWeights::default(),
-            QueryMode::Gt,
-            0.5,
+            &Stage2::at_true_roots(&mvmp::losses::LossWeights::default()),
             d,
         );
         let terms: Vec<f32> = l

@@ -19,7 +19,7 @@ use mvmp_losses::LossWeights;
 use mvmp_model::ModelConfig;
 use mvmp_smplx::names::{NUM_JOINTS, NUM_JOINTS_WITH_LANDMARKS};
 use mvmp_smplx::{BodyModel, SmplxLayer};
-use mvmp_train::{QueryMode, Stage};
+use mvmp_train::Stage;
 
 use crate::GLOBAL;
 
@@ -137,9 +137,7 @@ fn probe(cfg: &ModelConfig, shape: Shape, stage: Stage, body: &BodyModel) -> Res
             &batch,
             cfg,
             &layer,
-            &w,
-            QueryMode::Gt,
-            0.5,
+            &mvmp_train::step::Stage2::at_true_roots(&w),
             &device,
         ),
     };

@@ -905,6 +905,43 @@ fn no_malformed_image_rig_run_or_flag_gets_through() {
     }
     std::fs::write(&views[0], &good).unwrap();
 
+    // A broken image in a later frame: the frames before it were written, and must not stay. `eval`
+    // scores both scenes (either may come first); `infer --frames` reads two frames of one rig.
+    let later = ds.join("scene_001/frame_000000/view_00.png");
+    let later_good = std::fs::read(&later).unwrap();
+    std::fs::write(&later, &good[..good.len() / 2]).unwrap();
+    let named = |t: &str| t.contains("view_00.png");
+    check(
+        &save,
+        "a later scene's view cut in half via eval",
+        &named,
+        Some(p("pred")),
+    );
+    std::fs::write(&later, &later_good).unwrap();
+    let frames = p("frames");
+    for f in ["f0", "f1"] {
+        copy_dir(&frame, &frames.join(f));
+    }
+    std::fs::write(frames.join("f1/view_00.png"), &good[..good.len() / 2]).unwrap();
+    let sequence = owned(&[
+        "infer",
+        "--run",
+        &s(&run),
+        "--rig",
+        &s(&rig),
+        "--frames",
+        &s(&frames),
+        "--out",
+        &s(&p("sequence")),
+    ]);
+    let f1 = |t: &str| t.contains("f1") && t.contains("view_00.png");
+    check(
+        &sequence,
+        "the second frame's view cut in half via infer --frames",
+        &f1,
+        Some(p("sequence")),
+    );
+
     // Every number of the rig through `infer`. A camera 1e30 m away once made the top-down picture
     // overflow while counting its 1 m grid lines.
     let json_values = [

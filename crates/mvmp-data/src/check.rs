@@ -60,7 +60,7 @@ pub fn read_view_image(
         return Err(crate::DataError::file(
             path,
             format!(
-                "the image is {} x {} but camera {:?} of the rig is {} x {}",
+                "the image is {}x{} but camera {:?} of the rig is {}x{}",
                 img.width(),
                 img.height(),
                 cam.name,

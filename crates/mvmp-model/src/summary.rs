@@ -151,56 +151,85 @@ fn vit_attention(cfg: &ModelConfig, v: f64, heads: f64, n: f64) -> (String, usiz
     }
 }
 
-pub fn summarize(cfg: &ModelConfig, views: usize, device: &Device) -> Summary {
-    let net = cfg.init(device);
-    let vit = cfg.vit();
-    let s = cfg.image_size as usize;
-    let v = views as f64;
-    let n = ((s / PATCH) * (s / PATCH)) as f64 + 1.0;
-    let c = vit.embed_dim as f64;
-    let hidden = c * vit.mlp_ratio;
-    let vit_macs = v
-        * ((3 * PATCH * PATCH) as f64 * c * (n - 1.0)
-            + vit.depth as f64 * (n * (4.0 * c * c + 2.0 * c * hidden) + 2.0 * n * n * c));
-    let p = cfg.grid.num_voxels() as f64;
-    let cf = cfg.feature_channels as f64;
-    let j = cfg.heatmap_joints.len() as f64;
-    // Bilinear sampling: 4 taps per channel, voxel and view.
-    let points = net.deformable.as_ref().map_or(1.0, |d| d.points as f64);
-    let fusion_macs = v * p * 4.0 * (cf * points + j);
-    let d = cfg.decoder.dim as f64;
-    let k = cfg.max_people as f64;
-    let pool = cfg.decoder.pool as f64;
-    let tokens = p
-        / (pool
-            * pool
-            * if cfg.grid.shape[2].is_multiple_of(cfg.decoder.pool) {
-                pool
-            } else {
-                1.0
-            });
+/// The sizes a summary's counts are made of.
+struct Sizes {
+    /// Views, tokens per view (with the class token), ViT width, the ViT's MLP width.
+    v: f64,
+    n: f64,
+    c: f64,
+    hidden: f64,
+    /// Voxels, feature channels, heatmap joints, people, decoder width, cross-attention tokens.
+    p: f64,
+    cf: f64,
+    j: f64,
+    k: f64,
+    d: f64,
+    tokens: f64,
+}
+
+impl Sizes {
+    fn of(cfg: &ModelConfig, views: usize) -> Self {
+        let vit = cfg.vit();
+        let s = cfg.image_size as usize;
+        let c = vit.embed_dim as f64;
+        let p = cfg.grid.num_voxels() as f64;
+        let pool = cfg.decoder.pool as f64;
+        let z_pool = if cfg.grid.shape[2].is_multiple_of(cfg.decoder.pool) {
+            pool
+        } else {
+            1.0
+        };
+        Sizes {
+            v: views as f64,
+            n: ((s / PATCH) * (s / PATCH)) as f64 + 1.0,
+            c,
+            hidden: c * vit.mlp_ratio,
+            p,
+            cf: cfg.feature_channels as f64,
+            j: cfg.heatmap_joints.len() as f64,
+            k: cfg.max_people as f64,
+            d: cfg.decoder.dim as f64,
+            tokens: p / (pool * pool * z_pool),
+        }
+    }
+}
+
+/// The decoder's MACs: token projection, query projection, blocks (or the baseline's MLP).
+fn decoder_macs(cfg: &ModelConfig, z: &Sizes) -> f64 {
+    let (k, d, tokens) = (z.k, z.d, z.tokens);
     // The query projection reads every lattice point of the features (and the joints' centroids).
     let lattice = cfg.decoder.query_lattice.iter().product::<usize>() as f64;
-    let sampled = lattice * cf
-        + if cfg.decoder.query_joints {
-            3.0 * j
-        } else {
-            0.0
-        };
-    let query_macs = k * (sampled + mvmp_decoder::queries::PARAM_DIM as f64) * d;
-    let dec_macs = tokens * cf * d
+    let joints = if cfg.decoder.query_joints {
+        3.0 * z.j
+    } else {
+        0.0
+    };
+    let query_macs = k * (lattice * z.cf + joints + mvmp_decoder::queries::PARAM_DIM as f64) * d;
+    tokens * z.cf * d
         + query_macs
         + if cfg.decoder.use_htb {
             cfg.decoder.depth as f64
                 * (8.0 * k * d * d + 2.0 * tokens * d * d + 2.0 * k * tokens * d + 8.0 * k * d * d)
         } else {
             k * d * d * 2.0
-        };
+        }
+}
+
+pub fn summarize(cfg: &ModelConfig, views: usize, device: &Device) -> Summary {
+    let net = cfg.init(device);
+    let z = Sizes::of(cfg, views);
+    let (v, n, c, p) = (z.v, z.n, z.c, z.p);
+    let vit_macs = v
+        * ((3 * PATCH * PATCH) as f64 * c * (n - 1.0)
+            + cfg.vit().depth as f64 * (n * (4.0 * c * c + 2.0 * c * z.hidden) + 2.0 * n * n * c));
+    // Bilinear sampling: 4 taps per channel, voxel and view.
+    let points = net.deformable.as_ref().map_or(1.0, |d| d.points as f64);
+    let fusion_macs = v * p * 4.0 * (z.cf * points + z.j);
     let (nj, nv) = (NUM_JOINTS as f64, NUM_VERTICES as f64);
-    let smplx_macs = k * (486.0 * 3.0 * nv + 12.0 * nj * nv + 20.0 * 3.0 * nv);
+    let smplx_macs = z.k * (486.0 * 3.0 * nv + 12.0 * nj * nv + 20.0 * 3.0 * nv);
     let mut rows = vec![
         ("vit", count(&net.vit), vit_macs),
-        ("reduce", count(&net.reduce), v * (c * cf) * (n - 1.0)),
+        ("reduce", count(&net.reduce), v * (c * z.cf) * (n - 1.0)),
         ("hrnet", count(&net.hrnet), v * hrnet_macs(cfg)),
         (
             "fusion",
@@ -208,7 +237,7 @@ pub fn summarize(cfg: &ModelConfig, views: usize, device: &Device) -> Summary {
             fusion_macs,
         ),
         ("rootnet", count(&net.rootnet), v2v_macs(cfg)),
-        ("decoder", count(&net.decoder), dec_macs),
+        ("decoder", count(&net.decoder), decoder_macs(cfg, &z)),
         ("smplx", (0, 0), smplx_macs),
     ];
     if let Some(f) = &net.facing {
@@ -223,16 +252,23 @@ pub fn summarize(cfg: &ModelConfig, views: usize, device: &Device) -> Summary {
             macs,
         })
         .collect();
+    Summary {
+        rows,
+        activations: activations(cfg, &z),
+    }
+}
+
+/// The largest activations of one forward (name, bytes).
+fn activations(cfg: &ModelConfig, z: &Sizes) -> Vec<(String, usize)> {
+    let (v, n, c, p, cf, j, k, tokens) = (z.v, z.n, z.c, z.p, z.cf, z.j, z.k, z.tokens);
+    let s = cfg.image_size as f64;
     let b = |x: f64| (x * 4.0) as usize;
     let hs = (cfg.hrnet_input() / 4) as f64;
     let v2v_w0 = (16.0 * cfg.rootnet_width).round().max(2.0);
-    let activations = vec![
-        (
-            "images [V, 3, S, S]".to_string(),
-            b(v * 3.0 * (s * s) as f64),
-        ),
+    vec![
+        ("images [V, 3, S, S]".to_string(), b(v * 3.0 * s * s)),
         ("ViT tokens of one block [V, N, C]".into(), b(v * n * c)),
-        vit_attention(cfg, v, vit.heads as f64, n),
+        vit_attention(cfg, v, cfg.vit().heads as f64, n),
         ("features [V, Cf, S/14, S/14]".into(), b(v * cf * (n - 1.0))),
         (format!("heatmaps [V, J, {hs}, {hs}]"), b(v * j * hs * hs)),
         ("fused volume [Cf, X, Y, Z]".into(), b(cf * p)),
@@ -242,7 +278,7 @@ pub fn summarize(cfg: &ModelConfig, views: usize, device: &Device) -> Summary {
             "V2V 7^3 input patches (im2col, if the conv unfolds)".into(),
             b(j * 343.0 * p),
         ),
-        ("decoder tokens [P/pool^3, D]".into(), b(tokens * d)),
+        ("decoder tokens [P/pool^3, D]".into(), b(tokens * z.d)),
         match cfg.attention_tile {
             0 => (
                 "cross-attention weights [heads, K, P/pool^3]".into(),
@@ -253,7 +289,9 @@ pub fn summarize(cfg: &ModelConfig, views: usize, device: &Device) -> Summary {
                 b(cfg.decoder.heads as f64 * k.min(t as f64) * tokens.min(t as f64)),
             ),
         },
-        (format!("meshes [K, {NUM_VERTICES}, 3]"), b(k * nv * 3.0)),
-    ];
-    Summary { rows, activations }
+        (
+            format!("meshes [K, {NUM_VERTICES}, 3]"),
+            b(k * NUM_VERTICES as f64 * 3.0),
+        ),
+    ]
 }

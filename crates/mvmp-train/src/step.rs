@@ -491,20 +491,42 @@ pub fn choose_queries(
         .collect()
 }
 
-/// Stage 2: the whole model and the five losses. The queries are chosen from the detections (`mode`,
-/// matched within `gate`), the ground truth is gathered per query ([`QueryTargets`]), and each term is
-/// one function.
-#[allow(clippy::too_many_arguments)]
+/// How stage 2 supervises a step: the loss weights, and where the queries are decoded (`queries`,
+/// detections matched to the ground truth within `gate` metres).
+#[derive(Debug, Clone, Copy)]
+pub struct Stage2<'a> {
+    pub weights: &'a LossWeights,
+    pub queries: QueryMode,
+    pub gate: f64,
+}
+
+impl<'a> Stage2<'a> {
+    /// Queries at the true roots only.
+    pub fn at_true_roots(weights: &'a LossWeights) -> Self {
+        Stage2 {
+            weights,
+            queries: QueryMode::Gt,
+            gate: 0.5,
+        }
+    }
+}
+
+/// Stage 2: the whole model and the five losses. The queries are chosen from the detections (see
+/// [`Stage2`]), the ground truth is gathered per query ([`QueryTargets`]), and each term is one
+/// function.
 pub fn stage2_loss(
     model: &MvmpHmr,
     batch: &FrameBatch,
     cfg: &ModelConfig,
     layer: &SmplxLayer,
-    weights: &LossWeights,
-    mode: QueryMode,
-    gate: f64,
+    setup: &Stage2,
     device: &Device,
 ) -> StepLoss {
+    let Stage2 {
+        weights,
+        queries: mode,
+        gate,
+    } = *setup;
     let gt = HostGt::new(batch);
     let grids = batch_grids(cfg, batch, device);
     let gt_roots = gt.roots(cfg.primary_joint.joint());

@@ -27,7 +27,7 @@ use mvmp_smplx::{BodyModel, SmplxLayer};
 use crate::TrainError;
 use crate::config::{Stage, StageConfig, TrainConfig};
 use crate::run::{RunDir, RunState, STATE_FORMAT};
-use crate::step::{StepLoss, stage1_loss, stage2_loss};
+use crate::step::{Stage2, StepLoss, stage1_loss, stage2_loss};
 use mvmp_eval::drivers::{EvalOptions, PseudoGt, evaluate, ground_truth};
 use mvmp_eval::spread;
 use mvmp_infer::{Predictor, load_weights};
@@ -675,16 +675,14 @@ impl<'a> Trainer<'a> {
         let stage2_weights = stage2_weights(&cfg.loss, sc);
         let loss_of = |model: &MvmpHmr| match stage {
             Stage::Detection => stage1_loss(model, &batch, self.model_cfg, &cfg.loss, ad),
-            Stage::Whole => stage2_loss(
-                model,
-                &batch,
-                self.model_cfg,
-                &self.layer,
-                &stage2_weights,
-                cfg.queries,
-                cfg.match_gate,
-                ad,
-            ),
+            Stage::Whole => {
+                let setup = Stage2 {
+                    weights: &stage2_weights,
+                    queries: cfg.queries,
+                    gate: cfg.match_gate,
+                };
+                stage2_loss(model, &batch, self.model_cfg, &self.layer, &setup, ad)
+            }
         };
         if cfg.term_gradients && bi == 0 {
             let terms = crate::diagnostics::term_grad_norms(&model, loss_of);

@@ -22,8 +22,8 @@ use mvmp_infer::{PersonPrediction, Predictor, load_weights};
 use mvmp_losses::MeshFrame;
 use mvmp_model::{ModelConfig, MvmpHmr};
 use mvmp_smplx::SmplxLayer;
-use mvmp_train::step::{stage1_loss, stage2_loss};
-use mvmp_train::{Outcome, QueryMode, Quiet, RunDir, TrainConfig, TrainError, TrainOptions};
+use mvmp_train::step::{Stage2, stage1_loss, stage2_loss};
+use mvmp_train::{Outcome, Quiet, RunDir, TrainConfig, TrainError, TrainOptions};
 
 /// Panoptic sequences read in place and scored, as `mvmp eval --format panoptic` does.
 #[allow(clippy::too_many_arguments)]
@@ -187,9 +187,7 @@ fn a_few_steps_on_one_batch_lower_the_loss() {
             &batch,
             &cfg,
             &layer,
-            &weights,
-            QueryMode::Gt,
-            0.5,
+            &Stage2::at_true_roots(&weights),
             &ad,
         );
         assert_eq!(l.queries, batch.counts[0]);
@@ -1164,9 +1162,7 @@ fn joint_annotated_people_get_joint_losses_only() {
             batch,
             &cfg,
             &layer,
-            &weights,
-            QueryMode::Gt,
-            0.5,
+            &Stage2::at_true_roots(&weights),
             &ad,
         );
         let t = term_values(&l);
@@ -1543,9 +1539,7 @@ fn pseudo_ground_truth_fits_become_smplx_targets() {
         &batch,
         &mcfg,
         &SmplxLayer::new(&mvmp_smplx::standin_model(0), &ad),
-        &mvmp_losses::LossWeights::default(),
-        QueryMode::Gt,
-        0.5,
+        &Stage2::at_true_roots(&mvmp_losses::LossWeights::default()),
         &ad,
     );
     for (name, t) in &l.terms {
@@ -1633,7 +1627,14 @@ fn body_frame_mesh_terms_run_on_smplx_and_joint_people() {
         ad,
     );
     let terms = |weights: &mvmp_losses::LossWeights| {
-        let l = stage2_loss(model, &batch, cfg, layer, weights, QueryMode::Gt, 0.5, ad);
+        let l = stage2_loss(
+            model,
+            &batch,
+            cfg,
+            layer,
+            &Stage2::at_true_roots(weights),
+            ad,
+        );
         let t = term_values(&l);
         (l, t)
     };
