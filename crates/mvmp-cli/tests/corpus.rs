@@ -1031,6 +1031,15 @@ fn no_malformed_image_rig_run_or_flag_gets_through() {
 
     // Numbers on the command line: each must be refused naming its flag.
     let tiny = s(&p("model.toml"));
+    // A new run with one flag set, and that flag.
+    let train_with = |flag: &'static str, value: &str| {
+        let config = s(&p("train.toml"));
+        let out = s(&p("run2"));
+        (
+            owned(&["train", "--config", &config, "--out", &out, flag, value]),
+            flag,
+        )
+    };
     let flags: Vec<(Vec<String>, &str)> = vec![
         (eval(&["--views", "0"]), "--views"),
         (eval(&["--views", "1000000"]), "--views"),
@@ -1123,43 +1132,10 @@ fn no_malformed_image_rig_run_or_flag_gets_through() {
             owned(&["demo", "--seed", "-1", "--out", &s(&p("demo"))]),
             "--seed",
         ),
-        (
-            owned(&[
-                "train",
-                "--config",
-                &s(&p("train.toml")),
-                "--out",
-                &s(&p("run2")),
-                "--stop-after-steps",
-                "0",
-            ]),
-            "--stop-after-steps",
-        ),
-        (
-            owned(&[
-                "train",
-                "--config",
-                &s(&p("train.toml")),
-                "--out",
-                &s(&p("run2")),
-                "--stop-after-minutes",
-                "nan",
-            ]),
-            "--stop-after-minutes",
-        ),
+        train_with("--stop-after-steps", "0"),
+        train_with("--stop-after-minutes", "nan"),
         // Counts that size an allocation, and a duration past what a timer holds.
-        (
-            owned(&[
-                "train",
-                "--config",
-                &s(&p("train.toml")),
-                "--out",
-                &s(&p("run2")),
-                "--stop-after-minutes",
-                "1e18",
-            ]),
-            "--stop-after-minutes",
-        ),
+        train_with("--stop-after-minutes", "1e18"),
         (
             owned(&[
                 "model",
