@@ -130,6 +130,12 @@ fn hf_to_hub(st: &safetensors::SafeTensors, path: &Path) -> Result<Vec<u8>, Impo
                 "block {n}: query, key and value {field} are not all present"
             )));
         };
+        if q.1.is_empty() || (q.0, &q.1) != (k.0, &k.1) || (q.0, &q.1) != (v.0, &v.1) {
+            return Err(fmt(format!(
+                "block {n}: query, key and value {field} must be arrays of one shape and dtype; they are {:?} {:?}, {:?} {:?} and {:?} {:?}",
+                q.0, q.1, k.0, k.1, v.0, v.1
+            )));
+        }
         // Stacked along the output dimension (rows): [q; k; v].
         let mut shape = q.1.clone();
         shape[0] *= 3;
@@ -204,7 +210,49 @@ pub fn import_dinov2(vit: &mut ViT, path: &Path) -> Result<ImportReport, ImportE
             });
         }
     };
+    check_finite(vit, path)?;
     Ok(result.into())
+}
+
+/// The first parameter of `module` (its module path) holding a NaN or infinite value: imported weights
+/// must be finite, or every prediction made with them is NaN.
+pub fn first_non_finite<M: burn::module::Module>(module: &M) -> Option<String> {
+    #[derive(Default)]
+    struct Finder {
+        path: Vec<String>,
+        found: Option<String>,
+    }
+    impl burn::module::ModuleVisitor for Finder {
+        fn enter_module(&mut self, name: &str, _container: &str) {
+            self.path.push(name.to_string());
+        }
+        fn exit_module(&mut self, _name: &str, _container: &str) {
+            self.path.pop();
+        }
+        fn visit_float<const D: usize>(
+            &mut self,
+            p: &burn::module::Param<burn::tensor::Tensor<D>>,
+        ) {
+            // Read on the host: one pass over the weights, whatever the backend's own checks do.
+            if self.found.is_none() && !p.val().into_data().iter::<f32>().all(|x| x.is_finite()) {
+                self.found = Some(self.path.join("."));
+            }
+        }
+    }
+    let mut f = Finder::default();
+    module.visit(&mut f);
+    f.found
+}
+
+/// Refuse weights read from `path` that hold a NaN or infinite value.
+pub fn check_finite<M: burn::module::Module>(module: &M, path: &Path) -> Result<(), ImportError> {
+    match first_non_finite(module) {
+        None => Ok(()),
+        Some(at) => Err(ImportError::Format {
+            path: path.into(),
+            what: format!("the weights of `{at}` hold a NaN or infinite value"),
+        }),
+    }
 }
 
 /// Save a module in burn-store's native burnpack format (mvmp key names), atomically.
@@ -339,5 +387,6 @@ pub fn import_hrnet(net: &mut crate::HRNet, path: &Path) -> Result<ImportReport,
         }
         _ => return Err(fmt("expected a .safetensors or .pth checkpoint".into())),
     };
+    check_finite(net, path)?;
     Ok(result.into())
 }

@@ -224,3 +224,48 @@ fn bad_files_are_errors() {
     );
     assert!(import_dinov2(&mut vit, &dir.path().join("absent.pth")).is_err());
 }
+
+#[test]
+fn hugging_face_attention_of_mismatched_shapes_and_non_finite_weights_are_refused() {
+    let d = Device::flex();
+    let dir = tempfile::tempdir().unwrap();
+    let layer = "encoder.layer.0.attention.attention";
+    let patch = (
+        "embeddings.patch_embeddings.projection.weight".to_string(),
+        vec![192, 3, 16, 16],
+        data("patch", &[192, 3, 16, 16]),
+    );
+    // Scalars (once an index panic) and three different shapes (once concatenated silently).
+    for (i, shapes) in [
+        [vec![], vec![], vec![]],
+        [vec![192, 192], vec![96, 384], vec![384, 96]],
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let mut t = vec![patch.clone()];
+        for (name, shape) in ["query", "key", "value"].into_iter().zip(shapes) {
+            let bytes = data(name, &shape);
+            t.push((format!("{layer}.{name}.weight"), shape, bytes));
+        }
+        let p = dir.path().join(format!("qkv{i}.safetensors"));
+        write(&p, t);
+        let mut vit = ViTConfig::tiny().init(&d);
+        let e = import_dinov2(&mut vit, &p).unwrap_err().to_string();
+        assert!(
+            e.contains(&format!("qkv{i}.safetensors")) && e.contains("block 0"),
+            "{e}"
+        );
+    }
+    // A NaN in the class token.
+    let mut cls = data("cls", &[1, 1, 192]);
+    cls[..4].copy_from_slice(&f32::NAN.to_le_bytes());
+    let p = dir.path().join("nan.safetensors");
+    write(&p, vec![("cls_token".into(), vec![1, 1, 192], cls)]);
+    let mut vit = ViTConfig::tiny().init(&d);
+    let e = import_dinov2(&mut vit, &p).unwrap_err().to_string();
+    assert!(
+        e.contains("nan.safetensors") && e.contains("cls_token"),
+        "{e}"
+    );
+}

@@ -27,6 +27,9 @@ pub fn synth(config: &Path, out: &Path) -> Result<()> {
 }
 
 pub fn stats(dir: &Path, json: bool, sheet: Option<&Path>) -> Result<()> {
+    if let Some(path) = sheet {
+        crate::paths::not_over_input("--sheet", path, dir)?;
+    }
     let s = mvmp_data::stats::dataset_stats(dir)?;
     if json {
         println!("{}", serde_json::to_string_pretty(&s)?);

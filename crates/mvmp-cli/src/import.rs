@@ -8,6 +8,7 @@ use mvmp_backbone::{HrnetVariant, VitVariant};
 use mvmp_backbone::import::{import_dinov2, save_native};
 
 pub fn dinov2(variant: VitVariant, from: &Path, out: &Path) -> Result<()> {
+    crate::paths::not_over_input("--out", out, from)?;
     let cfg = variant.config();
     let device = Device::flex();
     let mut vit = cfg.init(&device);
@@ -19,6 +20,7 @@ pub fn dinov2(variant: VitVariant, from: &Path, out: &Path) -> Result<()> {
 }
 
 pub fn hrnet(variant: HrnetVariant, joints: usize, from: &Path, out: &Path) -> Result<()> {
+    crate::paths::not_over_input("--out", out, from)?;
     let cfg = variant.config(joints);
     if joints == 0 {
         bail!("--joints must be at least 1");

@@ -257,6 +257,7 @@ fn train_and_score(
             resume: None,
             stop_after_steps: None,
             stop_after_minutes: Some(minutes * TIME_GUARD),
+            resumable: true,
         },
         device,
         &mut crate::train::BarMonitor::new(true),

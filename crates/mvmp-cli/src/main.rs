@@ -19,8 +19,10 @@ mod body;
 mod data;
 mod device;
 mod import;
+mod interrupt;
 mod learn;
 mod model;
+mod paths;
 mod probe;
 mod progress;
 mod run;
@@ -473,6 +475,7 @@ fn main() -> ExitCode {
         .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .init();
     let cli = Cli::parse();
+    interrupt::install();
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
@@ -564,6 +567,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 resume: resume.as_deref(),
                 stop_after_steps,
                 stop_after_minutes,
+                resumable: true,
             },
             &device,
             &mut train::BarMonitor::new(false),

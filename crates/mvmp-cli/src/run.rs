@@ -190,6 +190,13 @@ pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, s
     }
     let split_name = args.split.name();
     let layout = mvmp_data::DatasetLayout::open(args.data)?;
+    if mvmp_data::loader::split_frames(&layout, args.split)?.is_empty() {
+        bail!(
+            "{}: the {split_name} split has no frames ({} scenes in dataset.json)",
+            args.data.display(),
+            layout.scenes.len()
+        );
+    }
     let min_views = layout.scenes.iter().map(|s| s.rig.len()).min().unwrap_or(0);
     if let Some(v) = args.views.filter(|&v| v > min_views) {
         anyhow::bail!(
@@ -529,9 +536,30 @@ pub fn write_demo_configs(dir: &Path, scenes: usize) -> Result<()> {
 }
 
 /// `mvmp demo`: synthesise, train both stages, evaluate on held-out scenes beside two references, infer.
+/// `out` must be new or empty, and a demo that fails or is interrupted leaves it so.
 pub fn demo(out: &Path, seed: u64, device: &Device) -> Result<()> {
+    check_new_or_empty(out)?;
+    let existed = out.exists();
+    crate::interrupt::unfinished_output(out, existed);
+    let result = demo_configs(out, seed).and_then(|cfg_dir| demo_steps(out, &cfg_dir, device));
+    crate::interrupt::finished(out);
+    let Err(e) = result else {
+        return Ok(());
+    };
+    Err(match crate::interrupt::clear(out, existed) {
+        Ok(()) => e.context(format!(
+            "the demo's outputs in {} were removed",
+            out.display()
+        )),
+        Err(c) => e.context(format!(
+            "removing the demo's unfinished outputs in {} failed too: {c}",
+            out.display()
+        )),
+    })
+}
+
+fn demo_steps(out: &Path, cfg_dir: &Path, device: &Device) -> Result<()> {
     let t0 = std::time::Instant::now();
-    let cfg_dir = demo_configs(out, seed)?;
     let data = out.join("data");
     let run_dir = out.join("run");
     eprintln!("[1/5] synthetic dataset -> {}", data.display());
@@ -540,7 +568,7 @@ pub fn demo(out: &Path, seed: u64, device: &Device) -> Result<()> {
     eprintln!(
         "[2/5] references on the held-out scenes: the untrained model, the mean pose at the GT pelvis"
     );
-    let (m_untrained, m_mean) = demo_references(&cfg_dir, &data, out, device)?;
+    let (m_untrained, m_mean) = demo_references(cfg_dir, &data, out, device)?;
 
     eprintln!("[3/5] training -> {}", run_dir.display());
     crate::train::train(
@@ -551,15 +579,13 @@ pub fn demo(out: &Path, seed: u64, device: &Device) -> Result<()> {
             resume: None,
             stop_after_steps: None,
             stop_after_minutes: None,
+            resumable: false,
         },
         device,
         &mut crate::train::BarMonitor::new(false),
     )?;
     if !run_dir.join("model.bpk").exists() {
-        bail!(
-            "training stopped before the end; continue with `mvmp train --resume {}`",
-            run_dir.display()
-        );
+        bail!("training was interrupted");
     }
 
     eprintln!("[4/5] evaluation on the held-out scenes");
@@ -610,9 +636,7 @@ pub fn demo(out: &Path, seed: u64, device: &Device) -> Result<()> {
     Ok(())
 }
 
-/// The demo's configs (the embedded ones, the training seed set to `seed`) written to `out/configs`,
-/// which it returns; `out` must be new or empty.
-fn demo_configs(out: &Path, seed: u64) -> Result<PathBuf> {
+fn check_new_or_empty(out: &Path) -> Result<()> {
     if out.exists()
         && std::fs::read_dir(out)
             .with_context(|| format!("reading {}", out.display()))?
@@ -624,6 +648,12 @@ fn demo_configs(out: &Path, seed: u64) -> Result<PathBuf> {
             out.display()
         );
     }
+    Ok(())
+}
+
+/// The demo's configs (the embedded ones, the training seed set to `seed`) written to `out/configs`,
+/// which it returns.
+fn demo_configs(out: &Path, seed: u64) -> Result<PathBuf> {
     let cfg_dir = out.join("configs");
     std::fs::create_dir_all(&cfg_dir).with_context(|| format!("creating {}", cfg_dir.display()))?;
     let train_text = DEMO_TRAIN
@@ -819,6 +849,14 @@ fn eval_joint_dataset(
     let (pred, weights) = Predictor::from_run(&run.root, device)?;
     let pseudo = pseudo_gt(args, &pred, device)?;
     let seqs = (ds.open)(args.data, &ds.parts, cameras, stride)?;
+    if seqs.iter().all(|s| s.is_empty()) {
+        bail!(
+            "{}: the {} split ({}) has no frames with poses",
+            args.data.display(),
+            ds.split_label,
+            ds.parts.join(", ")
+        );
+    }
     let mut pb = LazyBar::new("eval", quiet);
     let (ev, count) = evaluate_joint_sequences(
         &pred,

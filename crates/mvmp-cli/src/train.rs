@@ -1,7 +1,5 @@
 //! `mvmp train`: run or resume a training run with a progress bar; Ctrl-C checkpoints and stops.
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
 
 use anyhow::Result;
 use burn::tensor::Device;
@@ -87,38 +85,6 @@ impl Drop for BarMonitor {
     }
 }
 
-/// The stop flag Ctrl-C sets (a second Ctrl-C exits at once).
-pub fn stop_flag() -> Arc<AtomicBool> {
-    let stop = Arc::new(AtomicBool::new(false));
-    let s = stop.clone();
-    // A handler can only be installed once per process; a failure leaves Ctrl-C at its default.
-    let _ = ctrlc::set_handler(move || {
-        if s.swap(true, Ordering::SeqCst) {
-            remove_unstarted();
-            std::process::exit(130);
-        }
-        eprintln!("\ninterrupted: writing a checkpoint after this step (Ctrl-C again to quit now)");
-    });
-    stop
-}
-
-/// A new run's directory while it has no checkpoint: quitting then (a second Ctrl-C) leaves nothing to
-/// resume, so the directory goes too.
-static UNSTARTED: std::sync::Mutex<Option<PathBuf>> = std::sync::Mutex::new(None);
-
-fn remove_unstarted() {
-    let dir = UNSTARTED.lock().ok().and_then(|mut d| d.take());
-    if let Some(dir) = dir.filter(|d| !d.join("state.json").exists()) {
-        match std::fs::remove_dir_all(&dir) {
-            Ok(()) => eprintln!("no checkpoint was written: removed {}", dir.display()),
-            Err(e) => eprintln!(
-                "no checkpoint was written; removing {} failed: {e}",
-                dir.display()
-            ),
-        }
-    }
-}
-
 pub struct TrainArgs<'a> {
     pub config: Option<&'a Path>,
     pub data: Option<&'a Path>,
@@ -127,6 +93,8 @@ pub struct TrainArgs<'a> {
     pub stop_after_steps: Option<u64>,
     /// Stop with a checkpoint once this call has trained this many minutes.
     pub stop_after_minutes: Option<f64>,
+    /// Say how to continue a stopped run (the demo removes its run instead).
+    pub resumable: bool,
 }
 
 /// Start or resume a run; returns its directory.
@@ -194,9 +162,7 @@ pub fn train(args: TrainArgs, device: &Device, monitor: &mut BarMonitor) -> Resu
             eprintln!("run directory {}", out.display());
             let (run2, cfg, model) =
                 RunDir::open(&run.root).map_err(|e| discard_unstarted(&run, true, e.into()))?;
-            if let Ok(mut d) = UNSTARTED.lock() {
-                *d = Some(run.root.clone());
-            }
+            crate::interrupt::new_run(&run.root);
             (run2, cfg, model)
         }
         (Some(_), Some(_)) => {
@@ -206,13 +172,15 @@ pub fn train(args: TrainArgs, device: &Device, monitor: &mut BarMonitor) -> Resu
     };
     let opts = TrainOptions {
         device: device.clone(),
-        stop: stop_flag(),
+        stop: crate::interrupt::training_started(),
         stop_after_steps: args.stop_after_steps,
         stop_after_time: args
             .stop_after_minutes
             .map(|m| std::time::Duration::from_secs_f64(m * 60.0)),
     };
-    let outcome = match mvmp_train::train(&run, &cfg, &model, &opts, monitor) {
+    let outcome = mvmp_train::train(&run, &cfg, &model, &opts, monitor);
+    crate::interrupt::training_ended();
+    let outcome = match outcome {
         Ok(o) => o,
         Err(e) => return Err(discard_unstarted(&run, args.config.is_some(), e.into())),
     };
@@ -224,10 +192,14 @@ pub fn train(args: TrainArgs, device: &Device, monitor: &mut BarMonitor) -> Resu
             checkpoint,
             global_step,
         } => {
-            eprintln!(
-                "stopped after step {global_step}; checkpoint {}; continue with `mvmp train --resume {}`",
-                checkpoint.display(),
+            let hint = format!(
+                "; continue with `mvmp train --resume {}`",
                 run.root.display()
+            );
+            eprintln!(
+                "stopped after step {global_step}; checkpoint {}{}",
+                checkpoint.display(),
+                if args.resumable { hint.as_str() } else { "" }
             );
         }
     }

@@ -504,6 +504,18 @@ fn no_malformed_input_gets_through() {
             &mut failures,
         );
     }
+    // Finite in JSON, past every float32 the values become (a pelvis of 1e300 m once scored an
+    // infinite PVE), and the sizes' signs.
+    let extreme = [serde_json::json!(1e300), serde_json::json!(-1e300)];
+    for f in [
+        "scene_000/scene.json",
+        "scene_000/frame_000000/annotation.json",
+    ] {
+        n += run_all(
+            json_cases(&p("ds").join(f), &extreme, &check),
+            &mut failures,
+        );
+    }
     let body = [
         "body",
         "forward",
@@ -1003,10 +1015,16 @@ fn no_malformed_image_rig_run_or_flag_gets_through() {
     }
     let copy = p("resumed");
     let resume = owned(&["train", "--resume", &s(&copy), "--stop-after-steps", "2"]);
+    // Beyond the run's epochs and steps (an overflow of the step count once), and weights outside the
+    // run directory.
     let state_values = [
         serde_json::Value::Null,
         serde_json::json!("x"),
         serde_json::json!(-1),
+        serde_json::json!(1_000_000),
+        serde_json::json!(u64::MAX),
+        serde_json::json!("../outside.bpk"),
+        serde_json::json!("/checkpoints/absolute.bpk"),
     ];
     for (case, text) in json_cases(&run.join("state.json"), &state_values, &resume) {
         copy_dir(&run, &copy);

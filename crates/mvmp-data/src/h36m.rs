@@ -137,7 +137,11 @@ pub const ROOT_JOINT: usize = 0;
 /// Every frame of a D3_Positions file as 32 joints in metres (the dataset's world is z up already).
 pub fn read_poses(path: &Path) -> Result<Vec<[[f64; 3]; 32]>, DataError> {
     let (values, dims) = crate::cdf_pose::read_variable(path, "Pose")?;
-    if values.len() % 96 != 0 || dims.last().is_some_and(|&d| 96 % d != 0 && d % 96 != 0) {
+    if values.len() % 96 != 0
+        || dims
+            .last()
+            .is_some_and(|&d| d == 0 || (96 % d != 0 && d % 96 != 0))
+    {
         return Err(DataError::file(
             path,
             format!(
@@ -146,11 +150,26 @@ pub fn read_poses(path: &Path) -> Result<Vec<[[f64; 3]; 32]>, DataError> {
             ),
         ));
     }
+    // Millimetres in a capture room: anything past a kilometre is a damaged file, not a pose.
+    if let Some(i) = values.iter().position(|v| !(v.abs() <= MAX_POSE_MM)) {
+        return Err(DataError::file(
+            path,
+            format!(
+                "variable `Pose`: value {} (frame {}, joint {}) is not a coordinate within {MAX_POSE_MM} mm",
+                values[i],
+                i / 96,
+                i % 96 / 3
+            ),
+        ));
+    }
     Ok(values
         .chunks_exact(96)
         .map(|f| std::array::from_fn(|j| std::array::from_fn(|a| f[j * 3 + a] / 1000.0)))
         .collect())
 }
+
+/// The largest pose coordinate a Human3.6M file may hold (mm).
+pub const MAX_POSE_MM: f64 = 1e6;
 
 /// The camera-parameters file of a tree.
 pub fn camera_file(root: &Path) -> PathBuf {

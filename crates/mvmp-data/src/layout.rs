@@ -130,11 +130,33 @@ pub fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<(), DataError>
     Ok(write_atomic(path, text.as_bytes())?)
 }
 
+/// The first problem of a list of names of entries in one directory: each a plain name (no path, no
+/// `..`) and none twice (an entry listed twice is read, trained on and scored twice).
+pub fn name_problem(key: &str, names: &[String]) -> Option<String> {
+    for (i, name) in names.iter().enumerate() {
+        let mut parts = Path::new(name).components();
+        let plain =
+            matches!(parts.next(), Some(std::path::Component::Normal(_))) && parts.next().is_none();
+        if !plain {
+            return Some(format!(
+                "key `{key}[{i}]` = {name:?} is not a name in its directory"
+            ));
+        }
+        if let Some(j) = names[..i].iter().position(|n| n == name) {
+            return Some(format!("key `{key}[{i}]` = {name:?} repeats `{key}[{j}]`"));
+        }
+    }
+    None
+}
+
 impl DatasetIndex {
     pub fn read(root: &Path) -> Result<Self, DataError> {
         let path = root.join("dataset.json");
         let d: DatasetIndex = read_json(&path)?;
         check_header(&path, &d.format, DATASET_FORMAT, d.version)?;
+        if let Some(what) = name_problem("scenes", &d.scenes) {
+            return Err(DataError::file(&path, what));
+        }
         Ok(d)
     }
 }
@@ -144,6 +166,24 @@ impl SceneIndex {
         let path = scene_dir.join("scene.json");
         let s: SceneIndex = read_json(&path)?;
         check_header(&path, &s.format, SCENE_FORMAT, s.version)?;
+        if let Some(what) = name_problem("frames", &s.frames) {
+            return Err(DataError::file(&path, what));
+        }
+        use mvmp_smplx::params::MAX_TRANSLATION;
+        if !s
+            .area
+            .iter()
+            .all(|&a| a > 0.0 && a <= 2.0 * MAX_TRANSLATION)
+        {
+            return Err(DataError::file(
+                &path,
+                format!(
+                    "key `area` = {:?}: expected two sides of 0 to {} m",
+                    s.area,
+                    2.0 * MAX_TRANSLATION
+                ),
+            ));
+        }
         Ok(s)
     }
 }
@@ -199,6 +239,7 @@ impl Annotation {
                 self.images.len()
             ));
         }
+        out.extend(name_problem("images", &self.images));
         for (key, list) in [("depth", &self.depth), ("masks", &self.masks)] {
             if let Some(l) = list
                 && l.len() != num_views
@@ -208,6 +249,7 @@ impl Annotation {
                     l.len()
                 ));
             }
+            out.extend(list.as_ref().and_then(|l| name_problem(key, l)));
         }
         // People are compared with the first only when its count is one the layout allows.
         let first = self
@@ -216,6 +258,9 @@ impl Annotation {
             .map(|p| p.joints_3d.len())
             .filter(|n| joint_counts().contains(n));
         for (i, p) in self.people.iter().enumerate() {
+            if let Some(j) = self.people[..i].iter().position(|q| q.id == p.id) {
+                out.push(format!("people[{i}].id = {} repeats people[{j}].id", p.id));
+            }
             person_problems(i, p, first, num_views, &mut out);
         }
         out
@@ -261,13 +306,19 @@ fn person_problems(
     if let Err(e) = p.smplx.validate(&format!("people[{i}].smplx")) {
         out.push(e.to_string().trim_start_matches("parameters: ").into());
     }
-    let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
-    if !finite(&p.pelvis) {
-        out.push(format!("people[{i}].pelvis = {:?} is not finite", p.pelvis));
-    }
-    if let Some(k) = p.joints_3d.iter().position(|j| !finite(j)) {
+    // World positions within the translation cap (metres); image positions within a camera's reach
+    // (pixels). Larger values, finite in f64, overflow the f32 tensors they become.
+    use mvmp_smplx::params::MAX_TRANSLATION;
+    let within = |v: &[f64], cap: f64| v.iter().all(|x| x.abs() <= cap);
+    if !within(&p.pelvis, MAX_TRANSLATION) {
         out.push(format!(
-            "people[{i}].joints_3d[{k}] = {:?} is not finite",
+            "people[{i}].pelvis = {:?} is not a position within {MAX_TRANSLATION} m",
+            p.pelvis
+        ));
+    }
+    if let Some(k) = p.joints_3d.iter().position(|j| !within(j, MAX_TRANSLATION)) {
+        out.push(format!(
+            "people[{i}].joints_3d[{k}] = {:?} is not a position within {MAX_TRANSLATION} m",
             p.joints_3d[k]
         ));
     }
@@ -284,10 +335,20 @@ fn person_problems(
                 pv.joints_2d.len()
             ));
         }
-        if let Some(k) = pv.joints_2d.iter().position(|j| !finite(j)) {
+        let bad_2d = |j: &[f64; 3]| !within(&j[..2], MAX_PIXEL) || !(0.0..=1.0).contains(&j[2]);
+        if let Some(k) = pv.joints_2d.iter().position(bad_2d) {
             out.push(format!(
-                "people[{i}].views[{v}].joints_2d[{k}] = {:?} is not finite",
+                "people[{i}].views[{v}].joints_2d[{k}] = {:?}: expected [u, v] within {MAX_PIXEL} \
+                 pixels and a visibility from 0 to 1",
                 pv.joints_2d[k]
+            ));
+        }
+        if let Some(b) = pv.bbox
+            && !(within(&b, MAX_PIXEL) && b[0] <= b[2] && b[1] <= b[3])
+        {
+            out.push(format!(
+                "people[{i}].views[{v}].bbox = {b:?}: expected [x0, y0, x1, y1] within {MAX_PIXEL} \
+                 pixels with x0 <= x1 and y0 <= y1"
             ));
         }
         if pv.visible_pixels > pv.silhouette_pixels {
@@ -298,6 +359,10 @@ fn person_problems(
         }
     }
 }
+
+/// The largest image coordinate an annotation may hold (pixels): a joint just in front of a camera
+/// projects far outside its image and is kept; one beyond this is a damaged file.
+pub const MAX_PIXEL: f64 = 1.0e12;
 
 /// One frame of a dataset: where it is and what it holds.
 #[derive(Debug, Clone)]

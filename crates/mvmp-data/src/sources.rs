@@ -420,6 +420,32 @@ pub fn panoptic_split(name: &str) -> (Vec<String>, usize, String) {
     }
 }
 
+/// A split given as a list names directories directly under the dataset's root, each once: a name that
+/// leaves the root (`..`, a path) or repeats (its frames counted twice) is refused.
+fn check_split_names(root: &Path, names: &[String], what: &str) -> Result<(), DataError> {
+    if names.is_empty() {
+        return Err(DataError::file(root, format!("the split names no {what}")));
+    }
+    for (i, name) in names.iter().enumerate() {
+        let mut parts = Path::new(name).components();
+        let plain =
+            matches!(parts.next(), Some(std::path::Component::Normal(_))) && parts.next().is_none();
+        if !plain {
+            return Err(DataError::file(
+                root,
+                format!("split: {what} {name:?} is not a directory name under the root"),
+            ));
+        }
+        if names[..i].contains(name) {
+            return Err(DataError::file(
+                root,
+                format!("split: {what} {name:?} is listed twice"),
+            ));
+        }
+    }
+    Ok(())
+}
+
 /// Panoptic sequences `names` under `root` with the named cameras, every `stride`-th frame.
 pub fn open_panoptic(
     root: &Path,
@@ -427,6 +453,7 @@ pub fn open_panoptic(
     cameras: &[&str],
     stride: usize,
 ) -> Result<Vec<Box<dyn JointAnnotated>>, DataError> {
+    check_split_names(root, names, "sequence")?;
     let mut out: Vec<Box<dyn JointAnnotated>> = Vec::new();
     for name in names {
         let dir = root.join(name);
@@ -451,6 +478,7 @@ pub fn open_h36m(
     cameras: &[&str],
     stride: usize,
 ) -> Result<Vec<Box<dyn JointAnnotated>>, DataError> {
+    check_split_names(root, subjects, "subject")?;
     let mut out: Vec<Box<dyn JointAnnotated>> = Vec::new();
     for subject in subjects {
         for action in crate::h36m::actions(root, subject)? {

@@ -142,6 +142,19 @@ fn damaged_pose_files_are_named() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("Posing.cdf"), "{e}");
+    // Records of [5, 0] values (the zVDR's second dimension, bytes 752-755, big-endian), and a NaN
+    // written over the first pose value.
+    for (name, at, patch) in [
+        ("Zero.cdf", 752, 0i32.to_be_bytes()),
+        ("Nan.cdf", 780, [0xff; 4]),
+    ] {
+        let mut b = bytes.clone();
+        b[at..at + 4].copy_from_slice(&patch);
+        let path = dir.path().join(name);
+        std::fs::write(&path, b).unwrap();
+        let e = mvmp_data::h36m::read_poses(&path).unwrap_err().to_string();
+        assert!(e.contains(name) && e.contains("Pose"), "{e}");
+    }
 }
 
 /// A camera-parameters.json in the published layout with made-up cameras (scripts/h36m_cdf_fixtures.py):

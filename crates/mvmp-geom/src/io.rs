@@ -20,7 +20,13 @@ pub fn write_atomic_with(
         path: path.to_path_buf(),
         source,
     };
-    let mut tmp = tempfile::NamedTempFile::new_in(parent_dir(path)).map_err(io_err)?;
+    let dir = parent_dir(path);
+    sweep_stale(dir);
+    let mut tmp = tempfile::Builder::new()
+        .prefix(&partial_prefix())
+        .tempfile_in(dir)
+        .map_err(io_err)?;
+    let _live = Live::new(tmp.path());
     {
         let mut w = std::io::BufWriter::new(tmp.as_file_mut());
         fill(&mut w).map_err(io_err)?;
@@ -48,16 +54,103 @@ pub fn write_atomic_via<E: From<GeomError>>(
         .extension()
         .map(|e| format!(".{}", e.to_string_lossy()))
         .unwrap_or_default();
+    sweep_stale(parent_dir(path));
     let tmp = tempfile::Builder::new()
-        .prefix(".mvmp-partial-")
+        .prefix(&partial_prefix())
         .suffix(&suffix)
         .tempfile_in(parent_dir(path))
         .map_err(io_err)?
         .into_temp_path();
+    let _live = Live::new(&tmp);
     fill(&tmp)?;
     readable(&tmp).map_err(io_err)?;
     tmp.persist(path).map_err(|e| io_err(e.error))?;
     Ok(())
+}
+
+/// The temporary outputs this process is writing now (see [`remove_live_partials`]).
+static LIVE: std::sync::Mutex<Vec<PathBuf>> = std::sync::Mutex::new(Vec::new());
+
+fn live() -> std::sync::MutexGuard<'static, Vec<PathBuf>> {
+    LIVE.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Registers a temporary output while it exists.
+struct Live(PathBuf);
+
+impl Live {
+    fn new(path: &Path) -> Live {
+        live().push(path.to_path_buf());
+        Live(path.to_path_buf())
+    }
+}
+
+impl Drop for Live {
+    fn drop(&mut self) {
+        live().retain(|p| p != &self.0);
+    }
+}
+
+/// Remove every temporary output this process is writing now. For a process about to quit on a signal:
+/// `exit` runs no destructors, so the temporaries would otherwise stay behind until the next output
+/// in their directory sweeps them.
+pub fn remove_live_partials() {
+    for p in live().drain(..) {
+        let _ = if p.is_dir() {
+            std::fs::remove_dir_all(&p)
+        } else {
+            std::fs::remove_file(&p)
+        };
+    }
+}
+
+/// Every temporary output starts with this, then the writing process's id and a dash.
+pub const PARTIAL_PREFIX: &str = ".mvmp-partial-";
+
+fn partial_prefix() -> String {
+    format!("{PARTIAL_PREFIX}{}-", std::process::id())
+}
+
+/// Remove from `dir` the temporary outputs of processes that no longer run (a kill or a power cut
+/// leaves them behind; an error or Ctrl-C removes its own). Only names this module makes, with a process
+/// id, are touched, and only where `/proc` tells which processes live; failures are ignored, since a
+/// leftover costs disk space, not correctness.
+pub fn sweep_stale(dir: &Path) {
+    let proc = Path::new("/proc");
+    if !proc.join("self").exists() {
+        return;
+    }
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for entry in entries.flatten() {
+        let name = entry.file_name();
+        let Some(pid) = name.to_str().and_then(stale_pid) else {
+            continue;
+        };
+        if pid == std::process::id() || proc.join(pid.to_string()).exists() {
+            continue;
+        }
+        let path = entry.path();
+        let removed = match entry.file_type() {
+            Ok(t) if t.is_dir() => std::fs::remove_dir_all(&path),
+            _ => std::fs::remove_file(&path),
+        };
+        if removed.is_ok() {
+            tracing::warn!(
+                "removed {} (left by an interrupted process)",
+                path.display()
+            );
+        }
+    }
+}
+
+/// The process id in a temporary output's name (`.mvmp-partial-<pid>-<random>`).
+fn stale_pid(name: &str) -> Option<u32> {
+    let rest = name.strip_prefix(PARTIAL_PREFIX)?;
+    let (pid, random) = rest.split_once('-')?;
+    (!random.is_empty()).then_some(())?;
+    pid.parse().ok()
 }
 
 /// The directory a file is written in (`.` for a bare name).
@@ -86,22 +179,33 @@ fn readable(path: &Path) -> std::io::Result<()> {
 pub struct StagedDir {
     tmp: tempfile::TempDir,
     dest: PathBuf,
+    _live: Live,
 }
 
 impl StagedDir {
     /// Stage outputs for `dest` (a directory, created by `finish` if missing).
     pub fn new(dest: &Path) -> Result<Self, GeomError> {
-        let parent = match dest.parent() {
+        // An existing destination by its real path: `.` or `out/..` would otherwise put the stage
+        // inside the destination it is to replace.
+        let real = dest.canonicalize().ok();
+        let parent = match real.as_deref().unwrap_or(dest).parent() {
             Some(d) if !d.as_os_str().is_empty() => d,
-            _ => Path::new("."),
+            Some(_) => Path::new("."),
+            None => {
+                return Err(GeomError::Io {
+                    path: dest.to_path_buf(),
+                    source: std::io::Error::other("an output directory cannot be the root"),
+                });
+            }
         };
         let io_err = |source| GeomError::Io {
             path: parent.to_path_buf(),
             source,
         };
         std::fs::create_dir_all(parent).map_err(io_err)?;
+        sweep_stale(parent);
         let tmp = tempfile::Builder::new()
-            .prefix(".mvmp-partial-")
+            .prefix(&partial_prefix())
             .tempdir_in(parent)
             .map_err(io_err)?;
         // Temporary directories are created private (0700); outputs get the usual 0755.
@@ -112,8 +216,9 @@ impl StagedDir {
                 .map_err(io_err)?;
         }
         Ok(StagedDir {
+            _live: Live::new(tmp.path()),
             tmp,
-            dest: dest.to_path_buf(),
+            dest: real.unwrap_or_else(|| dest.to_path_buf()),
         })
     }
 

@@ -126,3 +126,60 @@ fn a_json_error_names_the_key_path() {
     let e = mvmp_geom::io::parse_json::<Frame>("{").unwrap_err();
     assert!(e.contains("line 1"), "{e}");
 }
+
+#[test]
+#[cfg(target_os = "linux")]
+fn a_new_output_sweeps_what_killed_processes_left_beside_it() {
+    use mvmp_geom::io::{PARTIAL_PREFIX, write_atomic};
+    let root = tempfile::tempdir().unwrap();
+    // A process that has exited: its id names no live process (ids are not reused this quickly).
+    let mut child = std::process::Command::new("true").spawn().unwrap();
+    let dead = child.id();
+    child.wait().unwrap();
+    let live = std::process::id();
+    let stale_dir = format!("{PARTIAL_PREFIX}{dead}-AbC123");
+    let stale_file = format!("{PARTIAL_PREFIX}{dead}-XyZ789.bpk");
+    let running = format!("{PARTIAL_PREFIX}{live}-Qq1");
+    for d in [&stale_dir, &running] {
+        std::fs::create_dir(root.path().join(d)).unwrap();
+        std::fs::write(root.path().join(d).join("x"), "x").unwrap();
+    }
+    // Names this module does not make (no process id, another prefix) are not its to remove.
+    for f in [&stale_file, ".mvmp-partial-old", ".tmpAbc", "notes.txt"] {
+        std::fs::write(root.path().join(f), "f").unwrap();
+    }
+    write_atomic(&root.path().join("out.json"), b"{}").unwrap();
+    let mut expect = vec![
+        ".mvmp-partial-old".to_string(),
+        running.clone(),
+        ".tmpAbc".into(),
+        "notes.txt".into(),
+        "out.json".into(),
+    ];
+    expect.sort();
+    assert_eq!(names(root.path()), expect);
+
+    // A staged directory sweeps its parent the same way.
+    std::fs::create_dir(root.path().join(&stale_dir)).unwrap();
+    let s = StagedDir::new(&root.path().join("dest")).unwrap();
+    std::fs::write(s.path().join("a"), "a").unwrap();
+    s.finish().unwrap();
+    expect.push("dest".into());
+    expect.sort();
+    assert_eq!(names(root.path()), expect);
+}
+
+#[test]
+fn a_destination_named_through_dot_dot_is_staged_beside_it_not_inside() {
+    let root = tempfile::tempdir().unwrap();
+    let dest = root.path().join("out");
+    std::fs::create_dir_all(dest.join("sub")).unwrap();
+    std::fs::write(dest.join("old.txt"), "o").unwrap();
+    // `out/sub/..` is `out`: a stage in its lexical parent (`out/sub`) would lie inside it.
+    let s = StagedDir::new(&dest.join("sub/..")).unwrap();
+    assert!(!s.path().starts_with(&dest), "{}", s.path().display());
+    std::fs::write(s.path().join("new.txt"), "n").unwrap();
+    s.finish().unwrap();
+    assert_eq!(names(&dest), ["new.txt", "old.txt", "sub"]);
+    assert_eq!(names(root.path()), ["out"]);
+}

@@ -106,7 +106,11 @@ fn read_array<R: Read + Seek>(
             });
         }
     };
-    let n: usize = shape.iter().product();
+    let Some(n) = shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d)) else {
+        return Err(bad(format!(
+            "has shape {shape:?}, more values than memory holds"
+        )));
+    };
     if data.len() != n {
         return Err(bad(format!(
             "holds {} values, its shape {shape:?} needs {n}",

@@ -249,3 +249,67 @@ fn hand_means_are_not_applied() {
         .fold(0.0, f32::max);
     assert!(worst < 1e-6, "{worst}");
 }
+
+/// A `.npy` of float64 whose header claims `shape` (written by hand: no writer makes such a header)
+/// followed by `values` zeros.
+fn npy_claiming(shape: &str, values: usize) -> Vec<u8> {
+    let mut h = format!("{{'descr': '<f8', 'fortran_order': False, 'shape': {shape}, }}");
+    while !(10 + h.len() + 1).is_multiple_of(64) {
+        h.push(' ');
+    }
+    h.push('\n');
+    let mut npy = b"\x93NUMPY\x01\x00".to_vec();
+    npy.extend((h.len() as u16).to_le_bytes());
+    npy.extend(h.as_bytes());
+    npy.extend(std::iter::repeat_n(0u8, values * 8));
+    npy
+}
+
+#[test]
+fn a_header_whose_shape_overflows_is_refused_naming_the_key() {
+    let (dir, p) = written();
+    // 2^32 x 2^32 x 1 wraps to 0 values in 64 bits; 2^63 x 2 to 0 as well; the other claims
+    // more values than the file holds.
+    for (i, shape) in [
+        "(4294967296, 4294967296, 1)",
+        "(9223372036854775808, 2)",
+        "(1099511627776, 3)",
+        "(18446744073709551615,)",
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let q = dir.path().join(format!("overflow{i}.npz"));
+        rewrite(
+            &p,
+            &q,
+            &["v_template"],
+            &[("v_template", npy_claiming(shape, 2))],
+        );
+        let msg = BodyModel::load(&q).unwrap_err().to_string();
+        assert!(
+            msg.contains(&format!("overflow{i}.npz")) && msg.contains("v_template"),
+            "{shape}: {msg}"
+        );
+    }
+}
+
+#[test]
+fn a_people_file_whose_header_overflows_is_refused_naming_the_key() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("people.npz");
+    let mut z = zip::ZipWriter::new(std::fs::File::create(&path).unwrap());
+    // 6148914691236517206 x 3 wraps to 2 values in 64 bits.
+    z.start_file("transl.npy", zip::write::FileOptions::default())
+        .unwrap();
+    z.write_all(&npy_claiming("(6148914691236517206, 3)", 2))
+        .unwrap();
+    z.finish().unwrap();
+    let msg = mvmp_smplx::people::read_people_npz(&path)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        msg.contains("people.npz") && msg.contains("transl"),
+        "{msg}"
+    );
+}

@@ -8,11 +8,13 @@ pub mod pseudo;
 pub mod run;
 pub mod step;
 pub mod train;
+pub mod validation;
 
 pub use config::{LrSchedule, QueryMode, Stage, StageConfig, TrainConfig};
 pub use error::TrainError;
 pub use run::{RunDir, RunState};
 pub use train::{
-    Monitor, Outcome, Quiet, StepRecord, TrainOptions, ValRecord, check_validation_source,
-    open_training_set, seeded_init, train,
+    Monitor, Outcome, Quiet, StepRecord, TrainOptions, ValRecord, open_training_set, seeded_init,
+    train,
 };
+pub use validation::check_validation_source;

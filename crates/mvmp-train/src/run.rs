@@ -41,6 +41,10 @@ pub struct RunState {
     /// Optimizer state of the current stage, relative to the run directory.
     pub optimizer: Option<String>,
     pub finished: bool,
+    /// SHA-256 of the run's `model.toml` when the checkpoint was written: the weights belong to that
+    /// model, so a resume refuses another (empty, or absent, in runs of earlier versions).
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub model_sha256: String,
 }
 
 /// An open run directory.
@@ -127,7 +131,46 @@ impl RunDir {
                 ),
             ));
         }
+        for (key, file) in [
+            ("checkpoint", Some(&s.checkpoint)),
+            ("optimizer", s.optimizer.as_ref()),
+        ] {
+            let inside = file.is_some_and(|f| {
+                let f = Path::new(f);
+                f.components()
+                    .all(|c| matches!(c, std::path::Component::Normal(_)))
+                    && f.components().next().is_some()
+            });
+            if file.is_some() && !inside {
+                return Err(TrainError::file(
+                    &path,
+                    format!("key `{key}`: {file:?} is not a file inside the run directory"),
+                ));
+            }
+        }
         Ok(Some(s))
+    }
+
+    /// The run's resolved model config.
+    pub fn model_config_path(&self) -> PathBuf {
+        self.root.join(mvmp_infer::run_files::MODEL_CONFIG)
+    }
+
+    /// A resumed state's model is the run's model now.
+    pub fn check_model_unchanged(&self, s: &RunState) -> Result<(), TrainError> {
+        if s.model_sha256.is_empty() {
+            return Ok(());
+        }
+        let path = self.model_config_path();
+        if file_hash(&path)? != s.model_sha256 {
+            return Err(TrainError::file(
+                &path,
+                "changed since the checkpoint state.json names was written (its model_sha256 \
+                 differs): the checkpoint's weights belong to the model it had; undo the change, or \
+                 start a new run",
+            ));
+        }
+        Ok(())
     }
 
     pub fn write_state(&self, s: &RunState) -> Result<(), TrainError> {

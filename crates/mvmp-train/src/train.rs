@@ -15,11 +15,8 @@ use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use serde_json::json;
 
-use mvmp_data::loader::{FrameBatcher, FrameDataset, Split, ViewChoice};
-use mvmp_data::sources::{
-    JointFrameDataset, SourceDataset, SourceFormat, SourceSpec, TrainingSet, covered_slots,
-};
-use mvmp_eval::{Evaluator, PersonPose};
+use mvmp_data::loader::{FrameBatcher, ViewChoice};
+use mvmp_data::sources::{SourceDataset, SourceSpec, TrainingSet, covered_slots};
 use mvmp_losses::LossWeights;
 use mvmp_model::{ModelConfig, MvmpHmr};
 use mvmp_smplx::{BodyModel, SmplxLayer};
@@ -28,27 +25,33 @@ use crate::TrainError;
 use crate::config::{Stage, StageConfig, TrainConfig};
 use crate::run::{RunDir, RunState, STATE_FORMAT};
 use crate::step::{Stage2, StepLoss, stage1_loss, stage2_loss};
-use mvmp_eval::drivers::{EvalOptions, PseudoGt, evaluate, ground_truth};
-use mvmp_eval::spread;
-use mvmp_infer::{Predictor, load_weights};
+use crate::validation::{check_validation_source, source_cameras, validate};
+use mvmp_eval::drivers::PseudoGt;
+use mvmp_infer::load_weights;
 
-/// One optimizer step, as logged.
-#[derive(Debug, Clone)]
+/// One optimizer step, as logged: its line in `metrics.jsonl` is the record serialized (`"kind": "step"`,
+/// every weighted term under its own name, `phase_seconds` and `grad_norm` as objects).
+#[derive(Debug, Clone, serde::Serialize)]
+#[serde(tag = "kind", rename = "step")]
 pub struct StepRecord {
     pub stage: Stage,
     /// 1-based epoch of the stage and step within it.
     pub epoch: usize,
     pub step: usize,
+    #[serde(skip)]
     pub steps_per_epoch: usize,
     pub global_step: u64,
     pub lr: f64,
     /// The decoder's rate when it has its own (`decoder_lr` in the stage).
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub decoder_lr: Option<f64>,
     pub seconds: f64,
     /// Where those seconds went: `load` (images and batch), `forward` (the loss), `backward`, `grad_norm`
     /// (the per-module norms) and `optimizer`, in that order.
+    #[serde(rename = "phase_seconds", serialize_with = "as_object")]
     pub phases: Vec<(&'static str, f64)>,
     /// Weighted terms and their total.
+    #[serde(flatten, serialize_with = "as_object")]
     pub terms: Vec<(String, f32)>,
     pub total: f32,
     /// People decoded (stage 2) and the detection diagnostics of [`StepLoss`].
@@ -57,32 +60,18 @@ pub struct StepRecord {
     pub root_at_gt: f32,
     pub root_background: f32,
     /// The gradient norm of each top-level module.
+    #[serde(serialize_with = "as_object")]
     pub grad_norm: Vec<(String, f32)>,
 }
 
-impl StepRecord {
-    /// The record's line in `metrics.jsonl` (`"kind": "step"`, every term under its own name).
-    pub fn to_json(&self) -> serde_json::Value {
-        let mut line = json!({
-            "kind": "step", "stage": self.stage, "epoch": self.epoch, "step": self.step,
-            "global_step": self.global_step, "lr": self.lr, "seconds": self.seconds,
-            "total": self.total, "queries": self.queries, "root_peak": self.root_peak,
-            "root_at_gt": self.root_at_gt, "root_background": self.root_background,
-        });
-        if let Some(d) = self.decoder_lr {
-            line["decoder_lr"] = json!(d);
-        }
-        for (k, v) in &self.terms {
-            line[k] = json!(v);
-        }
-        line["phase_seconds"] = self.phases.iter().map(|(k, v)| (*k, json!(v))).collect();
-        line["grad_norm"] = self
-            .grad_norm
-            .iter()
-            .map(|(k, v)| (k.clone(), json!(v)))
-            .collect();
-        line
-    }
+/// Named values as one JSON object.
+fn as_object<S, K, V>(pairs: &[(K, V)], s: S) -> Result<S::Ok, S::Error>
+where
+    S: serde::Serializer,
+    K: serde::Serialize,
+    V: serde::Serialize,
+{
+    s.collect_map(pairs.iter().map(|(k, v)| (k, v)))
 }
 
 /// A validation pass at the end of an epoch.
@@ -255,80 +244,6 @@ fn pseudo_gt_meshes(
     })))
 }
 
-/// Open the validation source the way validation will (its split, the first `test_views` cameras), so
-/// that a wrong path or split stops the run before training rather than after the first epoch.
-pub fn check_validation_source(cfg: &TrainConfig) -> Result<(), TrainError> {
-    let Some(src) = cfg.validation_source() else {
-        return Ok(());
-    };
-    let cameras = source_cameras(&src)?;
-    if cfg.test_views > cameras {
-        return Err(TrainError::file(
-            &src.root,
-            format!(
-                "test_views = {}: the validation {} source has {cameras} cameras",
-                cfg.test_views,
-                src.format.name()
-            ),
-        ));
-    }
-    if src.format == SourceFormat::Mvmp {
-        let split: Split = src
-            .split
-            .as_deref()
-            .unwrap_or("test")
-            .parse()
-            .map_err(|e: String| TrainError::file(&src.root, e))?;
-        // The cameras were counted above; the split must have scenes.
-        let layout = mvmp_data::DatasetLayout::open(Path::new(&src.root))?;
-        mvmp_data::loader::split_frames(&layout, split)?;
-        return Ok(());
-    }
-    let seqs = validation_sequences(cfg, &src)?;
-    if seqs.iter().all(|s| s.is_empty()) {
-        return Err(TrainError::file(
-            &src.root,
-            "the validation split has no frames",
-        ));
-    }
-    Ok(())
-}
-
-/// The cameras every frame of a source has: the fewest of any scene of an MVMP-HMR tree, the cameras a
-/// Panoptic or Human3.6M source reads.
-fn source_cameras(spec: &SourceSpec) -> Result<usize, TrainError> {
-    Ok(match spec.format {
-        SourceFormat::Mvmp => {
-            let layout = mvmp_data::DatasetLayout::open(Path::new(&spec.root))?;
-            layout.scenes.iter().map(|s| s.rig.len()).min().unwrap_or(0)
-        }
-        _ => spec.camera_names().len(),
-    })
-}
-
-/// The sequences of a joint-annotated validation source, with the first `test_views` cameras.
-fn validation_sequences(
-    cfg: &TrainConfig,
-    source: &SourceSpec,
-) -> Result<Vec<Box<dyn mvmp_data::sources::JointAnnotated>>, TrainError> {
-    let cams = source.camera_names();
-    if cfg.test_views == 0 || cfg.test_views > cams.len() {
-        return Err(TrainError::file(
-            &source.root,
-            format!(
-                "test_views = {} but the validation source has {} cameras",
-                cfg.test_views,
-                cams.len()
-            ),
-        ));
-    }
-    let spec = SourceSpec {
-        cameras: Some(cams[..cfg.test_views].to_vec()),
-        ..source.clone()
-    };
-    Ok(spec.open_sequences("test")?)
-}
-
 /// A model initialised from `seed`. Seeding and drawing the initial weights happen under one process-wide
 /// lock: the backend's generator is shared, and another thread drawing in between would change the weights.
 /// Other code that draws random tensors concurrently (a model init elsewhere) should use this too.
@@ -389,10 +304,96 @@ pub fn train(
     let started = Instant::now();
     let state = run.state()?;
     if state.as_ref().is_some_and(|s| s.finished) {
+        if !run.root.join("model.bpk").exists() {
+            return Err(TrainError::file(
+                run.state_path(),
+                "key `finished` is true, but the run has no model.bpk",
+            ));
+        }
         return Ok(Outcome::Finished);
+    }
+    if state.is_none() {
+        check_untrained(run)?;
     }
     let (mut trainer, model) = Trainer::open(run, cfg, model_cfg, opts, state, started)?;
     trainer.run(model, mon)
+}
+
+/// A run without `state.json` starts from the first step, so it must hold no weights that a start would
+/// throw away (steps logged without a checkpoint are trained again, the same way).
+fn check_untrained(run: &RunDir) -> Result<(), TrainError> {
+    let ckpt = run.root.join("checkpoints");
+    let has_checkpoint = std::fs::read_dir(&ckpt)
+        .map(|d| {
+            d.flatten()
+                .any(|e| e.file_name().to_string_lossy().ends_with(".bpk"))
+        })
+        .unwrap_or(false);
+    if has_checkpoint || run.root.join("model.bpk").exists() {
+        return Err(TrainError::file(
+            run.state_path(),
+            "missing, but the run has checkpoints or model.bpk: without it the run cannot continue \
+             where it stopped; restore it, or start a new run",
+        ));
+    }
+    Ok(())
+}
+
+/// A resumed state's epoch and step lie within its stage (a damaged `state.json` is refused before
+/// anything trains).
+fn check_cursor(
+    run: &RunDir,
+    cfg: &TrainConfig,
+    s: &RunState,
+    steps_per_epoch: usize,
+) -> Result<(), TrainError> {
+    let epochs = cfg.stage(s.stage).epochs;
+    let bad = |key: &str, what: String| {
+        Err(TrainError::file(
+            run.state_path(),
+            format!("key `{key}`: {what}"),
+        ))
+    };
+    if s.epoch > epochs {
+        return bad(
+            "epoch",
+            format!(
+                "{}: stage {} has {epochs} epochs",
+                s.epoch,
+                s.stage.number()
+            ),
+        );
+    }
+    // An interruption after an epoch's last step records all of them (the epoch's end is still to run).
+    if s.step_in_epoch > steps_per_epoch || (s.epoch == epochs && s.step_in_epoch > 0) {
+        return bad(
+            "step_in_epoch",
+            format!(
+                "{}: an epoch of this run has {steps_per_epoch} steps (epoch {} of {epochs})",
+                s.step_in_epoch, s.epoch
+            ),
+        );
+    }
+    // Every epoch has the same steps, so the stage, epoch and step tell the run's step count.
+    let before: usize = Stage::ALL
+        .iter()
+        .filter(|&&st| st < s.stage)
+        .map(|&st| cfg.stage(st).epochs)
+        .sum();
+    let expected = ((before + s.epoch) * steps_per_epoch + s.step_in_epoch) as u64;
+    if s.global_step != expected {
+        return bad(
+            "global_step",
+            format!(
+                "{}: stage {}, epoch {} and step {} make {expected} (or the training data changed since)",
+                s.global_step,
+                s.stage.number(),
+                s.epoch,
+                s.step_in_epoch
+            ),
+        );
+    }
+    Ok(())
 }
 
 /// Where training stands: every step before it is in the newest checkpoint.
@@ -480,6 +481,7 @@ impl<'a> Trainer<'a> {
         let mut last_checkpoint = String::from("none (no checkpoint was written yet)");
         let mut resume_optim = None;
         if let Some(s) = &state {
+            run.check_model_unchanged(s)?;
             load_weights(&mut model, &run.root.join(&s.checkpoint))?;
             model = model.train();
             cursor = Cursor {
@@ -491,8 +493,6 @@ impl<'a> Trainer<'a> {
             last_checkpoint = run.root.join(&s.checkpoint).display().to_string();
             resume_optim = s.optimizer.as_ref().map(|o| run.root.join(o));
         }
-        run.truncate_log(cursor.global)?;
-        run.remove_stale_temporaries()?;
         let body = mvmp_data::layout::load_body_model(&model_cfg.body_model, &run.root)?;
         let mut data = open_training_set(cfg, model_cfg, &run.root.join("train.toml"))?;
         data.expect_joints(body.num_output_joints(), &model_cfg.body_model);
@@ -502,6 +502,11 @@ impl<'a> Trainer<'a> {
         let body = Arc::new(body);
         let layer = SmplxLayer::new(&body, &ad);
         let batcher = gt_batcher(&data, &body, &layer, model_cfg, &run.root)?;
+        if let Some(s) = &state {
+            check_cursor(run, cfg, s, data.total().div_ceil(cfg.batch_size))?;
+        }
+        run.truncate_log(cursor.global)?;
+        run.remove_stale_temporaries()?;
         if state.is_none() {
             model = start_at_data_mean(model, &data, &ad)?;
         }
@@ -738,7 +743,7 @@ impl<'a> Trainer<'a> {
             root_background: loss.root_background,
             grad_norm: grad_norm.iter().map(|(k, v)| (k.to_string(), *v)).collect(),
         };
-        self.run.log(&rec.to_json())?;
+        self.run.log(&json!(rec))?;
         Ok((model, rec))
     }
 
@@ -847,6 +852,7 @@ impl<'a> Trainer<'a> {
             checkpoint: format!("checkpoints/{name}.bpk"),
             optimizer: Some(format!("checkpoints/optim-{name}.bpk")),
             finished: false,
+            model_sha256: crate::run::file_hash(&self.run.model_config_path())?,
         })?;
         prune_checkpoints(&dir, &weights, &opt, self.cfg.keep_checkpoints)?;
         Ok(weights)
@@ -944,211 +950,6 @@ fn stage2_weights(w: &LossWeights, sc: &StageConfig) -> LossWeights {
         },
         false => w.clone(),
     }
-}
-
-/// Validation on the test split: root error and recall in stage 1, the mesh metrics in stage 2.
-#[allow(clippy::too_many_arguments)]
-fn validate(
-    model: &MvmpHmr,
-    model_cfg: &ModelConfig,
-    cfg: &TrainConfig,
-    body: &mvmp_smplx::BodyModel,
-    source: &SourceSpec,
-    stage: Stage,
-    device: &Device,
-) -> Result<Vec<(String, f64)>, TrainError> {
-    let pred = Predictor::new(model.valid(), model_cfg.clone(), body.clone(), device);
-    if source.format != SourceFormat::Mvmp {
-        return validate_joints(&pred, cfg, source, stage);
-    }
-    let data = Path::new(&source.root);
-    let split: Split = source
-        .split
-        .as_deref()
-        .unwrap_or("test")
-        .parse()
-        .map_err(|e: String| TrainError::file(data, e))?;
-    let opts = EvalOptions {
-        split,
-        views: cfg.test_views,
-        max_frames: cfg.val_frames,
-        gate: cfg.match_gate,
-        joints: mvmp_eval::joint_sets::JointSet::Smplx127,
-    };
-    let metrics = if stage == Stage::Detection {
-        root_metrics(&pred, data, &opts)?
-    } else {
-        // Every predicted person's pose: their spread across people tells a decoder that reads its
-        // input from one that predicts the same body for everyone (docs/architecture.md, Training).
-        let mut poses: Vec<Vec<f64>> = Vec::new();
-        let m = evaluate(&pred, data, &opts, |_, _, frame| {
-            poses.extend(
-                frame
-                    .people
-                    .iter()
-                    .map(|p| p.pose.iter().map(|&x| x as f64).collect()),
-            );
-            Ok(())
-        })?
-        .overall();
-        let headings: Vec<f64> = poses
-            .iter()
-            .map(|p| spread::heading_deg([p[0], p[1], p[2]]))
-            .collect();
-        let body: Vec<Vec<f64>> = poses.iter().map(|p| p[3..66].to_vec()).collect();
-        measured(&[
-            ("mpjpe_mm", m.mpjpe_mm),
-            ("pve_mm", m.pve_mm),
-            ("pa_pve_mm", m.pa_pve_mm),
-            ("root_mm", m.root_mm),
-            ("rr_mpjpe_mm", m.rr_mpjpe_mm),
-            ("pa_mpjpe_mm", m.pa_mpjpe_mm),
-            ("recall_500", m.recall_500),
-            ("heading_spread_deg", spread::heading_spread_deg(&headings)),
-            ("body_pose_spread_deg", spread::pose_spread_deg(&body)),
-        ])
-        .into_iter()
-        // The detector's own recall and the facing head's error at the true roots, as in stage 1:
-        // whether stage 2 keeps what stage 1 taught them.
-        .chain(
-            root_metrics(&pred, data, &opts)?
-                .into_iter()
-                .filter(|(k, _)| k == "root_recall" || k == "facing_deg"),
-        )
-        .collect()
-    };
-    Ok(metrics)
-}
-
-/// The metrics that were computed (a metric is absent when nothing was matched).
-fn measured(metrics: &[(&str, Option<f64>)]) -> Vec<(String, f64)> {
-    metrics
-        .iter()
-        .filter_map(|&(k, v)| v.map(|v| (k.to_string(), v)))
-        .collect()
-}
-
-/// Validation on a joint-annotated dataset: root metrics in stage 1; MPJPE on the dataset's joint set and
-/// the recall in stage 2 (no meshes).
-fn validate_joints(
-    pred: &Predictor,
-    cfg: &TrainConfig,
-    source: &SourceSpec,
-    stage: Stage,
-) -> Result<Vec<(String, f64)>, TrainError> {
-    let seqs = validation_sequences(cfg, source)?;
-    let metrics = if stage == Stage::Detection {
-        let ds = JointFrameDataset::new(
-            &source.root,
-            seqs,
-            ViewChoice::Fixed((0..cfg.test_views).collect()),
-            pred.cfg.image_size,
-        )?;
-        root_metrics_of(
-            pred,
-            ds.len(),
-            |i| ds.load(i),
-            cfg.val_frames,
-            cfg.match_gate,
-        )?
-    } else {
-        let (ev, _) = mvmp_eval::drivers::evaluate_joint_sequences(
-            pred,
-            &seqs,
-            source.format.joint_set(),
-            cfg.val_frames,
-            cfg.match_gate,
-            None,
-            |_, _| {},
-        )?;
-        let m = ev.overall();
-        measured(&[("mpjpe_mm", m.mpjpe_mm), ("recall_500", m.recall_500)])
-    };
-    Ok(metrics)
-}
-
-/// Root localisation on a split: mean error of matched roots (mm) and the fraction of people found.
-pub fn root_metrics(
-    pred: &Predictor,
-    data: &Path,
-    opts: &EvalOptions,
-) -> Result<Vec<(String, f64)>, TrainError> {
-    let ds = FrameDataset::open(
-        data,
-        opts.split,
-        ViewChoice::Fixed((0..opts.views).collect()),
-        pred.cfg.image_size,
-    )?;
-    root_metrics_of(
-        pred,
-        ds.frames().len(),
-        |i| ds.load(i),
-        opts.max_frames,
-        opts.gate,
-    )
-}
-
-/// Root metrics over `len` samples given by `load` (at most `max_frames`; 0 = all).
-fn root_metrics_of(
-    pred: &Predictor,
-    len: usize,
-    load: impl Fn(usize) -> Result<mvmp_data::loader::FrameSample, mvmp_data::DataError>,
-    max_frames: usize,
-    gate: f64,
-) -> Result<Vec<(String, f64)>, TrainError> {
-    let batcher = FrameBatcher::default();
-    let n = match max_frames {
-        0 => len,
-        m => m.min(len),
-    };
-    let primary = pred.cfg.primary_joint.joint();
-    let mut ev = Evaluator::new(gate);
-    let mut facing = Vec::new();
-    for i in 0..n {
-        let batch = batcher.batch(vec![load(i)?], &pred.device);
-        let (mut roots, det, grids) =
-            pred.detect_with_maps(batch.images.clone(), &batch.cameras, &batch.letterboxes);
-        let roots = roots.remove(0);
-        facing.extend(crate::step::facing_errors_deg(
-            &det,
-            &grids,
-            &crate::step::HostGt::new(&batch),
-            &pred.cfg,
-            &pred.device,
-        ));
-        let gt: Vec<PersonPose> = ground_truth(&batch)
-            .remove(0)
-            .into_iter()
-            .map(|p| PersonPose {
-                joints: vec![p.joints[primary]],
-                vertices: None,
-                score: 1.0,
-                valid: None,
-            })
-            .collect();
-        let det: Vec<PersonPose> = roots
-            .iter()
-            .map(|r| PersonPose {
-                joints: vec![r.position],
-                vertices: None,
-                score: r.score as f64,
-                valid: None,
-            })
-            .collect();
-        ev.add_frame(&batch.names[0].0, &det, &gt);
-    }
-    let m = ev.overall();
-    let found = m.matched as f64 / m.ground_truth.max(1) as f64;
-    let mut out = vec![("root_recall".to_string(), found)];
-    if let Some(e) = m.mpjpe_mm {
-        out.push(("root_mm".into(), e));
-    }
-    if !facing.is_empty() {
-        // The median: a head that has learned leaves a few people (hidden in most views) far off.
-        facing.sort_by(f64::total_cmp);
-        out.push(("facing_deg".into(), facing[facing.len() / 2]));
-    }
-    Ok(out)
 }
 
 #[cfg(test)]
