@@ -151,7 +151,10 @@ pub fn read_poses(path: &Path) -> Result<Vec<[[f64; 3]; 32]>, DataError> {
         ));
     }
     // Millimetres in a capture room: anything past a kilometre is a damaged file, not a pose.
-    if let Some(i) = values.iter().position(|v| !(v.abs() <= MAX_POSE_MM)) {
+    if let Some(i) = values
+        .iter()
+        .position(|v| v.is_nan() || v.abs() > MAX_POSE_MM)
+    {
         return Err(DataError::file(
             path,
             format!(

@@ -217,7 +217,7 @@ fn faces_of(f: &Array, v: usize, path: &Path) -> Result<Vec<[u32; 3]>, SmplxErro
         .data
         .iter()
         .enumerate()
-        .find(|(_, x)| !(**x >= 0.0 && (**x as usize) < v))
+        .find(|(_, x)| !(**x >= 0.0 && (**x as usize) < v && x.fract() == 0.0))
     {
         return Err(value_err(
             path,
@@ -233,6 +233,18 @@ fn faces_of(f: &Array, v: usize, path: &Path) -> Result<Vec<[u32; 3]>, SmplxErro
 
 /// The parents of `kintree_table`'s first row (the root's set to -1), each before its child.
 fn parents_of(kt: &Array, path: &Path) -> Result<Vec<i32>, SmplxError> {
+    // The root's entry is a marker (-1, or 4294967295 unsigned); every other one an index.
+    if let Some((j, p)) = kt.data[1..NUM_JOINTS]
+        .iter()
+        .enumerate()
+        .find(|(_, p)| p.fract() != 0.0 || !p.is_finite())
+    {
+        return Err(value_err(
+            path,
+            "kintree_table",
+            format!("joint {} has parent {p}, not a joint index", j + 1),
+        ));
+    }
     let mut parents: Vec<i32> = kt.data[..NUM_JOINTS].iter().map(|&p| p as i32).collect();
     parents[0] = -1;
     for (j, &p) in parents.iter().enumerate().skip(1) {
@@ -252,7 +264,7 @@ fn landmark_faces(fi: &Array, nf: usize, path: &Path) -> Result<Vec<u32>, SmplxE
     if let Some(bad) = fi
         .data
         .iter()
-        .find(|x| !(**x >= 0.0 && (**x as usize) < nf))
+        .find(|x| !(**x >= 0.0 && (**x as usize) < nf && x.fract() == 0.0))
     {
         return Err(value_err(
             path,

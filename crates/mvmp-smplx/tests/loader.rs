@@ -313,3 +313,31 @@ fn a_people_file_whose_header_overflows_is_refused_naming_the_key() {
         "{msg}"
     );
 }
+
+#[test]
+fn index_arrays_stored_as_fractions_are_refused_naming_the_key() {
+    let (dir, p) = written();
+    let m = standin();
+    // The kinematic tree as float64 with one parent 2.5; the faces with one index 0.5.
+    let mut kt: Vec<f64> = (0..2 * 55).map(|i| (i % 55) as f64).collect();
+    kt[0] = -1.0;
+    for (j, parent) in m.parents.iter().enumerate().skip(1) {
+        kt[j] = *parent as f64;
+    }
+    kt[5] = 2.5;
+    let mut f: Vec<f64> = m.faces.iter().flatten().map(|&i| i as f64).collect();
+    f[4] = 0.5;
+    let nf = m.faces.len() as u64;
+    for (key, arr) in [
+        ("kintree_table", npy_f64(&[2, 55], &kt, false)),
+        ("f", npy_f64(&[nf, 3], &f, false)),
+    ] {
+        let q = dir.path().join(format!("fraction_{key}.npz"));
+        rewrite(&p, &q, &[key], &[(key, arr)]);
+        let msg = BodyModel::load(&q).unwrap_err().to_string();
+        assert!(
+            msg.contains(&format!("fraction_{key}.npz")) && msg.contains(key),
+            "{msg}"
+        );
+    }
+}
