@@ -84,6 +84,27 @@ fn jpeg_complete(bytes: &[u8]) -> bool {
     bytes[scan..].windows(2).any(marker(0xD9))
 }
 
+/// What is wrong with the image at `path` as a view of a camera of `size` (width, height), reading its
+/// header only: missing, not an image, or another size.
+pub fn view_header_problem(path: &Path, size: (u32, u32)) -> Option<String> {
+    use image::ImageDecoder;
+    let reader = match image::ImageReader::open(path).and_then(|r| r.with_guessed_format()) {
+        Ok(rd) => rd,
+        Err(e) => return Some(format!("missing or unreadable image: {e}")),
+    };
+    match reader.into_decoder() {
+        Err(e) => Some(format!("not a readable image: {e}")),
+        Ok(dec) if dec.dimensions() != size => Some(format!(
+            "image is {} x {}, the camera says {} x {}",
+            dec.dimensions().0,
+            dec.dimensions().1,
+            size.0,
+            size.1
+        )),
+        Ok(_) => None,
+    }
+}
+
 /// Check an image file: present, a readable image header, the expected size and colour type; with
 /// `deep`, decoded whole.
 fn check_image(r: &mut CheckReport, path: &Path, size: (u32, u32), kind: &str, deep: bool) {

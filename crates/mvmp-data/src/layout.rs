@@ -130,9 +130,12 @@ pub fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<(), DataError>
     Ok(write_atomic(path, text.as_bytes())?)
 }
 
-/// The first problem of a list of names of entries in one directory: each a plain name (no path, no
-/// `..`) and none twice (an entry listed twice is read, trained on and scored twice).
+/// The first problem of a list of names of entries in one directory: at least one, each a plain name (no
+/// path, no `..`) and none twice (an entry listed twice is read, trained on and scored twice).
 pub fn name_problem(key: &str, names: &[String]) -> Option<String> {
+    if names.is_empty() {
+        return Some(format!("key `{key}` is empty"));
+    }
     for (i, name) in names.iter().enumerate() {
         let mut parts = Path::new(name).components();
         let plain =

@@ -293,7 +293,8 @@ pub struct PanopticReport {
 }
 
 /// Validate a Panoptic tree: `root` is one sequence directory or a directory of them. Every pose file is
-/// parsed and every image of the selected cameras must exist; each problem names its file.
+/// parsed and every image of the selected cameras must be an image of its camera's size (its header is
+/// read); each problem names its file.
 pub fn check_tree(root: &Path, cameras: &[&str]) -> PanopticReport {
     let mut report = PanopticReport::default();
     let is_seq = |d: &Path| {
@@ -346,11 +347,12 @@ pub fn check_tree(root: &Path, cameras: &[&str]) -> PanopticReport {
                     what: e.to_string(),
                 }),
             }
-            for img in &f.images {
-                if !img.exists() {
+            for (img, cam) in f.images.iter().zip(&seq.rig.cameras) {
+                if let Some(what) = crate::check::view_header_problem(img, (cam.width, cam.height))
+                {
                     report.problems.push(crate::check::Problem {
                         path: img.clone(),
-                        what: "missing image".into(),
+                        what,
                     });
                 }
             }

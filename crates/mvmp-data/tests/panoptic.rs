@@ -160,6 +160,17 @@ fn fixture_bodies(frame: usize, n: usize) -> Value {
     serde_json::json!({"version": 0.7, "univTime": 0.0, "fpsType": "hd_29_97", "bodies": bodies})
 }
 
+/// A grey JPEG of the fixture cameras' 1920 x 1080, encoded once.
+fn hd_jpeg() -> &'static [u8] {
+    static JPEG: std::sync::OnceLock<Vec<u8>> = std::sync::OnceLock::new();
+    JPEG.get_or_init(|| {
+        let img = image::RgbImage::from_pixel(1920, 1080, image::Rgb([90, 90, 90]));
+        let mut out = std::io::Cursor::new(Vec::new());
+        img.write_to(&mut out, image::ImageFormat::Jpeg).unwrap();
+        out.into_inner()
+    })
+}
+
 fn fixture_sequence(root: &Path, name: &str, frames: usize, images: bool) -> PathBuf {
     let d = root.join(name);
     std::fs::create_dir_all(d.join("hdPose3d_stage1_coco19")).unwrap();
@@ -179,7 +190,7 @@ fn fixture_sequence(root: &Path, name: &str, frames: usize, images: bool) -> Pat
             for c in VOXELPOSE_CAMERAS {
                 let dir = d.join("hdImgs").join(c);
                 std::fs::create_dir_all(&dir).unwrap();
-                std::fs::write(dir.join(format!("{c}_{idx}.jpg")), b"jpeg").unwrap();
+                std::fs::write(dir.join(format!("{c}_{idx}.jpg")), hd_jpeg()).unwrap();
             }
         }
     }
@@ -237,8 +248,23 @@ fn a_fixture_sequence_walks_with_strides_and_validity() {
         .unwrap()
         .truncate(70);
     std::fs::write(&truncated, b.to_string()).unwrap();
+    // Images that are not images, or not of their camera's size, are named too.
+    let garbage = seq_dir.join("hdImgs/00_03/00_03_00000100.jpg");
+    std::fs::write(&garbage, b"jpeg").unwrap();
+    let small = seq_dir.join("hdImgs/00_06/00_06_00000101.jpg");
+    image::RgbImage::new(10, 10).save(&small).unwrap();
     let r = check_tree(root.path(), &VOXELPOSE_CAMERAS);
-    assert_eq!(r.problems.len(), 2, "{:?}", r.problems);
+    assert_eq!(r.problems.len(), 4, "{:?}", r.problems);
+    assert!(
+        r.problems
+            .iter()
+            .any(|p| p.path == garbage && p.what.contains("not a readable image"))
+    );
+    assert!(
+        r.problems
+            .iter()
+            .any(|p| p.path == small && p.what.contains("10 x 10"))
+    );
     assert!(
         r.problems
             .iter()
