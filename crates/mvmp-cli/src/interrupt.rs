@@ -33,8 +33,45 @@ fn state() -> std::sync::MutexGuard<'static, State> {
 pub fn install() {
     static ONCE: Once = Once::new();
     ONCE.call_once(|| {
+        let hangup_ignored = hangup_ignored();
         let _ = ctrlc::set_handler(on_interrupt);
+        if hangup_ignored {
+            ignore_hangup();
+        }
     });
+}
+
+/// Whether SIGHUP is ignored now (a process started under `nohup` must outlive its terminal).
+#[cfg(unix)]
+fn hangup_ignored() -> bool {
+    // SAFETY: sigaction with a null new action only reads the current disposition into `old`.
+    unsafe {
+        let mut old: libc::sigaction = std::mem::zeroed();
+        libc::sigaction(libc::SIGHUP, std::ptr::null(), &mut old) == 0
+            && old.sa_sigaction == libc::SIG_IGN
+    }
+}
+
+#[cfg(unix)]
+fn ignore_hangup() {
+    // SAFETY: setting a signal's disposition to SIG_IGN installs no code of ours.
+    unsafe {
+        libc::signal(libc::SIGHUP, libc::SIG_IGN);
+    }
+}
+
+#[cfg(not(unix))]
+fn hangup_ignored() -> bool {
+    false
+}
+
+#[cfg(not(unix))]
+fn ignore_hangup() {}
+
+/// A line on standard error that cannot panic (after a hangup, writes to the terminal fail).
+fn say(text: std::fmt::Arguments) {
+    use std::io::Write;
+    let _ = writeln!(std::io::stderr(), "{text}");
 }
 
 fn on_interrupt() {
@@ -42,10 +79,12 @@ fn on_interrupt() {
     if let Some(stop) = s.training.as_ref()
         && !stop.swap(true, Ordering::SeqCst)
     {
-        eprintln!("\ninterrupted: writing a checkpoint after this step (Ctrl-C again to quit now)");
+        say(format_args!(
+            "\ninterrupted: writing a checkpoint after this step (Ctrl-C again to quit now)"
+        ));
         return;
     }
-    eprintln!("\ninterrupted");
+    say(format_args!("\ninterrupted"));
     mvmp_geom::io::remove_live_partials();
     for u in s.unfinished.drain(..).rev() {
         remove(u);
@@ -62,8 +101,11 @@ fn remove(u: Unfinished) {
         Unfinished::Run(_) => return,
     };
     match clear(&dir, keep_dir) {
-        Ok(()) => eprintln!("{why}: removed {}", dir.display()),
-        Err(e) => eprintln!("{why}; removing {} failed: {e}", dir.display()),
+        Ok(()) => say(format_args!("{why}: removed {}", dir.display())),
+        Err(e) => say(format_args!(
+            "{why}; removing {} failed: {e}",
+            dir.display()
+        )),
     }
 }
 

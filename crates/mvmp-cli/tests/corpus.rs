@@ -1046,6 +1046,30 @@ fn no_malformed_image_rig_run_or_flag_gets_through() {
         check(&case.args, &what, &names, None);
         std::fs::remove_dir_all(&copy).unwrap();
     }
+    // The checkpoint and optimizer files state.json names, damaged after they were written (64 bytes
+    // flipped in the middle; such weights once resumed without a word).
+    for key in ["checkpoint", "optimizer"] {
+        copy_dir(&run, &copy);
+        let state: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(copy.join("state.json")).unwrap())
+                .unwrap();
+        let file = copy.join(state[key].as_str().unwrap());
+        let mut bytes = std::fs::read(&file).unwrap();
+        let mid = bytes.len() / 2;
+        for b in &mut bytes[mid..mid + 64] {
+            *b ^= 0xff;
+        }
+        std::fs::write(&file, bytes).unwrap();
+        let name = file.file_name().unwrap().to_string_lossy().into_owned();
+        let names = move |t: &str| t.contains(&name) && t.contains("damaged");
+        check(
+            &resume,
+            &format!("a damaged {key} file via train --resume"),
+            &names,
+            None,
+        );
+        std::fs::remove_dir_all(&copy).unwrap();
+    }
 
     // Numbers on the command line: each must be refused naming its flag.
     let tiny = s(&p("model.toml"));

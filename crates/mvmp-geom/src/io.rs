@@ -104,20 +104,50 @@ pub fn remove_live_partials() {
     }
 }
 
-/// Every temporary output starts with this, then the writing process's id and a dash.
+/// Every temporary output starts with this, then `<process id>@<host>-` and a random part.
 pub const PARTIAL_PREFIX: &str = ".mvmp-partial-";
 
+/// This machine's name as it appears in temporary names (letters and digits only).
+fn host() -> &'static str {
+    static HOST: std::sync::OnceLock<String> = std::sync::OnceLock::new();
+    HOST.get_or_init(|| {
+        std::fs::read_to_string("/proc/sys/kernel/hostname")
+            .unwrap_or_default()
+            .chars()
+            .filter(char::is_ascii_alphanumeric)
+            .collect()
+    })
+}
+
+/// The start of the temporary names of process `pid` on this machine.
+pub fn partial_prefix_of(pid: u32) -> String {
+    format!("{PARTIAL_PREFIX}{pid}@{}-", host())
+}
+
 fn partial_prefix() -> String {
-    format!("{PARTIAL_PREFIX}{}-", std::process::id())
+    partial_prefix_of(std::process::id())
 }
 
 /// Remove from `dir` the temporary outputs of processes that no longer run (a kill or a power cut
-/// leaves them behind; an error or Ctrl-C removes its own). Only names this module makes, with a process
-/// id, are touched, and only where `/proc` tells which processes live; failures are ignored, since a
-/// leftover costs disk space, not correctness.
+/// leaves them behind; an error or Ctrl-C removes its own). Only what is certainly stale goes: names
+/// this module makes, of this machine (a directory shared with others may hold their live ones), owned
+/// by this user (`/proc` may hide other users' processes), of a process `/proc` does not list.
+/// Failures are ignored, since a leftover costs disk space, not correctness.
 pub fn sweep_stale(dir: &Path) {
+    #[cfg(unix)]
+    sweep_stale_unix(dir);
+    #[cfg(not(unix))]
+    let _ = dir;
+}
+
+#[cfg(unix)]
+fn sweep_stale_unix(dir: &Path) {
+    use std::os::unix::fs::MetadataExt;
     let proc = Path::new("/proc");
-    if !proc.join("self").exists() {
+    let Ok(me) = proc.join("self").metadata() else {
+        return;
+    };
+    if host().is_empty() {
         return;
     }
     let Ok(entries) = std::fs::read_dir(dir) else {
@@ -128,7 +158,8 @@ pub fn sweep_stale(dir: &Path) {
         let Some(pid) = name.to_str().and_then(stale_pid) else {
             continue;
         };
-        if pid == std::process::id() || proc.join(pid.to_string()).exists() {
+        let mine = entry.metadata().is_ok_and(|m| m.uid() == me.uid());
+        if !mine || pid == std::process::id() || proc.join(pid.to_string()).exists() {
             continue;
         }
         let path = entry.path();
@@ -145,10 +176,11 @@ pub fn sweep_stale(dir: &Path) {
     }
 }
 
-/// The process id in a temporary output's name (`.mvmp-partial-<pid>-<random>`).
+/// The process id in a temporary output's name made on this machine.
 fn stale_pid(name: &str) -> Option<u32> {
     let rest = name.strip_prefix(PARTIAL_PREFIX)?;
-    let (pid, random) = rest.split_once('-')?;
+    let (pid, rest) = rest.split_once('@')?;
+    let random = rest.strip_prefix(host())?.strip_prefix('-')?;
     (!random.is_empty()).then_some(())?;
     pid.parse().ok()
 }
@@ -233,11 +265,16 @@ impl StagedDir {
     /// destination is never seen half-merged.
     pub fn finish(self) -> Result<(), GeomError> {
         if !self.dest.exists() {
+            // Held across the rename: a signal's `remove_live_partials` waits rather than removing
+            // the tree as it moves into place.
+            let live = live();
             let tmp = self.tmp.keep();
-            return std::fs::rename(&tmp, &self.dest).map_err(|source| GeomError::Io {
+            let moved = std::fs::rename(&tmp, &self.dest).map_err(|source| GeomError::Io {
                 path: self.dest.clone(),
                 source,
             });
+            drop(live);
+            return moved;
         }
         if !self.dest.is_dir() {
             return Err(GeomError::Io {
@@ -252,6 +289,8 @@ impl StagedDir {
             .map_err(io_at(&self.dest))?
             .permissions();
         std::fs::set_permissions(self.tmp.path(), perms).map_err(io_at(self.tmp.path()))?;
+        // As above; after the swap the stage holds the old tree, which may go.
+        let _live = live();
         swap(self.tmp.path(), &self.dest)
         // The stage now holds the old tree, removed as the `TempDir` drops.
     }

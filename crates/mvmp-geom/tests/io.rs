@@ -130,26 +130,35 @@ fn a_json_error_names_the_key_path() {
 #[test]
 #[cfg(target_os = "linux")]
 fn a_new_output_sweeps_what_killed_processes_left_beside_it() {
-    use mvmp_geom::io::{PARTIAL_PREFIX, write_atomic};
+    use mvmp_geom::io::{partial_prefix_of, write_atomic};
     let root = tempfile::tempdir().unwrap();
     // A process that has exited: its id names no live process (ids are not reused this quickly).
     let mut child = std::process::Command::new("true").spawn().unwrap();
     let dead = child.id();
     child.wait().unwrap();
     let live = std::process::id();
-    let stale_dir = format!("{PARTIAL_PREFIX}{dead}-AbC123");
-    let stale_file = format!("{PARTIAL_PREFIX}{dead}-XyZ789.bpk");
-    let running = format!("{PARTIAL_PREFIX}{live}-Qq1");
+    let stale_dir = format!("{}AbC123", partial_prefix_of(dead));
+    let stale_file = format!("{}XyZ789.bpk", partial_prefix_of(dead));
+    let running = format!("{}Qq1", partial_prefix_of(live));
+    // Another machine's, in a directory both share: its process may be running there.
+    let elsewhere = format!(".mvmp-partial-{dead}@othermachine0-Zz9");
     for d in [&stale_dir, &running] {
         std::fs::create_dir(root.path().join(d)).unwrap();
         std::fs::write(root.path().join(d).join("x"), "x").unwrap();
     }
     // Names this module does not make (no process id, another prefix) are not its to remove.
-    for f in [&stale_file, ".mvmp-partial-old", ".tmpAbc", "notes.txt"] {
+    for f in [
+        &stale_file,
+        &elsewhere,
+        ".mvmp-partial-old",
+        ".tmpAbc",
+        "notes.txt",
+    ] {
         std::fs::write(root.path().join(f), "f").unwrap();
     }
     write_atomic(&root.path().join("out.json"), b"{}").unwrap();
     let mut expect = vec![
+        elsewhere.clone(),
         ".mvmp-partial-old".to_string(),
         running.clone(),
         ".tmpAbc".into(),

@@ -45,6 +45,12 @@ pub struct RunState {
     /// model, so a resume refuses another (empty, or absent, in runs of earlier versions).
     #[serde(default, skip_serializing_if = "String::is_empty")]
     pub model_sha256: String,
+    /// SHA-256 of the checkpoint and optimizer files as written: a resume refuses files damaged since
+    /// (empty, or absent, in runs of earlier versions).
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub checkpoint_sha256: String,
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub optimizer_sha256: String,
 }
 
 /// An open run directory.
@@ -169,6 +175,28 @@ impl RunDir {
                  differs): the checkpoint's weights belong to the model it had; undo the change, or \
                  start a new run",
             ));
+        }
+        Ok(())
+    }
+
+    /// The checkpoint and optimizer files a state names are the ones it was written with.
+    pub fn check_checkpoint_files(&self, s: &RunState) -> Result<(), TrainError> {
+        let files = [
+            (Some(&s.checkpoint), &s.checkpoint_sha256),
+            (s.optimizer.as_ref(), &s.optimizer_sha256),
+        ];
+        for (file, sha) in files {
+            let Some(file) = file.filter(|_| !sha.is_empty()) else {
+                continue;
+            };
+            let path = self.root.join(file);
+            if &file_hash(&path)? != sha {
+                return Err(TrainError::file(
+                    &path,
+                    "differs from the file state.json names (its SHA-256 has changed since it was \
+                     written): the checkpoint is damaged; resume from a copy, or start a new run",
+                ));
+            }
         }
         Ok(())
     }

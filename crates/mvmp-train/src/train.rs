@@ -23,7 +23,7 @@ use mvmp_smplx::{BodyModel, SmplxLayer};
 
 use crate::TrainError;
 use crate::config::{Stage, StageConfig, TrainConfig};
-use crate::run::{RunDir, RunState, STATE_FORMAT};
+use crate::run::{RunDir, RunState, STATE_FORMAT, file_hash};
 use crate::step::{Stage2, StepLoss, stage1_loss, stage2_loss};
 use crate::validation::{check_validation_source, source_cameras, validate};
 use mvmp_eval::drivers::PseudoGt;
@@ -325,8 +325,11 @@ fn check_untrained(run: &RunDir) -> Result<(), TrainError> {
     let ckpt = run.root.join("checkpoints");
     let has_checkpoint = std::fs::read_dir(&ckpt)
         .map(|d| {
-            d.flatten()
-                .any(|e| e.file_name().to_string_lossy().ends_with(".bpk"))
+            // Checkpoints are `step*.bpk`; a dot-file is a write a kill interrupted.
+            d.flatten().any(|e| {
+                let name = e.file_name().to_string_lossy().into_owned();
+                name.starts_with("step") && name.ends_with(".bpk")
+            })
         })
         .unwrap_or(false);
     if has_checkpoint || run.root.join("model.bpk").exists() {
@@ -482,6 +485,7 @@ impl<'a> Trainer<'a> {
         let mut resume_optim = None;
         if let Some(s) = &state {
             run.check_model_unchanged(s)?;
+            run.check_checkpoint_files(s)?;
             load_weights(&mut model, &run.root.join(&s.checkpoint))?;
             model = model.train();
             cursor = Cursor {
@@ -852,7 +856,9 @@ impl<'a> Trainer<'a> {
             checkpoint: format!("checkpoints/{name}.bpk"),
             optimizer: Some(format!("checkpoints/optim-{name}.bpk")),
             finished: false,
-            model_sha256: crate::run::file_hash(&self.run.model_config_path())?,
+            model_sha256: file_hash(&self.run.model_config_path())?,
+            checkpoint_sha256: file_hash(&weights)?,
+            optimizer_sha256: file_hash(&opt)?,
         })?;
         prune_checkpoints(&dir, &weights, &opt, self.cfg.keep_checkpoints)?;
         Ok(weights)

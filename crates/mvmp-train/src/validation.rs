@@ -42,7 +42,7 @@ pub fn check_validation_source(cfg: &TrainConfig) -> Result<(), TrainError> {
             .unwrap_or("test")
             .parse()
             .map_err(|e: String| TrainError::file(&src.root, e))?;
-        // The cameras were counted above; the split must have scenes.
+        // The cameras were counted above; the split must be readable (an empty one validates nothing).
         let layout = mvmp_data::DatasetLayout::open(Path::new(&src.root))?;
         mvmp_data::loader::split_frames(&layout, split)?;
         return Ok(());

@@ -187,7 +187,10 @@ fn person_view(cam: &Camera, p: &Posed, index: usize, view: &ViewOutput) -> Pers
                     vis = false;
                 }
             }
-            let uv = if z > 1e-3 {
+            // Behind the camera, or so close to its plane that the lens model sends it past any
+            // image (the annotation bound, `MAX_PIXEL`): no position.
+            let far = |x: f64| x.is_nan() || x.abs() > crate::layout::MAX_PIXEL;
+            let uv = if z > 1e-3 && !far(uv.x) && !far(uv.y) {
                 uv
             } else {
                 Vector2::new(-1.0, -1.0)
