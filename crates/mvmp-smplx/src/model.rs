@@ -346,6 +346,26 @@ impl BodyModel {
         let hml = r.optional("hands_meanl", &[Some(45)])?;
         let hmr = r.optional("hands_meanr", &[Some(45)])?;
 
+        // Keys that only work in pairs: one without the other is a damaged file, not a model without
+        // landmarks (its output would silently lose 51 joints) or without hand means.
+        for (a, b, has_a, has_b) in [
+            (
+                "lmk_faces_idx",
+                "lmk_bary_coords",
+                lmk_f.is_some(),
+                lmk_b.is_some(),
+            ),
+            ("hands_meanl", "hands_meanr", hml.is_some(), hmr.is_some()),
+        ] {
+            if has_a != has_b {
+                let (present, absent) = if has_a { (a, b) } else { (b, a) };
+                return Err(value_err(
+                    path,
+                    absent,
+                    format!("missing, while `{present}` is present (they come as a pair)"),
+                ));
+            }
+        }
         let faces = faces_of(&f, v, path)?;
         let parents = parents_of(&kt, path)?;
         let landmarks = match (lmk_f, lmk_b) {

@@ -341,3 +341,28 @@ fn index_arrays_stored_as_fractions_are_refused_naming_the_key() {
         );
     }
 }
+
+#[test]
+fn half_of_a_pair_of_keys_is_refused_naming_the_missing_one() {
+    let (dir, p) = written();
+    for (dropped, kept) in [
+        ("lmk_bary_coords", "lmk_faces_idx"),
+        ("lmk_faces_idx", "lmk_bary_coords"),
+        ("hands_meanr", "hands_meanl"),
+    ] {
+        let q = dir.path().join(format!("without_{dropped}.npz"));
+        rewrite(&p, &q, &[dropped], &[]);
+        let msg = BodyModel::load(&q).unwrap_err().to_string();
+        assert!(
+            msg.contains(&format!("without_{dropped}.npz"))
+                && msg.contains(dropped)
+                && msg.contains(kept),
+            "{msg}"
+        );
+    }
+    // Both halves of a pair absent: a model without landmarks (or hand means), as before.
+    let q = dir.path().join("no_landmarks.npz");
+    rewrite(&p, &q, &["lmk_faces_idx", "lmk_bary_coords"], &[]);
+    let m = BodyModel::load(&q).unwrap();
+    assert!(m.landmarks.is_none());
+}
