@@ -1,5 +1,5 @@
-//! What Ctrl-C (or SIGTERM, SIGHUP) does. While a run trains, the first press asks it to stop after the current step (it then
-//! writes a checkpoint to resume from). Otherwise, or on a second press, the process quits at once, after
+//! What Ctrl-C (or SIGTERM, SIGHUP) does. While a run trains, the first press asks it to stop after the
+//! current step (it then writes a checkpoint to resume from). Otherwise, or on a second press, the process quits at once, after
 //! removing its temporary outputs (staged directories, files being written) and the outputs it registered
 //! as unfinished: a new run's directory that holds no checkpoint yet, the demo's output directory.
 use std::path::{Path, PathBuf};
@@ -118,12 +118,7 @@ pub fn clear(dir: &Path, keep_dir: bool) -> std::io::Result<()> {
         return std::fs::remove_dir_all(dir);
     }
     for entry in std::fs::read_dir(dir)? {
-        let entry = entry?;
-        if entry.file_type()?.is_dir() {
-            std::fs::remove_dir_all(entry.path())?;
-        } else {
-            std::fs::remove_file(entry.path())?;
-        }
+        mvmp_geom::io::remove_path(&entry?.path())?;
     }
     Ok(())
 }

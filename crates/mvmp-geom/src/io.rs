@@ -96,11 +96,16 @@ impl Drop for Live {
 /// in their directory sweeps them.
 pub fn remove_live_partials() {
     for p in live().drain(..) {
-        let _ = if p.is_dir() {
-            std::fs::remove_dir_all(&p)
-        } else {
-            std::fs::remove_file(&p)
-        };
+        let _ = remove_path(&p);
+    }
+}
+
+/// Remove a file, or a directory with everything in it (a link is removed, not followed).
+pub fn remove_path(path: &Path) -> std::io::Result<()> {
+    if path.symlink_metadata()?.is_dir() {
+        std::fs::remove_dir_all(path)
+    } else {
+        std::fs::remove_file(path)
     }
 }
 
@@ -163,11 +168,7 @@ fn sweep_stale_unix(dir: &Path) {
             continue;
         }
         let path = entry.path();
-        let removed = match entry.file_type() {
-            Ok(t) if t.is_dir() => std::fs::remove_dir_all(&path),
-            _ => std::fs::remove_file(&path),
-        };
-        if removed.is_ok() {
+        if remove_path(&path).is_ok() {
             tracing::warn!(
                 "removed {} (left by an interrupted process)",
                 path.display()
