@@ -65,7 +65,7 @@ impl From<burn::store::ApplyResult> for ImportReport {
             loaded: r.applied,
             missing: r.missing.into_iter().map(|(k, _)| k).collect(),
             unused: r.unused,
-            errors: r.errors.iter().map(|e| format!("{e:?}")).collect(),
+            errors: r.errors.iter().map(|e| e.to_string()).collect(),
         }
     }
 }
@@ -214,13 +214,14 @@ pub fn import_dinov2(vit: &mut ViT, path: &Path) -> Result<ImportReport, ImportE
     Ok(result.into())
 }
 
-/// The first parameter of `module` (its module path) holding a NaN or infinite value: imported weights
-/// must be finite, or every prediction made with them is NaN.
-pub fn first_non_finite<M: burn::module::Module>(module: &M) -> Option<String> {
+/// The first parameter of `module` (its module path) that no trained network holds, and what is wrong
+/// with it: a NaN or infinite value (every prediction made with it is NaN), or a batch norm's negative
+/// running variance (its square root is NaN).
+pub fn first_invalid_weight<M: burn::module::Module>(module: &M) -> Option<(String, &'static str)> {
     #[derive(Default)]
     struct Finder {
         path: Vec<String>,
-        found: Option<String>,
+        found: Option<(String, &'static str)>,
     }
     impl burn::module::ModuleVisitor for Finder {
         fn enter_module(&mut self, name: &str, _container: &str) {
@@ -233,9 +234,23 @@ pub fn first_non_finite<M: burn::module::Module>(module: &M) -> Option<String> {
             &mut self,
             p: &burn::module::Param<burn::tensor::Tensor<D>>,
         ) {
+            if self.found.is_some() {
+                return;
+            }
             // Read on the host: one pass over the weights, whatever the backend's own checks do.
-            if self.found.is_none() && !p.val().into_data().iter::<f32>().all(|x| x.is_finite()) {
-                self.found = Some(self.path.join("."));
+            let data = p.val().into_data();
+            let variance = self.path.last().is_some_and(|n| n == "running_var");
+            let problem = data.iter::<f32>().find_map(|x| {
+                if !x.is_finite() {
+                    Some("hold a NaN or infinite value")
+                } else if variance && x < 0.0 {
+                    Some("hold a negative variance")
+                } else {
+                    None
+                }
+            });
+            if let Some(what) = problem {
+                self.found = Some((self.path.join("."), what));
             }
         }
     }
@@ -244,13 +259,13 @@ pub fn first_non_finite<M: burn::module::Module>(module: &M) -> Option<String> {
     f.found
 }
 
-/// Refuse weights read from `path` that hold a NaN or infinite value.
+/// Refuse weights read from `path` that no trained network holds ([`first_invalid_weight`]).
 pub fn check_finite<M: burn::module::Module>(module: &M, path: &Path) -> Result<(), ImportError> {
-    match first_non_finite(module) {
+    match first_invalid_weight(module) {
         None => Ok(()),
-        Some(at) => Err(ImportError::Format {
+        Some((at, what)) => Err(ImportError::Format {
             path: path.into(),
-            what: format!("the weights of `{at}` hold a NaN or infinite value"),
+            what: format!("the weights of `{at}` {what}"),
         }),
     }
 }

@@ -154,3 +154,37 @@ fn reference_layout_loads_completely() {
         assert_eq!(rep.loaded.len(), keys.len() - n_tracked);
     }
 }
+
+/// A batch norm's running variance below zero (its square root is NaN in every forward) is refused,
+/// naming the file and the module; so is a non-finite weight.
+#[test]
+fn negative_running_variances_and_non_finite_weights_are_refused() {
+    let d = Device::flex();
+    let cfg = HRNetConfig::tiny(17);
+    let dir = tempfile::tempdir().unwrap();
+    for (key, value, needle) in [
+        ("bn1.running_var", -0.5f32, "negative variance"),
+        ("conv1.weight", f32::INFINITY, "NaN or infinite"),
+    ] {
+        let shape = reference_keys(&cfg)
+            .into_iter()
+            .find(|(n, _)| n == key)
+            .unwrap()
+            .1;
+        let count: usize = shape.iter().product();
+        let bytes: Vec<u8> = (0..count)
+            .flat_map(|i| if i == 3 { value } else { 0.5 }.to_le_bytes())
+            .collect();
+        let view =
+            safetensors::tensor::TensorView::new(safetensors::Dtype::F32, shape, &bytes).unwrap();
+        let p = dir.path().join("bad_hrnet.safetensors");
+        std::fs::write(&p, safetensors::serialize([(key, view)], None).unwrap()).unwrap();
+        let mut net = cfg.init(&d);
+        let e = import_hrnet(&mut net, &p).unwrap_err().to_string();
+        let module = key.rsplit_once('.').unwrap().0;
+        assert!(
+            e.contains("bad_hrnet.safetensors") && e.contains(module) && e.contains(needle),
+            "{e}"
+        );
+    }
+}

@@ -82,7 +82,9 @@ pub fn forward(model: Option<&Path>, params: &Path, out: &Path, device: &Device)
     let model = load_model(model)?;
     let (verts, joints) = pose(&model, &bodies, device)?;
     // Every file is written to a staging directory, moved into place once all are written.
-    let staged = mvmp_geom::io::StagedDir::new(out)?;
+    let staged = mvmp_geom::io::StagedDir::new(out)?.owning(|name| {
+        name.starts_with("body_") && (name.ends_with(".obj") || name.ends_with(".ply"))
+    });
     let dir = staged.path();
     let n = bodies.len();
     let nv = verts[0].len();
@@ -156,8 +158,28 @@ pub fn render(
     ]
     .map(|x| x as f64);
     let extent = ((hi[0] - lo[0]).max(hi[1] - lo[1]) as f64).max(0.1);
+    // One picture frames every body: people kilometres apart would be specks, and a camera that far
+    // out is past what the projection takes.
+    const MAX_EXTENT: f64 = 1.0e3;
+    if extent > MAX_EXTENT || !extent.is_finite() {
+        bail!(
+            "{}: the bodies span {extent:.0} m, more than a preview frames ({MAX_EXTENT} m); render people far apart in files of their own",
+            params.map_or("the bodies".into(), |p| p.display().to_string())
+        );
+    }
+    // Framed about their centre, so that bodies far from the origin render as near it.
+    let verts: Vec<Vec<[f32; 3]>> = verts
+        .iter()
+        .map(|v| {
+            v.iter()
+                .map(|p| std::array::from_fn(|a| (p[a] as f64 - c[a]) as f32))
+                .collect()
+        })
+        .collect();
+    let front = hi[2] as f64 - c[2];
+    let c = [0.0f64; 3];
     let f = size as f64 * 2.0;
-    let dist = f * extent * 1.15 / size as f64 + (hi[2] as f64 - c[2]);
+    let dist = f * extent * 1.15 / size as f64 + front;
     // A slight three-quarter view: rotate the camera 20 degrees about the vertical axis.
     let yaw = 20f64.to_radians();
     let eye = Vector3::new(

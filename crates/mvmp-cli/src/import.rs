@@ -57,9 +57,21 @@ fn report(from: &Path, rep: &mvmp_backbone::import::ImportReport) -> Result<()> 
         for e in &rep.errors {
             eprintln!("  {e}");
         }
+        // A shape or dtype that differs points at the wrong variant; anything else at the file.
+        let mismatched = rep
+            .errors
+            .iter()
+            .filter(|e| e.starts_with("Shape mismatch") || e.starts_with("DType mismatch"))
+            .count();
+        if mismatched < rep.errors.len() {
+            bail!(
+                "{}: {} tensors could not be read (the file is damaged or incomplete)",
+                from.display(),
+                rep.errors.len() - mismatched
+            );
+        }
         bail!(
-            "{} tensors could not be applied (shape or dtype mismatch); are --variant and --joints right?",
-            rep.errors.len()
+            "{mismatched} tensors could not be applied (shape or dtype mismatch); are --variant and --joints right?"
         );
     }
     if rep.loaded.is_empty() {

@@ -1,9 +1,10 @@
 //! What Ctrl-C (or SIGTERM, SIGHUP) does. While a run trains, the first press asks it to stop after the
 //! current step (it then writes a checkpoint to resume from). Otherwise, or on a second press, the process quits at once, after
 //! removing its temporary outputs (staged directories, files being written) and the outputs it registered
-//! as unfinished: a new run's directory that holds no checkpoint yet, the demo's output directory.
+//! as unfinished: a new run's directory that holds no checkpoint yet, the demo's output directory. Either
+//! way the exit status is 128 + the signal's number (130 for SIGINT, 143 for SIGTERM, 129 for SIGHUP).
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicI32, Ordering};
 use std::sync::{Arc, Mutex, Once};
 
 /// An unfinished output and when quitting removes it.
@@ -20,6 +21,17 @@ struct State {
     unfinished: Vec<Unfinished>,
 }
 
+/// The number of the last signal handled (0: none).
+static RECEIVED: AtomicI32 = AtomicI32::new(0);
+
+/// The signal that asked a run to stop, if one did (the run then ended with a checkpoint).
+pub fn received() -> Option<u8> {
+    match RECEIVED.load(Ordering::SeqCst) {
+        s @ 1..=127 => Some(s as u8),
+        _ => None,
+    }
+}
+
 static STATE: Mutex<State> = Mutex::new(State {
     training: None,
     unfinished: Vec::new(),
@@ -29,19 +41,38 @@ fn state() -> std::sync::MutexGuard<'static, State> {
     STATE.lock().unwrap_or_else(|e| e.into_inner())
 }
 
-/// Install the handler (once per process; a failure leaves Ctrl-C at its default, quitting at once).
+/// Install the handler (once per process; a failure leaves the signals at their defaults, quitting at
+/// once).
 pub fn install() {
     static ONCE: Once = Once::new();
     ONCE.call_once(|| {
-        let hangup_ignored = hangup_ignored();
-        let _ = ctrlc::set_handler(on_interrupt);
-        if hangup_ignored {
-            ignore_hangup();
+        if let Err(e) = listen() {
+            tracing::warn!("signals keep their default action: {e}");
         }
     });
 }
 
-/// Whether SIGHUP is ignored now (a process started under `nohup` must outlive its terminal).
+/// A thread that handles SIGINT, SIGTERM and SIGHUP (unless SIGHUP is ignored: a process started under
+/// `nohup` must outlive its terminal).
+#[cfg(unix)]
+fn listen() -> std::io::Result<()> {
+    use signal_hook::consts::{SIGHUP, SIGINT, SIGTERM};
+    let mut wanted = vec![SIGINT, SIGTERM];
+    if !hangup_ignored() {
+        wanted.push(SIGHUP);
+    }
+    let mut signals = signal_hook::iterator::Signals::new(&wanted)?;
+    std::thread::Builder::new()
+        .name("signals".into())
+        .spawn(move || {
+            for signal in signals.forever() {
+                on_signal(signal);
+            }
+        })?;
+    Ok(())
+}
+
+/// Whether SIGHUP is ignored now.
 #[cfg(unix)]
 fn hangup_ignored() -> bool {
     // SAFETY: sigaction with a null new action only reads the current disposition into `old`.
@@ -52,21 +83,11 @@ fn hangup_ignored() -> bool {
     }
 }
 
-#[cfg(unix)]
-fn ignore_hangup() {
-    // SAFETY: setting a signal's disposition to SIG_IGN installs no code of ours.
-    unsafe {
-        libc::signal(libc::SIGHUP, libc::SIG_IGN);
-    }
-}
-
 #[cfg(not(unix))]
-fn hangup_ignored() -> bool {
-    false
+fn listen() -> std::io::Result<()> {
+    // Ctrl-C is the only interruption here; 2 is SIGINT's number, so the status is 130 as on Unix.
+    ctrlc::set_handler(|| on_signal(2)).map_err(std::io::Error::other)
 }
-
-#[cfg(not(unix))]
-fn ignore_hangup() {}
 
 /// A line on standard error that cannot panic (after a hangup, writes to the terminal fail).
 fn say(text: std::fmt::Arguments) {
@@ -74,7 +95,9 @@ fn say(text: std::fmt::Arguments) {
     let _ = writeln!(std::io::stderr(), "{text}");
 }
 
-fn on_interrupt() {
+/// `signal`'s number makes the exit status (128 + it, as a shell reports a process the signal killed).
+fn on_signal(signal: i32) {
+    RECEIVED.store(signal, Ordering::SeqCst);
     let mut s = state();
     if let Some(stop) = s.training.as_ref()
         && !stop.swap(true, Ordering::SeqCst)
@@ -89,7 +112,7 @@ fn on_interrupt() {
     for u in s.unfinished.drain(..).rev() {
         remove(u);
     }
-    std::process::exit(130);
+    std::process::exit(128 + signal);
 }
 
 fn remove(u: Unfinished) {

@@ -477,7 +477,12 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     interrupt::install();
     match run(cli) {
-        Ok(()) => ExitCode::SUCCESS,
+        // A run stopped by a signal wrote its checkpoint, but did not finish: the status says which
+        // signal stopped it, as a scheduler or `timeout` expects.
+        Ok(()) => match interrupt::received() {
+            Some(signal) => ExitCode::from(128 + signal),
+            None => ExitCode::SUCCESS,
+        },
         Err(e) => {
             // Library errors often spell out their cause already; print each cause once.
             let mut msg = e.to_string();
@@ -488,7 +493,8 @@ fn main() -> ExitCode {
                 }
             }
             eprintln!("error: {msg}");
-            ExitCode::FAILURE
+            // The demo stops with an error when a signal stopped its training.
+            interrupt::received().map_or(ExitCode::FAILURE, |s| ExitCode::from(128 + s))
         }
     }
 }

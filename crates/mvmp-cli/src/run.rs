@@ -259,7 +259,10 @@ fn eval_run(
     let mut pb = LazyBar::new("eval", quiet);
     let faces = pred.layer.faces().to_vec();
     // Every frame's files go to a staging directory, moved into place once all are scored.
-    let staged = args.save_predictions.map(StagedDir::new).transpose()?;
+    let staged = args
+        .save_predictions
+        .map(|d| StagedDir::new(d).map(|s| s.owning(mvmp_infer::output::is_frame_output)))
+        .transpose()?;
     let ev = evaluate(&pred, args.data, &opts, |i, n, fp| {
         if let Some(dir) = &staged {
             let d = dir.path().join(&fp.scene).join(&fp.frame);
@@ -437,6 +440,20 @@ fn load_images(paths: &[PathBuf], cams: &[Camera]) -> Result<Vec<image::RgbImage
             cams.len()
         );
     }
+    // One file for two cameras is a typing slip that would score a view as another's.
+    let files: Vec<PathBuf> = paths
+        .iter()
+        .map(|p| std::fs::canonicalize(p).unwrap_or_else(|_| p.clone()))
+        .collect();
+    for (i, f) in files.iter().enumerate() {
+        if let Some(j) = files[..i].iter().position(|g| g == f) {
+            bail!(
+                "{}: the image of camera {i} ({}) is also camera {j}'s: pass one image per camera",
+                paths[i].display(),
+                cams[i].name
+            );
+        }
+    }
     Ok(mvmp_data::sources::read_frame_images(paths, cams)?)
 }
 
@@ -482,7 +499,7 @@ pub fn infer(args: &InferArgs, device: &Device, quiet: bool) -> Result<()> {
             }
             let b = progress::bar(frames.len() as u64, "infer", quiet);
             // All frames are written to a staging directory and moved into place together.
-            let staged = StagedDir::new(args.out)?;
+            let staged = StagedDir::new(args.out)?.owning(mvmp_infer::output::is_frame_output);
             let mut total = 0;
             for f in &frames {
                 let paths = frame_images(f, rig.len())?;
@@ -500,7 +517,7 @@ pub fn infer(args: &InferArgs, device: &Device, quiet: bool) -> Result<()> {
             );
         }
         (None, false) => {
-            let staged = StagedDir::new(args.out)?;
+            let staged = StagedDir::new(args.out)?.owning(mvmp_infer::output::is_frame_output);
             let n = infer_frame(&pred, &rig, args.images, staged.path())?;
             staged.finish()?;
             eprintln!(
@@ -523,10 +540,10 @@ pub const DEMO_TRAIN: &str = include_str!("../../../configs/train/tiny.toml");
 /// The demo's synthesis (with `scenes` one-frame scenes), model and training configs written into `dir`
 /// as `synth.toml`, `model.toml` and `train.toml` (the training config pointing at the model beside it).
 pub fn write_demo_configs(dir: &Path, scenes: usize) -> Result<()> {
-    let synth = DEMO_SYNTH.replace("\nscenes = 48\n", &format!("\nscenes = {scenes}\n"));
+    let synth = DEMO_SYNTH.replace("\nscenes = 144\n", &format!("\nscenes = {scenes}\n"));
     anyhow::ensure!(
         synth.contains(&format!("\nscenes = {scenes}\n")),
-        "the embedded synthesis config has no `scenes = 48` line"
+        "the embedded synthesis config has no `scenes = 144` line"
     );
     write_atomic(&dir.join("synth.toml"), synth.as_bytes())?;
     write_atomic(&dir.join("model.toml"), DEMO_MODEL.as_bytes())?;

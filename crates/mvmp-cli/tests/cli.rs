@@ -214,6 +214,29 @@ fn make_standin_then_use_it() {
     // The body covers part of the frame: some pixels differ from the background.
     let bg = img.get_pixel(0, 0);
     assert!(img.pixels().filter(|p| *p != bg).count() > 200);
+    // A body far from the origin is framed about itself; bodies kilometres apart are refused, naming
+    // the file.
+    let render = |bodies: &str| {
+        std::fs::write(&params, bodies).unwrap();
+        mvmp(&[
+            "body",
+            "render",
+            "--params",
+            params.to_str().unwrap(),
+            "--out",
+            png.to_str().unwrap(),
+            "--size",
+            "64",
+        ])
+    };
+    let o = render(r#"{"transl": [90000.0, 0.0, -90000.0]}"#);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let o = render(r#"[{"transl": [0.0, 0.0, 0.0]}, {"transl": [90000.0, 0.0, 0.0]}]"#);
+    let e = stderr(&o);
+    assert!(
+        !o.status.success() && e.contains("p.json") && e.contains("span"),
+        "{e}"
+    );
 }
 
 fn config(rel: &str) -> String {
@@ -916,6 +939,22 @@ fn train_eval_infer_end_to_end() {
         ],
         &["small.png", "10x10", "96x64"],
     );
+    // One file for both cameras.
+    expect_error(
+        &[
+            "infer",
+            "--run",
+            &p("run"),
+            "--rig",
+            rig.to_str().unwrap(),
+            "--images",
+            img.to_str().unwrap(),
+            img.to_str().unwrap(),
+            "--out",
+            &p("x"),
+        ],
+        &["view_00.png", "camera 1", "camera 0's"],
+    );
 
     // The same run on a Human3.6M tree read in place (the data crate's fixtures: S9 "Walking", 5 pose
     // rows; images of the first two cameras at the dataset's sizes), with pseudo-ground-truth fits taken
@@ -1347,4 +1386,43 @@ fn the_training_memory_estimate_grows_from_weights_to_stage_two() {
     ]);
     assert!(!o.status.success());
     assert!(stderr(&o).contains("--people"), "{}", stderr(&o));
+}
+
+/// SIGTERM while the demo works removes its unfinished outputs, and the exit status says the signal
+/// stopped it (128 + 15), as a shell reports a killed process.
+#[cfg(unix)]
+#[test]
+fn a_terminated_demo_leaves_nothing_and_exits_143() {
+    let root = tempfile::tempdir().unwrap();
+    let out = root.path().join("demo");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_mvmp"))
+        .args(["demo", "--out", out.to_str().unwrap()])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    // The configs are the demo's first output; the signal comes while it synthesises the dataset.
+    let started = std::time::Instant::now();
+    while !out.join("configs/train.toml").exists() {
+        assert!(
+            started.elapsed().as_secs() < 60,
+            "the demo wrote no configs in a minute"
+        );
+        if let Some(status) = child.try_wait().unwrap() {
+            panic!("the demo ended before the signal: {status}");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let killed = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(killed.success());
+    let o = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(143), "{err}");
+    assert!(err.contains("interrupted"), "{err}");
+    assert!(!out.exists(), "the demo's directory stays: {err}");
+    let left: Vec<_> = std::fs::read_dir(root.path()).unwrap().collect();
+    assert!(left.is_empty(), "left behind: {left:?}");
 }

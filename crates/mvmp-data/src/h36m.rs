@@ -158,7 +158,7 @@ pub fn read_poses(path: &Path) -> Result<Vec<[[f64; 3]; 32]>, DataError> {
         return Err(DataError::file(
             path,
             format!(
-                "variable `Pose`: value {} (frame {}, joint {}) is not a coordinate within {MAX_POSE_MM} mm",
+                "variable `Pose`: value {:?} (frame {}, joint {}) is not a coordinate within {MAX_POSE_MM} mm",
                 values[i],
                 i / 96,
                 i % 96 / 3

@@ -111,11 +111,33 @@ struct BodyEntry {
     joints19: Vec<f64>,
 }
 
+/// The most people one body file may hold (a capture dome holds a few dozen).
+pub const MAX_BODIES: usize = 10_000;
+/// The farthest a joint coordinate may lie from the dome's origin, in cm (1 km).
+pub const MAX_JOINT_CM: f64 = 1.0e5;
+
 /// Read the people of a `body3DScene_<frame>.json` (joints19: 19 x (x, y, z, confidence), cm).
 pub fn read_bodies(path: &Path) -> Result<Vec<PanopticBody>, DataError> {
     let text = std::fs::read_to_string(path).map_err(|e| DataError::io(path, e))?;
     let file: BodyFile = serde_json::from_str(&text)
         .map_err(|e| DataError::file(path, format!("not a Panoptic body file: {e}")))?;
+    if file.bodies.len() > MAX_BODIES {
+        return Err(DataError::file(
+            path,
+            format!(
+                "key `bodies` holds {} people; at most {MAX_BODIES} per frame",
+                file.bodies.len()
+            ),
+        ));
+    }
+    for (i, b) in file.bodies.iter().enumerate() {
+        if let Some(j) = file.bodies[..i].iter().position(|o| o.id == b.id) {
+            return Err(DataError::file(
+                path,
+                format!("bodies[{i}].id {} repeats bodies[{j}]'s", b.id),
+            ));
+        }
+    }
     file.bodies
         .into_iter()
         .enumerate()
@@ -126,6 +148,25 @@ pub fn read_bodies(path: &Path) -> Result<Vec<PanopticBody>, DataError> {
                     format!(
                         "bodies[{i}].joints19 has {} values, expected 76 (19 x 4)",
                         b.joints19.len()
+                    ),
+                ));
+            }
+            if let Some(k) = b
+                .joints19
+                .iter()
+                .enumerate()
+                .position(|(k, v)| !v.is_finite() || (k % 4 != 3 && v.abs() > MAX_JOINT_CM))
+            {
+                return Err(DataError::file(
+                    path,
+                    format!(
+                        "bodies[{i}].joints19[{k}] = {:?}: {}",
+                        b.joints19[k],
+                        if b.joints19[k].is_finite() {
+                            format!("a coordinate beyond {MAX_JOINT_CM} cm")
+                        } else {
+                            "not a number".into()
+                        }
                     ),
                 ));
             }

@@ -118,6 +118,27 @@ fn body_files_convert_units_and_axes_and_reject_truncated_joints() {
     );
     std::fs::write(&p, "{\"version\": 0.7}").unwrap();
     assert!(read_bodies(&p).unwrap_err().to_string().contains("bodies"));
+    // A joint a light-year away, one id twice, and more people than a dome holds are named.
+    let write_bodies = |bodies: Vec<(i64, Vec<f64>)>| {
+        let list: Vec<Value> = bodies
+            .into_iter()
+            .map(|(id, j)| serde_json::json!({"id": id, "joints19": j}))
+            .collect();
+        std::fs::write(&p, serde_json::json!({ "bodies": list }).to_string()).unwrap();
+        read_bodies(&p).unwrap_err().to_string()
+    };
+    let mut far = joints.clone();
+    far[9] = 1e300;
+    let e = write_bodies(vec![(3, joints.clone()), (4, far)]);
+    assert!(
+        e.contains("bodies[1].joints19[9]") && e.contains("cm"),
+        "{e}"
+    );
+    let e = write_bodies(vec![(3, joints.clone()), (3, joints.clone())]);
+    assert!(e.contains("bodies[1].id 3 repeats bodies[0]"), "{e}");
+    let many = (0..10_001).map(|i| (i, joints.clone())).collect();
+    let e = write_bodies(many);
+    assert!(e.contains("10001 people"), "{e}");
 }
 
 /// A calibration in Panoptic's layout with the five VoxelPose HD cameras plus one more (cm, y down).

@@ -269,6 +269,9 @@ fn the_decoder_learns_each_persons_pose_from_joint_centroids() {
 /// The loss on every parameter, as training has it (see [`Setup::every_parameter`]). With one shared
 /// path the residuals no input explains drown the bends (measured: 1.00 of the no-bend error, as with
 /// the loss on the 53 rotations alone, 0.997); with `pose_trunk` only the body's head trains that path.
+/// The bound sits between the two: with `pose_trunk` this test measured 0.42 on an AVX-512 machine and
+/// 0.62 on an AVX2 one (the kernels round differently and the 300 steps carry it apart), without it
+/// 1.02.
 #[test]
 fn the_decoder_learns_the_pose_beside_residuals_no_input_explains() {
     let setup = Setup {
@@ -282,7 +285,7 @@ fn the_decoder_learns_the_pose_beside_residuals_no_input_explains() {
         err / base
     );
     assert!(
-        err < 0.6 * base,
+        err < 0.8 * base,
         "bend error {err} against {base} for predicting none"
     );
 }

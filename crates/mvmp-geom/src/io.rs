@@ -206,12 +206,27 @@ fn readable(path: &Path) -> std::io::Result<()> {
     Ok(())
 }
 
+/// A message from a reader of file formats, shortened to `max` characters: some echo what they failed
+/// to parse (a damaged header can be 64 KB), which buries the file name and the key around it.
+pub fn brief(message: &str, max: usize) -> String {
+    match message.char_indices().nth(max) {
+        None => message.to_string(),
+        Some((cut, _)) => format!(
+            "{}... ({} more characters)",
+            &message[..cut],
+            message[cut..].chars().count()
+        ),
+    }
+}
+
 /// A directory of outputs filled under a temporary name beside its destination and moved into place only
 /// by [`StagedDir::finish`]: a command that fails half-way leaves the destination as it was (the
 /// temporary directory is removed when the value is dropped).
 pub struct StagedDir {
     tmp: tempfile::TempDir,
     dest: PathBuf,
+    /// The file names of the command's own outputs ([`StagedDir::owning`]).
+    owned: Option<fn(&str) -> bool>,
     _live: Live,
 }
 
@@ -252,7 +267,16 @@ impl StagedDir {
             _live: Live::new(tmp.path()),
             tmp,
             dest: real.unwrap_or_else(|| dest.to_path_buf()),
+            owned: None,
         })
+    }
+
+    /// Name the command's own outputs (by file name, at any depth): those of an earlier run that
+    /// this one does not write go with the merge instead of staying beside the new ones (three people's
+    /// meshes after a run that found two would otherwise read as three).
+    pub fn owning(mut self, owned: fn(&str) -> bool) -> Self {
+        self.owned = Some(owned);
+        self
     }
 
     /// Where to write: the staged counterpart of the destination.
@@ -283,7 +307,7 @@ impl StagedDir {
                 source: std::io::Error::other("exists and is not a directory"),
             });
         }
-        keep_others(&self.dest, self.tmp.path())?;
+        keep_others(&self.dest, self.tmp.path(), self.owned)?;
         let perms = self
             .dest
             .metadata()
@@ -306,17 +330,24 @@ fn io_at(path: &Path) -> impl FnOnce(std::io::Error) -> GeomError + '_ {
 
 /// Link (or copy) into `stage` every entry of `dest` that the stage has no namesake of, recursing into
 /// directories both hold.
-fn keep_others(dest: &Path, stage: &Path) -> Result<(), GeomError> {
+fn keep_others(
+    dest: &Path,
+    stage: &Path,
+    owned: Option<fn(&str) -> bool>,
+) -> Result<(), GeomError> {
     for entry in std::fs::read_dir(dest).map_err(io_at(dest))? {
         let entry = entry.map_err(io_at(dest))?;
         let (old, new) = (entry.path(), stage.join(entry.file_name()));
+        if owned.is_some_and(|owned| entry.file_name().to_str().is_some_and(owned)) {
+            continue; // an earlier run's output: the stage's outputs replace all of them
+        }
         let is_dir = entry.file_type().map_err(io_at(&old))?.is_dir();
         match (is_dir, new.symlink_metadata().ok()) {
-            (true, Some(m)) if m.is_dir() => keep_others(&old, &new)?,
+            (true, Some(m)) if m.is_dir() => keep_others(&old, &new, owned)?,
             (_, Some(_)) => {} // the staged namesake replaces it
             (true, None) => {
                 std::fs::create_dir(&new).map_err(io_at(&new))?;
-                keep_others(&old, &new)?;
+                keep_others(&old, &new, owned)?;
             }
             (false, None) => {
                 if std::fs::hard_link(&old, &new).is_err() {

@@ -121,6 +121,21 @@ impl Rig {
             return Err(GeomError::file(path, "key `cameras` is empty"));
         }
         let mut cameras = Vec::with_capacity(file.cameras.len());
+        for (i, c) in file.cameras.iter().enumerate() {
+            // The same camera twice would count one view twice in every fusion.
+            if let Some(j) = file.cameras[..i]
+                .iter()
+                .position(|o| o.name == c.name || (o.k == c.k && o.r == c.r && o.t == c.t))
+            {
+                return Err(GeomError::file(
+                    path,
+                    format!(
+                        "cameras[{i}] ({:?}) repeats cameras[{j}] ({:?}): camera names and poses must differ",
+                        c.name, file.cameras[j].name
+                    ),
+                ));
+            }
+        }
         for (i, c) in file.cameras.into_iter().enumerate() {
             let cam = Camera::new(
                 c.name.clone(),

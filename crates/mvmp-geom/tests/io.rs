@@ -62,6 +62,20 @@ fn a_staged_directory_appears_whole_or_not_at_all() {
     assert_eq!(names(&dest.join("a")), ["x.txt", "y.txt"]);
     assert_eq!(names(root.path()), ["out"]);
 
+    // With the command's own outputs named, an earlier run's that this one does not write go, at
+    // any depth; other files stay.
+    std::fs::write(dest.join("mesh_2.obj"), "old").unwrap();
+    std::fs::write(dest.join("a/mesh_9.obj"), "old").unwrap();
+    let s = StagedDir::new(&dest)
+        .unwrap()
+        .owning(|n| n.starts_with("mesh_"));
+    std::fs::create_dir_all(s.path().join("a")).unwrap();
+    std::fs::write(s.path().join("mesh_0.obj"), "new").unwrap();
+    std::fs::write(s.path().join("a/mesh_0.obj"), "new").unwrap();
+    s.finish().unwrap();
+    assert_eq!(names(&dest), ["a", "keep.txt", "mesh_0.obj"]);
+    assert_eq!(names(&dest.join("a")), ["mesh_0.obj", "x.txt", "y.txt"]);
+
     // A destination that is a file is an error naming it.
     let file = root.path().join("file");
     std::fs::write(&file, "f").unwrap();
@@ -191,4 +205,18 @@ fn a_destination_named_through_dot_dot_is_staged_beside_it_not_inside() {
     s.finish().unwrap();
     assert_eq!(names(&dest), ["new.txt", "old.txt", "sub"]);
     assert_eq!(names(root.path()), ["out"]);
+}
+
+/// A long message is cut at a character boundary and says how much was left out; a short one is kept.
+#[test]
+fn brief_messages_keep_their_start_and_count_the_rest() {
+    use mvmp_geom::io::brief;
+    assert_eq!(brief("short", 10), "short");
+    assert_eq!(brief("exactly10!", 10), "exactly10!");
+    let long = format!("header: {}", "é".repeat(70_000));
+    let b = brief(&long, 20);
+    assert_eq!(
+        b,
+        format!("header: {}... (69988 more characters)", "é".repeat(12))
+    );
 }

@@ -146,6 +146,19 @@ fn rig_round_trip_and_errors() {
         "cameras[0]",
     );
     check("{ not json".into(), "not a valid rig file");
+    // The same camera twice, by name or by pose, would count one view twice.
+    check(
+        rig.to_json_string()
+            .replace("\"name\": \"b\"", "\"name\": \"a\""),
+        "cameras[1] (\"a\") repeats cameras[0]",
+    );
+    let twice = Rig::new(vec![rig.cameras[0].clone(), rig.cameras[0].clone()]);
+    check(
+        twice
+            .to_json_string()
+            .replacen("\"name\": \"a\"", "\"name\": \"c\"", 1),
+        "cameras[1] (\"a\") repeats cameras[0] (\"c\")",
+    );
     let e = Rig::read(&dir.path().join("missing.json")).unwrap_err();
     assert!(matches!(e, GeomError::Io { .. }) && e.to_string().contains("missing.json"));
 }

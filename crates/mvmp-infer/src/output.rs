@@ -248,6 +248,20 @@ pub fn save_png(path: &Path, img: &RgbImage) -> Result<(), InferError> {
     Ok(())
 }
 
+/// Whether a file name is one [`write_frame`] writes: a later frame written over an earlier one's
+/// directory replaces all of them (fewer people leave no meshes of the earlier ones behind).
+pub fn is_frame_output(name: &str) -> bool {
+    let numbered = |prefix: &str, ext: &str| {
+        name.strip_prefix(prefix)
+            .and_then(|r| r.strip_suffix(ext))
+            .is_some_and(|n| !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit()))
+    };
+    matches!(name, "people.npz" | "topdown.png")
+        || numbered("person_", ".obj")
+        || numbered("person_", ".ply")
+        || numbered("overlay_", ".png")
+}
+
 /// Write everything inference produces for one frame into `dir`: people.npz, meshes, overlays (when the
 /// input images are given), topdown.png.
 pub fn write_frame(
@@ -277,4 +291,32 @@ pub fn write_frame(
         &topdown(grid, cameras, people, 640),
     )?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::is_frame_output;
+
+    #[test]
+    fn a_frames_own_outputs_are_told_from_other_files() {
+        for name in [
+            "people.npz",
+            "topdown.png",
+            "person_00.obj",
+            "person_123.ply",
+            "overlay_03.png",
+        ] {
+            assert!(is_frame_output(name), "{name}");
+        }
+        for name in [
+            "notes.txt",
+            "person_.obj",
+            "person_0a.obj",
+            "overlay_01.jpg",
+            "people.npz.bak",
+            "my_person_00.obj",
+        ] {
+            assert!(!is_frame_output(name), "{name}");
+        }
+    }
 }

@@ -14,7 +14,7 @@ use npyz::{TypeChar, WriterBuilder};
 
 use crate::SmplxError;
 use crate::names::{NUM_EXPRESSION, NUM_JOINTS, NUM_POSE_JOINTS, PARENTS};
-use mvmp_geom::io::write_atomic_with;
+use mvmp_geom::io::{brief, write_atomic_with};
 
 /// Largest magnitude of any float in a body model: SMPL-X's template spans about 1.8 m, its shape and
 /// pose directions move vertices by centimetres per unit, and its weights, regressor rows and landmark
@@ -64,7 +64,7 @@ fn read_array<R: Read + Seek>(
     };
     let Some(npy) = npz
         .by_name(key)
-        .map_err(|e| bad(format!("unreadable: {e}")))?
+        .map_err(|e| bad(format!("unreadable: {}", brief(&e.to_string(), 200))))?
     else {
         return Ok(None);
     };
@@ -313,7 +313,7 @@ impl BodyModel {
         let npz = npyz::npz::NpzArchive::new(std::io::BufReader::new(file)).map_err(|e| {
             SmplxError::NotNpz {
                 path: path.into(),
-                what: e.to_string(),
+                what: brief(&e.to_string(), 200),
             }
         })?;
         let mut r = Reader { npz, path };
@@ -421,7 +421,7 @@ impl BodyModel {
                     path,
                     key,
                     format!(
-                        "entry {i} is {}: beyond +-{MAX_MODEL_VALUE}, which no body model in metres \
+                        "entry {i} is {:?}: beyond +-{MAX_MODEL_VALUE}, which no body model in metres \
                          holds",
                         vals[i]
                     ),
@@ -450,7 +450,7 @@ impl BodyModel {
     pub fn list_keys(path: &Path) -> Result<Vec<(String, bool)>, SmplxError> {
         let mut npz = npyz::npz::NpzArchive::open(path).map_err(|e| SmplxError::NotNpz {
             path: path.into(),
-            what: e.to_string(),
+            what: brief(&e.to_string(), 200),
         })?;
         let names: BTreeSet<String> = npz.array_names().map(str::to_string).collect();
         let mut out = Vec::new();

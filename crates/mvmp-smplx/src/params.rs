@@ -134,7 +134,7 @@ impl SmplxParams {
             };
             if let Some(i) = v.iter().position(|x| x.abs() > cap) {
                 return Err(SmplxError::Params(format!(
-                    "{which}: key `{key}`[{i}] = {} is outside +-{cap} ({unit})",
+                    "{which}: key `{key}`[{i}] = {:?} is outside +-{cap} ({unit})",
                     v[i]
                 )));
             }

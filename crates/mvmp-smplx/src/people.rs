@@ -10,12 +10,12 @@ use npyz::WriterBuilder;
 
 use crate::SmplxError;
 use crate::names::POSE_KEYS;
-use crate::params::SmplxParams;
+use crate::params::{MAX_TRANSLATION, SmplxParams};
 
 fn npz_err(path: &Path, e: impl std::fmt::Display) -> SmplxError {
     SmplxError::File {
         path: path.to_path_buf(),
-        what: e.to_string(),
+        what: mvmp_geom::io::brief(&e.to_string(), 300),
     }
 }
 
@@ -145,6 +145,16 @@ pub fn read_people_npz(path: &Path) -> Result<Vec<StoredPerson>, SmplxError> {
     }
     if let Some((shape, data)) = read("pelvis")? {
         finite_rows(path, "pelvis", &shape, &[n as u64, 3], &data, 3)?;
+        if let Some(i) = data.iter().position(|c| c.abs() > MAX_TRANSLATION) {
+            return Err(npz_err(
+                path,
+                format!(
+                    "key `pelvis`[{}] = {:?}: beyond {MAX_TRANSLATION} metres",
+                    i / 3,
+                    data[i]
+                ),
+            ));
+        }
         for (p, c) in people.iter_mut().zip(data.chunks(3)) {
             p.pelvis = Some([c[0], c[1], c[2]]);
         }
@@ -319,5 +329,9 @@ mod tests {
             e.contains("people.npz") && e.contains("`pelvis`[1]") && e.contains("NaN"),
             "{e}"
         );
+        // So is a pelvis kilometres away.
+        write_people_npz(&path, &[person(Some([0.0, 1e30, 0.0]))]).unwrap();
+        let e = read_people_npz(&path).unwrap_err().to_string();
+        assert!(e.contains("`pelvis`[0] = 1") && e.contains("metres"), "{e}");
     }
 }

@@ -42,9 +42,21 @@ pub fn check_validation_source(cfg: &TrainConfig) -> Result<(), TrainError> {
             .unwrap_or("test")
             .parse()
             .map_err(|e: String| TrainError::file(&src.root, e))?;
-        // The cameras were counted above; the split must be readable (an empty one validates nothing).
+        // The cameras were counted above; the split must be readable, and one that has no frames
+        // validates nothing: an error where the config names it, a warning where it is the training
+        // data's own held-out split (a set of one or two scenes has none).
         let layout = mvmp_data::DatasetLayout::open(Path::new(&src.root))?;
-        mvmp_data::loader::split_frames(&layout, split)?;
+        if mvmp_data::loader::split_frames(&layout, split)?.is_empty() {
+            let what = format!(
+                "the {} split has no frames ({} scenes): nothing will be validated",
+                split.name(),
+                layout.scenes.len()
+            );
+            if cfg.validation.is_some() {
+                return Err(TrainError::file(&src.root, what));
+            }
+            tracing::warn!("{}: {what}", src.root);
+        }
         return Ok(());
     }
     let seqs = validation_sequences(cfg, &src)?;

@@ -505,6 +505,34 @@ fn bad_configs_name_the_key() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("test_views = 9"), "{e}");
+    // A validation split the config names that has no frames validates nothing: refused, naming the
+    // dataset and the split (a one-scene set holds no held-out scene).
+    let one = dir.path().join("one-scene");
+    let c = SynthConfig {
+        name: "one".into(),
+        seed: 2,
+        scenes: 1,
+        frames_per_scene: 1,
+        people: [1, 1],
+        area: [3.0, 3.0],
+        image_size: [64, 48],
+        ..Default::default()
+    };
+    generate(&c, &one, Path::new("."), &|| {}).unwrap();
+    let path = write_configs(dir.path(), &|s| {
+        format!(
+            "{s}[validation]\nformat = \"mvmp\"\nroot = \"{}\"\nsplit = \"test\"\n",
+            one.display()
+        )
+    });
+    let (cfg, _) = TrainConfig::read(&path).unwrap();
+    let e = mvmp_train::check_validation_source(&cfg)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("one-scene") && e.contains("test split has no frames"),
+        "{e}"
+    );
     // More training views than the scenes have cameras: named with the source.
     let path = write_configs(dir.path(), &|s| {
         s.replacen("train_views = 2", "train_views = 9", 1)
