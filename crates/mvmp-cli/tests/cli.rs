@@ -906,55 +906,21 @@ fn train_eval_infer_end_to_end() {
         &["--save-predictions", "--run"],
     );
 
-    // Wrong image count and wrong image size are named.
+    // Wrong image count, wrong image size and one file for both cameras are named.
     let img = scene.dir.join("frame_000000/view_00.png");
-    expect_error(
-        &[
-            "infer",
-            "--run",
-            &p("run"),
-            "--rig",
-            rig.to_str().unwrap(),
-            "--images",
-            img.to_str().unwrap(),
-            "--out",
-            &p("x"),
-        ],
-        &["1 images", "2 cameras"],
-    );
+    let (run, out) = (p("run"), p("x"));
+    let infer_images = |images: &[&Path], needles: &[&str]| {
+        let mut args = vec!["infer", "--run", &run, "--rig", rig.to_str().unwrap()];
+        args.push("--images");
+        args.extend(images.iter().map(|i| i.to_str().unwrap()));
+        args.extend(["--out", &out]);
+        expect_error(&args, needles);
+    };
+    infer_images(&[&img], &["1 images", "2 cameras"]);
     let small = dir.path().join("small.png");
     image::RgbImage::new(10, 10).save(&small).unwrap();
-    expect_error(
-        &[
-            "infer",
-            "--run",
-            &p("run"),
-            "--rig",
-            rig.to_str().unwrap(),
-            "--images",
-            img.to_str().unwrap(),
-            small.to_str().unwrap(),
-            "--out",
-            &p("x"),
-        ],
-        &["small.png", "10x10", "96x64"],
-    );
-    // One file for both cameras.
-    expect_error(
-        &[
-            "infer",
-            "--run",
-            &p("run"),
-            "--rig",
-            rig.to_str().unwrap(),
-            "--images",
-            img.to_str().unwrap(),
-            img.to_str().unwrap(),
-            "--out",
-            &p("x"),
-        ],
-        &["view_00.png", "camera 1", "camera 0's"],
-    );
+    infer_images(&[&img, &small], &["small.png", "10x10", "96x64"]);
+    infer_images(&[&img, &img], &["view_00.png", "camera 1", "camera 0's"]);
 
     // The same run on a Human3.6M tree read in place (the data crate's fixtures: S9 "Walking", 5 pose
     // rows; images of the first two cameras at the dataset's sizes), with pseudo-ground-truth fits taken
