@@ -1,6 +1,6 @@
 //! Property tests of the file readers: a valid model, training or synthesis config, camera rig,
-//! annotation, SMPL-X parameter file, Panoptic calibration or body file, or Human3.6M camera file with one
-//! number replaced by an arbitrary value (any float, infinities and NaN included, huge integers, another
+//! annotation, SMPL-X parameter file, Panoptic calibration or body file, Human3.6M camera file, or body-model
+//! npz with one number replaced by an arbitrary value (any float, infinities and NaN included, huge integers, another
 //! type) is either refused with an error or read into values that are all finite and pass validation. No
 //! input panics.
 use std::path::{Path, PathBuf};
@@ -293,6 +293,55 @@ proptest! {
                 prop_assert!(b.validate("body").is_ok());
                 prop_assert!(all_finite(b), "{text}");
             }
+        }
+    }
+}
+
+/// Whether a loaded body model is one a forward can use: finite arrays, convex skinning rows, regressor
+/// rows that sum to 1.
+fn body_model_is_sound(m: &mvmp::smplx::BodyModel) -> bool {
+    let v = m.v_template.len() / 3;
+    let j = mvmp::smplx::names::NUM_JOINTS;
+    let finite = [
+        &m.v_template,
+        &m.shapedirs,
+        &m.posedirs,
+        &m.j_regressor,
+        &m.weights,
+    ]
+    .iter()
+    .all(|a| a.iter().all(|x| x.is_finite()));
+    let sums_to_one = |r: &[f32]| (r.iter().sum::<f32>() - 1.0).abs() <= 1e-2;
+    finite
+        && m.weights
+            .chunks(j)
+            .all(|r| sums_to_one(r) && r.iter().all(|&w| w >= -1e-2))
+        && m.j_regressor.chunks(v).all(sums_to_one)
+}
+
+proptest! {
+    // Each case writes a whole model: fewer cases than the text readers.
+    #![proptest_config(ProptestConfig::with_cases(8))]
+
+    #[test]
+    fn body_model_files(array in 0usize..5, at in any::<Index>(), value in float()) {
+        use mvmp::smplx::BodyModel;
+        static GOOD: OnceLock<BodyModel> = OnceLock::new();
+        let mut m = GOOD.get_or_init(|| mvmp::smplx::standin_model(0)).clone();
+        let a = match array {
+            0 => &mut m.v_template,
+            1 => &mut m.shapedirs,
+            2 => &mut m.posedirs,
+            3 => &mut m.j_regressor,
+            _ => &mut m.weights,
+        };
+        let i = at.index(a.len());
+        a[i] = value as f32;
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("SMPLX_NEUTRAL.npz");
+        m.write_npz(&path).unwrap();
+        if let Ok(read) = BodyModel::load(&path) {
+            prop_assert!(body_model_is_sound(&read), "array {array}, entry {i} = {value}");
         }
     }
 }

@@ -461,6 +461,24 @@ fn import_rejects_missing_and_unknown_inputs() {
         &["vit_huge"],
     );
     assert!(!out.exists());
+    // Checkpoints that are not checkpoints: text, and a zip archive cut short (a torch file is a zip).
+    let text = dir.path().join("notes.pth");
+    std::fs::write(&text, "not a checkpoint").unwrap();
+    let cut = dir.path().join("cut.pth");
+    let mut zip = b"PK\x03\x04".to_vec();
+    zip.extend(std::iter::repeat_n(0u8, 40));
+    std::fs::write(&cut, zip).unwrap();
+    for (net, bad) in [
+        ("dinov2", &text),
+        ("dinov2", &cut),
+        ("hrnet", &text),
+        ("hrnet", &cut),
+    ] {
+        let name = bad.file_name().unwrap().to_str().unwrap();
+        let args = ["import", net, "--from", bad.to_str().unwrap(), "--out"];
+        expect_error(&[&args[..], &[out.to_str().unwrap()]].concat(), &[name]);
+        assert!(!out.exists(), "{net} {name}");
+    }
 }
 
 /// Ground-truth parameters of every frame stored as predictions (infer's layout), with `shift` added to

@@ -619,6 +619,27 @@ fn no_malformed_body_model_gets_through() {
         "f",
         Box::new(|m: &mut BodyModel| m.faces[3][1] = (m.v_template.len() / 3) as u32),
     ));
+    // Finite but no body: a vertex no joint moves, a negative share, a joint regressed from nothing.
+    cases.push((
+        "weights",
+        Box::new(|m: &mut BodyModel| m.weights[55 * 9..55 * 10].fill(0.0)),
+    ));
+    cases.push((
+        "weights",
+        Box::new(|m: &mut BodyModel| {
+            let row = &mut m.weights[55 * 4..55 * 5];
+            let first = row[0];
+            row[0] = -0.5;
+            row[1] += first + 0.5;
+        }),
+    ));
+    cases.push((
+        "J_regressor",
+        Box::new(|m: &mut BodyModel| {
+            let v = m.v_template.len() / 3;
+            m.j_regressor[3 * v..4 * v].fill(0.0);
+        }),
+    ));
     cases.push((
         "kintree_table",
         Box::new(|m: &mut BodyModel| m.parents[5] = 7),

@@ -13,6 +13,19 @@ pub struct Problem {
     pub what: String,
 }
 
+impl Problem {
+    /// The problem an error describes, naming its file once: the error's own file where it names one
+    /// (its message without it), else `fallback` with the whole message.
+    pub fn from_error(fallback: &Path, e: &crate::DataError) -> Problem {
+        let (path, what) = match e {
+            crate::DataError::File { path, what } => (path.clone(), what.clone()),
+            crate::DataError::Io { path, source } => (path.clone(), source.to_string()),
+            _ => (fallback.into(), e.to_string()),
+        };
+        Problem { path, what }
+    }
+}
+
 /// What the check found.
 #[derive(Debug, Default, Clone)]
 pub struct CheckReport {

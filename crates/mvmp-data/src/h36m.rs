@@ -371,39 +371,60 @@ fn check_sequence(
     let seq = match H36mSequence::open(root, subject, action, cameras, 1) {
         Ok(s) => s,
         Err(e) => {
-            // The problem line names the file once.
-            let (path, what) = match &e {
-                DataError::File { path, what } => (path.clone(), what.clone()),
-                DataError::Io { path, source } => (path.clone(), source.to_string()),
-                _ => (pose_file(root, subject, action), e.to_string()),
-            };
-            return tree_problem(report, &path, what);
+            let fallback = pose_file(root, subject, action);
+            return report
+                .problems
+                .push(crate::check::Problem::from_error(&fallback, &e));
         }
     };
     let mut complete = 0;
+    // Per camera: the first frame whose image is missing, and how many are; the same for images that
+    // are present but whose header is not a view of that camera (not an image, another size).
     let mut missing: Vec<(usize, usize)> = vec![(usize::MAX, 0); cameras.len()];
+    let mut bad: Vec<(usize, usize, String)> = vec![(usize::MAX, 0, String::new()); cameras.len()];
     for f in &seq.frames {
         let mut all = true;
-        for (c, img) in f.images.iter().enumerate() {
+        for (c, (img, cam)) in f.images.iter().zip(&seq.rig.cameras).enumerate() {
             if !img.exists() {
                 all = false;
                 missing[c].0 = missing[c].0.min(f.row);
                 missing[c].1 += 1;
+            } else if let Some(what) =
+                crate::check::view_header_problem(img, (cam.width, cam.height))
+            {
+                all = false;
+                if bad[c].1 == 0 {
+                    bad[c] = (f.row, 0, what);
+                }
+                bad[c].1 += 1;
             }
         }
         complete += all as usize;
     }
+    let n = seq.frames.len();
     for (c, (first, count)) in missing.into_iter().enumerate() {
         if count > 0 {
-            let dir = image_file(root, subject, action, cameras[c], first);
+            let what = format!(
+                "missing image ({count} of the {n} frames of camera {} are missing; this is the first)",
+                cameras[c]
+            );
             tree_problem(
                 report,
-                &dir,
-                format!(
-                    "missing image ({count} of the {} frames of camera {} are missing; this is the first)",
-                    seq.frames.len(),
-                    cameras[c]
-                ),
+                &image_file(root, subject, action, cameras[c], first),
+                what,
+            );
+        }
+    }
+    for (c, (first, count, what)) in bad.into_iter().enumerate() {
+        if count > 0 {
+            let what = format!(
+                "{what} ({count} of the {n} frames of camera {} have such images; this is the first)",
+                cameras[c]
+            );
+            tree_problem(
+                report,
+                &image_file(root, subject, action, cameras[c], first),
+                what,
             );
         }
     }

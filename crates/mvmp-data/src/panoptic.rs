@@ -372,10 +372,9 @@ pub fn check_tree(root: &Path, cameras: &[&str]) -> PanopticReport {
         let seq = match PanopticSequence::open(&d, cameras, 1) {
             Ok(s) => s,
             Err(e) => {
-                report.problems.push(crate::check::Problem {
-                    path: d.clone(),
-                    what: e.to_string(),
-                });
+                report
+                    .problems
+                    .push(crate::check::Problem::from_error(&d, &e));
                 continue;
             }
         };
@@ -383,10 +382,9 @@ pub fn check_tree(root: &Path, cameras: &[&str]) -> PanopticReport {
         for f in &seq.frames {
             match seq.people(f) {
                 Ok(p) => people += p.len(),
-                Err(e) => report.problems.push(crate::check::Problem {
-                    path: f.bodies.clone(),
-                    what: e.to_string(),
-                }),
+                Err(e) => report
+                    .problems
+                    .push(crate::check::Problem::from_error(&f.bodies, &e)),
             }
             for (img, cam) in f.images.iter().zip(&seq.rig.cameras) {
                 if let Some(what) = crate::check::view_header_problem(img, (cam.width, cam.height))

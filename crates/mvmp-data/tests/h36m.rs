@@ -183,13 +183,64 @@ fn tree(root: &Path) {
         std::fs::create_dir_all(p.parent().unwrap()).unwrap();
         std::fs::copy(fixture(f), p).unwrap();
     }
-    for cam in &CAMERAS[..2] {
+    // A black JPEG of each camera's own size (`data check` reads the headers).
+    let seq =
+        mvmp_data::h36m::H36mSequence::open(root, "S9", "Directions 1", &CAMERAS[..2], 1).unwrap();
+    for (cam, c) in CAMERAS[..2].iter().zip(&seq.rig.cameras) {
+        let mut jpeg = Vec::new();
+        image::RgbImage::new(c.width, c.height)
+            .write_to(
+                &mut std::io::Cursor::new(&mut jpeg),
+                image::ImageFormat::Jpeg,
+            )
+            .unwrap();
         for row in 0..5 {
             let p = mvmp_data::h36m::image_file(root, "S9", "Directions 1", cam, row);
             std::fs::create_dir_all(p.parent().unwrap()).unwrap();
-            std::fs::write(p, b"").unwrap();
+            std::fs::write(p, &jpeg).unwrap();
         }
     }
+}
+
+/// Images that are there but are not a view of their camera (not an image, another size) are named
+/// per camera, the first and the count, like missing ones.
+#[test]
+fn unreadable_images_are_named_with_their_camera() {
+    use mvmp_data::h36m::{check_tree, image_file};
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    tree(root);
+    let (a, b) = (CAMERAS[0], CAMERAS[1]);
+    for row in [1, 3] {
+        std::fs::write(image_file(root, "S9", "Directions 1", a, row), b"text").unwrap();
+    }
+    let mut small = Vec::new();
+    image::RgbImage::new(8, 8)
+        .write_to(
+            &mut std::io::Cursor::new(&mut small),
+            image::ImageFormat::Png,
+        )
+        .unwrap();
+    std::fs::write(image_file(root, "S9", "Directions 1", b, 4), small).unwrap();
+    let report = check_tree(root, &CAMERAS[..2]);
+    assert_eq!(report.sequences[0].4, 2, "{:?}", report.sequences);
+    let find = |cam: &str, row: usize| {
+        let p = image_file(root, "S9", "Directions 1", cam, row);
+        report.problems.iter().find(|q| q.path == p).cloned()
+    };
+    let bad = find(a, 1).expect("the first unreadable image of the first camera");
+    assert!(
+        bad.what.contains("2 of the 5") && bad.what.contains(a),
+        "{}",
+        bad.what
+    );
+    let sized = find(b, 4).expect("the image of another size");
+    assert!(
+        sized.what.contains("8 x 8") && sized.what.contains("1 of the 5"),
+        "{}",
+        sized.what
+    );
+    assert_eq!(report.problems.len(), 4 + 2, "{:?}", report.problems);
 }
 
 #[test]

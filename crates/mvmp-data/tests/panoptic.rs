@@ -296,6 +296,11 @@ fn a_fixture_sequence_walks_with_strides_and_validity() {
             .iter()
             .any(|p| p.path == truncated && p.what.contains("76"))
     );
+    // Each problem's line names its file once: the path beside the message, not inside it too.
+    for p in &r.problems {
+        let name = p.path.file_name().unwrap().to_string_lossy();
+        assert!(!p.what.contains(name.as_ref()), "{p:?}");
+    }
     // A camera the calibration lacks is named.
     let e = PanopticSequence::open(&seq_dir, &["00_03", "00_31"], 1)
         .unwrap_err()

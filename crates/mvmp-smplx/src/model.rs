@@ -203,6 +203,10 @@ fn f32s(v: &[f64]) -> Vec<f32> {
     v.iter().map(|&x| x as f32).collect()
 }
 
+/// How far a skinning-weight or regressor row may stray from summing to 1 (and a weight below 0): the
+/// official files hold float32 rows within 1e-6 of it.
+const ROW_TOLERANCE: f32 = 1e-2;
+
 fn value_err(path: &Path, key: &str, what: String) -> SmplxError {
     SmplxError::Value {
         path: path.into(),
@@ -385,7 +389,42 @@ impl BodyModel {
             hands_mean: hml.zip(hmr).map(|(a, b)| (f32s(&a.data), f32s(&b.data))),
         };
         model.check_values(path)?;
+        model.check_rows(path)?;
         Ok(model)
+    }
+
+    /// Each vertex's skinning weights are a convex blend (no negative share, summing to 1) and each
+    /// joint's regressor row sums to 1: a row of zeros puts its vertex or joint at the origin whatever
+    /// the pose, which is a damaged file, not a body.
+    fn check_rows(&self, path: &Path) -> Result<(), SmplxError> {
+        let v = self.v_template.len() / 3;
+        let rows = |vals: &[f32], n: usize| -> Vec<(f32, f32)> {
+            vals.chunks(n)
+                .map(|r| {
+                    (
+                        r.iter().sum(),
+                        r.iter().copied().fold(f32::INFINITY, f32::min),
+                    )
+                })
+                .collect()
+        };
+        for (i, (sum, min)) in rows(&self.weights, NUM_JOINTS).into_iter().enumerate() {
+            if min < -ROW_TOLERANCE || (sum - 1.0).abs() > ROW_TOLERANCE {
+                let what = format!(
+                    "vertex {i}'s weights sum to {sum:?} with least {min:?}: skinning weights are \
+                     shares of 1, none negative"
+                );
+                return Err(value_err(path, "weights", what));
+            }
+        }
+        for (j, (sum, _)) in rows(&self.j_regressor, v).into_iter().enumerate() {
+            if (sum - 1.0).abs() > ROW_TOLERANCE {
+                let what =
+                    format!("joint {j}'s row sums to {sum:?}, where a regressor's rows sum to 1");
+                return Err(value_err(path, "J_regressor", what));
+            }
+        }
+        Ok(())
     }
 
     /// Every float array finite and within [`MAX_MODEL_VALUE`].
