@@ -380,14 +380,19 @@ fn check_sequence(
     let mut complete = 0;
     // Per camera: the first frame whose image is missing, and how many are; the same for images that
     // are present but whose header is not a view of that camera (not an image, another size).
-    let mut missing: Vec<(usize, usize)> = vec![(usize::MAX, 0); cameras.len()];
-    let mut bad: Vec<(usize, usize, String)> = vec![(usize::MAX, 0, String::new()); cameras.len()];
+    let first = (usize::MAX, 0, String::new());
+    let (mut missing, mut bad) = (
+        vec![first.clone(); cameras.len()],
+        vec![first; cameras.len()],
+    );
     for f in &seq.frames {
         let mut all = true;
         for (c, (img, cam)) in f.images.iter().zip(&seq.rig.cameras).enumerate() {
             if !img.exists() {
                 all = false;
-                missing[c].0 = missing[c].0.min(f.row);
+                if missing[c].1 == 0 {
+                    missing[c] = (f.row, 0, "missing image".into());
+                }
                 missing[c].1 += 1;
             } else if let Some(what) =
                 crate::check::view_header_problem(img, (cam.width, cam.height))
@@ -402,30 +407,16 @@ fn check_sequence(
         complete += all as usize;
     }
     let n = seq.frames.len();
-    for (c, (first, count)) in missing.into_iter().enumerate() {
-        if count > 0 {
-            let what = format!(
-                "missing image ({count} of the {n} frames of camera {} are missing; this is the first)",
-                cameras[c]
-            );
-            tree_problem(
-                report,
-                &image_file(root, subject, action, cameras[c], first),
-                what,
-            );
-        }
-    }
-    for (c, (first, count, what)) in bad.into_iter().enumerate() {
-        if count > 0 {
-            let what = format!(
-                "{what} ({count} of the {n} frames of camera {} have such images; this is the first)",
-                cameras[c]
-            );
-            tree_problem(
-                report,
-                &image_file(root, subject, action, cameras[c], first),
-                what,
-            );
+    for (per_camera, verb) in [(missing, "are missing"), (bad, "have such images")] {
+        for (c, (first, count, what)) in per_camera.into_iter().enumerate() {
+            if count > 0 {
+                let what = format!(
+                    "{what} ({count} of the {n} frames of camera {} {verb}; this is the first)",
+                    cameras[c]
+                );
+                let file = image_file(root, subject, action, cameras[c], first);
+                tree_problem(report, &file, what);
+            }
         }
     }
     report.sequences.push((
