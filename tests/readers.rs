@@ -1,8 +1,9 @@
 //! Property tests of the file readers: a valid model, training or synthesis config, camera rig,
-//! annotation, SMPL-X parameter file, Panoptic calibration or body file, Human3.6M camera file, or body-model
-//! npz with one number replaced by an arbitrary value (any float, infinities and NaN included, huge integers, another
-//! type) is either refused with an error or read into values that are all finite and pass validation. No
-//! input panics.
+//! annotation, SMPL-X parameter file, Panoptic calibration or body file, Human3.6M camera file, body-model
+//! npz or run state (`state.json`) with one number replaced by an arbitrary value (any float, infinities and
+//! NaN included, huge integers, another type) is either refused with an error or read into values that are
+//! all finite and pass validation; so is a stored `people.npz` with one array damaged (a value, a row or a
+//! column too few, flattened, or missing). No input panics.
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
@@ -12,7 +13,7 @@ use mvmp::data::{h36m, panoptic};
 use mvmp::geom::Rig;
 use mvmp::model::ModelConfig;
 use mvmp::smplx::SmplxParams;
-use mvmp::train::TrainConfig;
+use mvmp::train::{RunDir, RunState, TrainConfig};
 use proptest::prelude::*;
 use proptest::sample::Index;
 
@@ -342,6 +343,210 @@ proptest! {
         m.write_npz(&path).unwrap();
         if let Ok(read) = BodyModel::load(&path) {
             prop_assert!(body_model_is_sound(&read), "array {array}, entry {i} = {value}");
+        }
+    }
+}
+
+/// A run's `state.json` as training writes it.
+fn run_state_text() -> String {
+    let s = RunState {
+        format: mvmp::train::run::STATE_FORMAT.into(),
+        version: 1,
+        stage: mvmp::train::Stage::Whole,
+        epoch: 2,
+        step_in_epoch: 3,
+        global_step: 480,
+        checkpoint: "checkpoints/step0000480-stage2-epoch002.bpk".into(),
+        optimizer: Some("checkpoints/optim-step0000480-stage2-epoch002.bpk".into()),
+        finished: false,
+        model_sha256: "ab".repeat(32),
+        checkpoint_sha256: "cd".repeat(32),
+        optimizer_sha256: "ef".repeat(32),
+    };
+    serde_json::to_string_pretty(&s).unwrap()
+}
+
+/// Strings a damaged or hand-edited `state.json` may hold where a file name belongs.
+fn path_text() -> impl Strategy<Value = String> {
+    prop_oneof![
+        Just(String::new()),
+        Just("/etc/passwd".to_string()),
+        Just("../outside.bpk".to_string()),
+        Just("checkpoints/../../outside.bpk".to_string()),
+        Just("./checkpoints/x.bpk".to_string()),
+        Just("checkpoints/\u{0}.bpk".to_string()),
+        "[a-z./]{0,12}",
+    ]
+}
+
+/// An npz array as `people.npz` holds it: name, shape, values.
+type NpzArray = (String, Vec<u64>, Vec<f64>);
+
+/// The arrays of a valid two-person `people.npz`.
+fn people_arrays() -> Vec<NpzArray> {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("people.npz");
+    let person = |x: f64| mvmp::smplx::people::StoredPerson {
+        params: SmplxParams {
+            betas: vec![0.3, -0.2],
+            global_orient: vec![0.1, 0.2, x],
+            body_pose: vec![0.05; 63],
+            transl: vec![x, 1.0, 0.9],
+            ..Default::default()
+        },
+        score: 0.8,
+        pelvis: Some([x, 1.0, 0.9]),
+    };
+    mvmp::smplx::people::write_people_npz(&path, &[person(0.5), person(-1.0)]).unwrap();
+    let mut npz = npyz::npz::NpzArchive::open(&path).unwrap();
+    let names: Vec<String> = npz.array_names().map(str::to_string).collect();
+    names
+        .into_iter()
+        .map(|name| {
+            let arr = npz.by_name(&name).unwrap().unwrap();
+            let shape = arr.shape().to_vec();
+            let data = arr
+                .into_vec::<f32>()
+                .unwrap()
+                .into_iter()
+                .map(f64::from)
+                .collect();
+            (name, shape, data)
+        })
+        .collect()
+}
+
+/// Writes `arrays` as an npz, as float64 or float32.
+fn write_npz(path: &Path, arrays: &[NpzArray], f64s: bool) {
+    use npyz::WriterBuilder;
+    let mut w = npyz::npz::NpzWriter::create(path).unwrap();
+    for (name, shape, data) in arrays {
+        if f64s {
+            let out = w
+                .array::<f64>(name, Default::default())
+                .unwrap()
+                .default_dtype();
+            let mut out = out.shape(shape).begin_nd().unwrap();
+            out.extend(data.iter().copied()).unwrap();
+            out.finish().unwrap();
+        } else {
+            let out = w
+                .array::<f32>(name, Default::default())
+                .unwrap()
+                .default_dtype();
+            let mut out = out.shape(shape).begin_nd().unwrap();
+            out.extend(data.iter().map(|&x| x as f32)).unwrap();
+            out.finish().unwrap();
+        }
+    }
+    w.zip_writer().finish().unwrap();
+}
+
+/// How one array of a `people.npz` is damaged.
+#[derive(Debug, Clone)]
+enum Damage {
+    /// One value replaced.
+    Value(Index, f64),
+    /// The last row or the last column dropped.
+    DropRow,
+    DropColumn,
+    /// Flattened to one dimension.
+    Flatten,
+    /// Left out of the file.
+    Missing,
+}
+
+fn damage() -> impl Strategy<Value = Damage> {
+    prop_oneof![
+        4 => (any::<Index>(), float()).prop_map(|(i, x)| Damage::Value(i, x)),
+        1 => Just(Damage::DropRow),
+        1 => Just(Damage::DropColumn),
+        1 => Just(Damage::Flatten),
+        1 => Just(Damage::Missing),
+    ]
+}
+
+/// `arrays` with array `which` damaged.
+fn damaged(mut arrays: Vec<NpzArray>, which: Index, how: &Damage) -> Vec<NpzArray> {
+    let k = which.index(arrays.len());
+    let (_, shape, data) = &mut arrays[k];
+    let cols = if shape.len() == 2 {
+        shape[1] as usize
+    } else {
+        1
+    };
+    match how {
+        Damage::Value(i, x) => {
+            let i = i.index(data.len());
+            data[i] = *x;
+        }
+        Damage::DropRow => {
+            data.truncate(data.len() - cols);
+            shape[0] -= 1;
+        }
+        Damage::DropColumn if shape.len() == 2 => {
+            *data = data
+                .chunks(cols)
+                .flat_map(|r| r[..cols - 1].to_vec())
+                .collect();
+            shape[1] -= 1;
+        }
+        Damage::DropColumn => {}
+        Damage::Flatten => *shape = vec![data.len() as u64],
+        Damage::Missing => {
+            arrays.remove(k);
+        }
+    }
+    arrays
+}
+
+proptest! {
+    #[test]
+    fn run_states(
+        at in any::<Index>(),
+        value in json_value(),
+        key in 0usize..3,
+        text in path_text(),
+    ) {
+        let dir = tempfile::tempdir().unwrap();
+        let mut doc: serde_json::Value =
+            serde_json::from_str(&mutate_json(&run_state_text(), at, value)).unwrap();
+        let key = ["checkpoint", "optimizer", "format"][key];
+        doc[key] = serde_json::json!(text);
+        let doc = doc.to_string();
+        write(dir.path(), "state.json", &doc);
+        let run = RunDir { root: dir.path().to_path_buf() };
+        if let Ok(Some(s)) = run.state() {
+            prop_assert_eq!(&s.format, mvmp::train::run::STATE_FORMAT);
+            prop_assert_eq!(s.version, 1);
+            let inside = |f: &str| {
+                let p = Path::new(f);
+                p.components().next().is_some()
+                    && p.components().all(|c| matches!(c, std::path::Component::Normal(_)))
+            };
+            prop_assert!(inside(&s.checkpoint), "{doc}");
+            prop_assert!(s.optimizer.as_deref().is_none_or(inside), "{doc}");
+            // The files it names are not there: the checks refuse, they do not panic.
+            prop_assert!(run.check_checkpoint_files(&s).is_err());
+        }
+    }
+
+    #[test]
+    fn people_files(which in any::<Index>(), how in damage(), f64s in any::<bool>()) {
+        static GOOD: OnceLock<Vec<NpzArray>> = OnceLock::new();
+        let arrays = damaged(GOOD.get_or_init(people_arrays).clone(), which, &how);
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("people.npz");
+        write_npz(&path, &arrays, f64s);
+        if let Ok(people) = mvmp::smplx::people::read_people_npz(&path) {
+            prop_assert!(people.len() <= 2, "{how:?}");
+            for (i, p) in people.iter().enumerate() {
+                prop_assert!(p.params.validate("person").is_ok(), "{how:?}");
+                prop_assert!(all_finite(&p.params), "{how:?}");
+                prop_assert!(p.score.is_finite(), "{how:?}");
+                let near = |c: &[f64; 3]| c.iter().all(|x| x.abs() <= mvmp::smplx::params::MAX_TRANSLATION);
+                prop_assert!(p.pelvis.as_ref().is_none_or(near), "person {i}: {how:?}");
+            }
         }
     }
 }
