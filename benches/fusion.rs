@@ -8,7 +8,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 
 use burn::tensor::{Bool, Device, Tensor, TensorData};
 use criterion::{Criterion, criterion_group, criterion_main};
-use mvmp::decoder::DecoderConfig;
+use mvmp::decoder::{DecoderConfig, DecoderOptions};
 use mvmp::fusion::{FusionMode, SamplingGrid, fuse_views, fuse_views_tensor_ops};
 use mvmp::geom::{Camera, Letterbox, VoxelGrid};
 use nalgebra::{Matrix3, Vector3};
@@ -131,9 +131,12 @@ fn bench(c: &mut Criterion) {
     }
     // Two HTBs, 30 queries, cross-attention over the volume pooled by 4 (75 x 75 x 5 tokens).
     let dec = DecoderConfig::new(32)
-        .with_dim(256)
-        .with_heads(8)
-        .with_pool(4)
+        .with_options(DecoderOptions {
+            dim: 256,
+            heads: 8,
+            pool: 4,
+            ..Default::default()
+        })
         .init(&d);
     let vol = Tensor::<5>::from_data(
         TensorData::new(

@@ -15,7 +15,7 @@ use burn::module::{Module, ModuleVisitor, Param};
 use burn::tensor::{Bool, Device, Gradients, Tensor, TensorData};
 use mvmp::data::loader::{FrameBatcher, FrameDataset, Split, ViewChoice};
 use mvmp::data::synth::{SynthConfig, generate};
-use mvmp::decoder::DecoderConfig;
+use mvmp::decoder::{DecoderConfig, DecoderOptions};
 use mvmp::fusion::pool::nms3d;
 use mvmp::fusion::{FusionMode, RootNetConfig, SamplingGrid, extract_roots, fuse_views};
 use mvmp::geom::rotation::{
@@ -310,8 +310,11 @@ fn rootnet(other: &Device, r: &mut Report) {
 fn transformer_block(other: &Device, r: &mut Report) {
     let flex = Device::flex();
     let block = DecoderConfig::new(16)
-        .with_dim(32)
-        .with_heads(4)
+        .with_options(DecoderOptions {
+            dim: 32,
+            heads: 4,
+            ..Default::default()
+        })
         .init(&flex)
         .blocks
         .remove(0);

@@ -10,60 +10,48 @@ use burn::nn::attention::{MhaInput, MultiHeadAttention, MultiHeadAttentionConfig
 use burn::nn::{LayerNorm, LayerNormConfig, Linear, LinearConfig};
 use burn::tensor::activation::gelu;
 use burn::tensor::{Bool, Device, Tensor, TensorData};
+use serde::{Deserialize, Serialize};
 
 use crate::queries::{PARAM_DIM, mean_params, trilinear_sample};
 use mvmp_geom::VoxelGrid;
 use mvmp_smplx::names::{NUM_BETAS, NUM_EXPRESSION, NUM_REGRESSED};
 
-#[derive(Config, Debug, PartialEq)]
-pub struct DecoderConfig {
-    /// Channels of the fused feature volume (C_f).
-    pub volume_channels: usize,
+/// The decoder's knobs: what a model config's `[decoder]` table sets (each written once, here, with its
+/// default). [`DecoderConfig`] adds what the model derives from the rest of its config.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct DecoderOptions {
     /// Model width D.
-    #[config(default = 256)]
     pub dim: usize,
     /// Number of Human Transformer Blocks (paper: 2).
-    #[config(default = 2)]
     pub depth: usize,
-    #[config(default = 8)]
     pub heads: usize,
-    #[config(default = 4)]
+    /// Hidden width of each block's FFN, in multiples of D.
     pub ffn_ratio: usize,
     /// Average-pool the volume by this factor along every axis whose voxel count it divides (an axis it
     /// does not divide stays unpooled) before cross-attention; 1 keeps every voxel.
-    #[config(default = 1)]
     pub pool: usize,
     /// Without blocks: the VoxelSMPLX baseline (an MLP on the sampled queries).
-    #[config(default = true)]
     pub use_htb: bool,
-    /// Add each person's estimated heading (a horizontal unit-length direction in the world, `[B, K, 2]`)
-    /// to its query through `heading_proj`; false (the paper) reads none.
-    #[config(default = false)]
-    pub heading: bool,
     /// Layer-normalise the volume's sample at each root before it joins the query. It is C channels beside
     /// the 338 constant mean parameters and the root's position encoding, and unnormalised it stays too
     /// small to steer the heads: trained from such queries the decoder gave every person one pose (the
     /// decoder's learning test). false (the paper) keeps the raw sample.
-    #[config(default = false)]
     pub query_norm: bool,
     /// Points per axis (x, y, z) of a lattice centred on each root where the volume is sampled for its
     /// query; `[1, 1, 1]` (the paper) samples the root alone. A person's own column of features reaches
     /// the heads directly, instead of only through cross-attention that starts uniform over the volume.
-    #[config(default = "[1, 1, 1]")]
     pub query_lattice: [usize; 3],
     /// Metres from the lattice's first point to its last along each axis (ignored where it has one).
-    #[config(default = "[0.0, 0.0, 0.0]")]
     pub query_span: [f64; 3],
-    /// Joints of a joint heatmap volume whose centroids near each root join its query (see
-    /// [`QueryInputs::joints`]); 0 (the paper) reads none.
-    #[config(default = 0)]
-    pub joint_channels: usize,
+    /// Each heatmap joint's centroid near the root, from the joint heatmap volume (the RootNet's input),
+    /// joins the query ([`QueryInputs::joints`]; the model sets [`DecoderConfig::joint_channels`] to its
+    /// heatmap joints). false (the paper) reads the feature volume alone.
+    pub query_joints: bool,
     /// Points per axis of the lattice centred on each root over which each joint's centroid is taken.
-    #[config(default = "[5, 5, 8]")]
     pub joint_lattice: [usize; 3],
     /// Metres from that lattice's first point to its last per axis: the box around the root where a
     /// person's joints are looked for.
-    #[config(default = "[1.0, 1.0, 1.75]")]
     pub joint_span: [f64; 3],
     /// Only the body-pose head trains the shared query path (projection, blocks, final norm): the
     /// global orientation, the hands and face, betas, expression and the root offset get heads of
@@ -72,8 +60,44 @@ pub struct DecoderConfig {
     /// gives everyone one pose: in the decoder's learning test, with the loss on all 53 rotations
     /// and on random betas and expression, the bend error stayed at 1.00 of predicting none
     /// shared, and fell to 0.42 this way. false (the paper) shares one rotation head.
-    #[config(default = false)]
     pub pose_trunk: bool,
+}
+
+impl Default for DecoderOptions {
+    fn default() -> Self {
+        DecoderOptions {
+            dim: 256,
+            depth: 2,
+            heads: 8,
+            ffn_ratio: 4,
+            pool: 1,
+            use_htb: true,
+            query_norm: false,
+            query_lattice: [1, 1, 1],
+            query_span: [0.0; 3],
+            query_joints: false,
+            joint_lattice: [5, 5, 8],
+            joint_span: [1.0, 1.0, 1.75],
+            pose_trunk: false,
+        }
+    }
+}
+
+/// The decoder as the model builds it: its [`DecoderOptions`] and what the rest of the model fixes.
+#[derive(Config, Debug, PartialEq)]
+pub struct DecoderConfig {
+    /// Channels of the fused feature volume (C_f).
+    pub volume_channels: usize,
+    #[config(default = "DecoderOptions::default()")]
+    pub options: DecoderOptions,
+    /// Add each person's estimated heading (a horizontal unit-length direction in the world, `[B, K, 2]`)
+    /// to its query through `heading_proj`; false (the paper) reads none.
+    #[config(default = false)]
+    pub heading: bool,
+    /// Joints of a joint heatmap volume whose centroids near each root join its query (see
+    /// [`QueryInputs::joints`]); 0 (the paper) reads none.
+    #[config(default = 0)]
+    pub joint_channels: usize,
     /// Side of the score tiles of cross-attention (`mvmp_kernels::attention`); 0 computes the whole score
     /// matrix with burn's ops.
     #[config(default = "mvmp_kernels::DEFAULT_BLOCK")]
@@ -190,28 +214,28 @@ pub struct Decoder {
     pub blocks: Vec<HumanTransformerBlock>,
     pub baseline: Option<Head>,
     pub norm: LayerNorm,
-    /// The 53 rotations (6D); with [`DecoderConfig::pose_trunk`] the 21 body joints alone.
+    /// The 53 rotations (6D); with [`DecoderOptions::pose_trunk`] the 21 body joints alone.
     pub rot_head: Head,
-    /// With [`DecoderConfig::pose_trunk`]: the global orientation (6D) and the 31 jaw, eye and hand
+    /// With [`DecoderOptions::pose_trunk`]: the global orientation (6D) and the 31 jaw, eye and hand
     /// rotations, each from the detached query.
     pub global_head: Option<Head>,
     pub hands_head: Option<Head>,
     pub betas_head: Head,
     pub expr_head: Head,
     pub offset_head: Head,
-    /// See [`DecoderConfig::pose_trunk`].
+    /// See [`DecoderOptions::pose_trunk`].
     pub pose_trunk: bool,
     /// Present when the decoder reads a heading per person (see [`Decoder::forward_with`]).
     pub heading_proj: Option<Linear>,
-    /// Present with [`DecoderConfig::query_norm`].
+    /// Present with [`DecoderOptions::query_norm`].
     pub query_norm: Option<LayerNorm>,
     /// Present with joint centroids ([`DecoderConfig::joint_channels`] > 0): they are layer-normalised
     /// before they join the query.
     pub joint_norm: Option<LayerNorm>,
-    /// Offsets from the root of the query's sample points (see [`DecoderConfig::query_lattice`]).
+    /// Offsets from the root of the query's sample points (see [`DecoderOptions::query_lattice`]).
     #[module(skip)]
     pub lattice: Vec<[f32; 3]>,
-    /// Offsets from the root over which joint centroids are taken (see [`DecoderConfig::joint_lattice`]).
+    /// Offsets from the root over which joint centroids are taken (see [`DecoderOptions::joint_lattice`]).
     #[module(skip)]
     pub joint_lattice: Vec<[f32; 3]>,
     /// Half the joint box per axis (metres): centroids are given as fractions of it.
@@ -308,7 +332,8 @@ pub fn point_encoding(points: Tensor<3>, grid: &VoxelGrid) -> Tensor<3> {
 
 impl DecoderConfig {
     pub fn init(&self, device: &Device) -> Decoder {
-        let d = self.dim;
+        let o = &self.options;
+        let d = o.dim;
         Decoder {
             query_proj: LinearConfig::new(
                 self.sample_width() + 3 * self.joint_channels + PARAM_DIM,
@@ -317,45 +342,45 @@ impl DecoderConfig {
             .init(device),
             token_proj: LinearConfig::new(self.volume_channels, d).init(device),
             pos_proj: LinearConfig::new(6 * POS_FREQS, d).init(device),
-            blocks: if self.use_htb {
-                (0..self.depth)
+            blocks: if o.use_htb {
+                (0..o.depth)
                     .map(|_| {
                         let tile = self.attention_tile;
-                        HumanTransformerBlock::new(d, self.heads, self.ffn_ratio, tile, device)
+                        HumanTransformerBlock::new(d, o.heads, o.ffn_ratio, tile, device)
                     })
                     .collect()
             } else {
                 Vec::new()
             },
-            baseline: (!self.use_htb).then(|| Head::new(d, d, device)),
+            baseline: (!o.use_htb).then(|| Head::new(d, d, device)),
             norm: LayerNormConfig::new(d).init(device),
             rot_head: Head::new(
                 d,
-                if self.pose_trunk {
+                if o.pose_trunk {
                     BODY_SLOTS
                 } else {
                     NUM_REGRESSED
                 } * 6,
                 device,
             ),
-            global_head: self.pose_trunk.then(|| Head::new(d, 6, device)),
-            hands_head: (self.pose_trunk)
+            global_head: o.pose_trunk.then(|| Head::new(d, 6, device)),
+            hands_head: (o.pose_trunk)
                 .then(|| Head::new(d, (NUM_REGRESSED - 1 - BODY_SLOTS) * 6, device)),
-            pose_trunk: self.pose_trunk,
+            pose_trunk: o.pose_trunk,
             betas_head: Head::new(d, NUM_BETAS, device),
             expr_head: Head::new(d, NUM_EXPRESSION, device),
             offset_head: Head::new(d, 3, device),
             heading_proj: self.heading.then(|| LinearConfig::new(2, d).init(device)),
-            query_norm: self
+            query_norm: o
                 .query_norm
                 .then(|| LayerNormConfig::new(self.sample_width()).init(device)),
             joint_norm: (self.joint_channels > 0)
                 .then(|| LayerNormConfig::new(3 * self.joint_channels).init(device)),
-            lattice: lattice_offsets(self.query_lattice, self.query_span),
-            joint_lattice: lattice_offsets(self.joint_lattice, self.joint_span),
-            joint_half: self.joint_span.map(|s| (s / 2.0).max(1e-3) as f32),
+            lattice: lattice_offsets(o.query_lattice, o.query_span),
+            joint_lattice: lattice_offsets(o.joint_lattice, o.joint_span),
+            joint_half: o.joint_span.map(|s| (s / 2.0).max(1e-3) as f32),
             mean: constant(mean_params(device)),
-            pool: self.pool.max(1),
+            pool: o.pool.max(1),
         }
     }
 }
@@ -363,7 +388,7 @@ impl DecoderConfig {
 impl DecoderConfig {
     /// Channels of a query's volume sample: every lattice point's.
     fn sample_width(&self) -> usize {
-        self.volume_channels * self.query_lattice.iter().product::<usize>()
+        self.volume_channels * self.options.query_lattice.iter().product::<usize>()
     }
 }
 
@@ -556,7 +581,7 @@ impl Decoder {
             }
         }
         let q = self.norm.forward(q);
-        // What every head but the body pose's reads (see `DecoderConfig::pose_trunk`).
+        // What every head but the body pose's reads (see `DecoderOptions::pose_trunk`).
         let side = if self.pose_trunk {
             q.clone().detach()
         } else {

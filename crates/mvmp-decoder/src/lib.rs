@@ -4,6 +4,7 @@ pub mod htb;
 pub mod queries;
 
 pub use htb::{
-    Decoder, DecoderConfig, DecoderOutput, HumanTransformerBlock, QueryInputs, point_encoding,
+    Decoder, DecoderConfig, DecoderOptions, DecoderOutput, HumanTransformerBlock, QueryInputs,
+    point_encoding,
 };
 pub use queries::{mean_params, params_vector, trilinear_sample};

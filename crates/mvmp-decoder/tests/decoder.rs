@@ -52,10 +52,13 @@ fn the_query_lattice_samples_the_volume_around_each_root() {
     let field: Vec<f32> = g.centers().iter().map(|c| f(*c) as f32).collect();
     let vol = Tensor::<5>::from_data(TensorData::new(field, [1, 1, 8, 6, 4]), &d);
     let dec = DecoderConfig::new(1)
-        .with_dim(8)
-        .with_heads(2)
-        .with_query_lattice([2, 1, 3])
-        .with_query_span([1.0, 0.7, 0.5])
+        .with_options(DecoderOptions {
+            dim: 8,
+            heads: 2,
+            query_lattice: [2, 1, 3],
+            query_span: [1.0, 0.7, 0.5],
+            ..Default::default()
+        })
         .init(&d);
     let want_offsets = [
         [-0.5, 0.0, -0.25],
@@ -93,11 +96,14 @@ fn joint_centroids_find_a_joint_in_the_box() {
     let d = Device::flex();
     let g = VoxelGrid::new([0.0, 0.0, 1.0], [4.0, 4.0, 2.0], [16, 16, 8]).unwrap();
     let dec = DecoderConfig::new(1)
-        .with_dim(8)
-        .with_heads(2)
+        .with_options(DecoderOptions {
+            dim: 8,
+            heads: 2,
+            joint_lattice: [9, 9, 9],
+            joint_span: [2.0, 2.0, 2.0],
+            ..Default::default()
+        })
         .with_joint_channels(2)
-        .with_joint_lattice([9, 9, 9])
-        .with_joint_span([2.0, 2.0, 2.0])
         .init(&d);
     // Joint 0 at the centre of voxel (10, 6, 5): x 0.625, y -0.375, z 1.375; joint 1 nowhere.
     let mut vol = vec![0f32; 2 * 16 * 16 * 8];
@@ -127,11 +133,14 @@ fn joint_centroids_find_a_joint_in_the_box() {
 fn joint_centroids_join_every_query() {
     let d = Device::flex();
     let dec = DecoderConfig::new(8)
-        .with_dim(32)
-        .with_heads(4)
-        .with_pool(2)
+        .with_options(DecoderOptions {
+            dim: 32,
+            heads: 4,
+            pool: 2,
+            query_norm: true,
+            ..Default::default()
+        })
         .with_joint_channels(3)
-        .with_query_norm(true)
         .init(&d);
     assert_eq!(dec.query_proj.weight.dims()[0], 8 + 3 * 3 + 53 * 6 + 20);
     let (vol, roots, present, g) = inputs(&d, [1.5, 1.5, 1.0]);
@@ -203,12 +212,15 @@ fn shapes_and_masking_of_absent_people() {
         (true, 2, lattices[1]),
     ] {
         let dec = DecoderConfig::new(8)
-            .with_dim(32)
-            .with_heads(4)
-            .with_pool(pool)
-            .with_use_htb(use_htb)
-            .with_query_lattice(lattice)
-            .with_query_span(span)
+            .with_options(DecoderOptions {
+                dim: 32,
+                heads: 4,
+                pool,
+                use_htb,
+                query_lattice: lattice,
+                query_span: span,
+                ..Default::default()
+            })
             .init(&d);
         let (vol, roots, present, g) = inputs(&d, [1.5, 1.5, 1.0]);
         let out = dec.forward(vol.clone(), &g, roots, present.clone());
@@ -236,7 +248,13 @@ fn shapes_and_masking_of_absent_people() {
 #[test]
 fn every_parameter_gets_a_gradient() {
     let d = Device::flex().autodiff();
-    let dec = DecoderConfig::new(8).with_dim(32).with_heads(4).init(&d);
+    let dec = DecoderConfig::new(8)
+        .with_options(DecoderOptions {
+            dim: 32,
+            heads: 4,
+            ..Default::default()
+        })
+        .init(&d);
     let (vol, roots, present, g) = inputs(&d, [1.5, 1.5, 1.0]);
     let out = dec.forward(vol, &g, roots, present);
     let loss = out.rot6d.powi_scalar(2).sum()
@@ -322,8 +340,11 @@ fn param_grads<M: Module>(m: &M, grads: &burn::tensor::Gradients) -> Vec<Vec<f32
 fn tiled_cross_attention_equals_burns_attention() {
     let d = Device::flex().autodiff();
     let whole = DecoderConfig::new(8)
-        .with_dim(32)
-        .with_heads(4)
+        .with_options(DecoderOptions {
+            dim: 32,
+            heads: 4,
+            ..Default::default()
+        })
         .with_attention_tile(0)
         .init(&d);
     let mut tiled = whole.clone();
@@ -367,9 +388,12 @@ fn with_pose_trunk_only_the_body_pose_trains_the_query_path() {
     let d = Device::flex().autodiff();
     let g = VoxelGrid::new([0.0, 0.0, 1.0], [4.0, 4.0, 2.0], [8, 8, 4]).unwrap();
     let dec = DecoderConfig::new(4)
-        .with_dim(8)
-        .with_heads(2)
-        .with_pose_trunk(true)
+        .with_options(DecoderOptions {
+            dim: 8,
+            heads: 2,
+            pose_trunk: true,
+            ..Default::default()
+        })
         .init(&d);
     let vol = Tensor::<5>::random([1, 4, 8, 8, 4], burn::tensor::Distribution::Default, &d);
     let roots = Tensor::<3>::from_data(TensorData::new(vec![0.3f32, -0.2, 0.9], [1, 1, 3]), &d);

@@ -8,7 +8,7 @@
 //! both rates (0.20 at 1e-4 and 0.28 at 1e-3, this seed), so the test runs at both.
 use burn::optim::{AdamConfig, GradientsParams};
 use burn::tensor::{Bool, Device, Tensor, TensorData};
-use mvmp_decoder::{DecoderConfig, QueryInputs};
+use mvmp_decoder::{DecoderConfig, DecoderOptions, QueryInputs};
 use mvmp_geom::VoxelGrid;
 use mvmp_geom::rotation::rot6d_to_matrix;
 
@@ -124,7 +124,7 @@ struct Setup {
     /// person, which no input explains (as the parameter loss sees synthetic people); otherwise the
     /// L1 on the 21 body rotations alone.
     every_parameter: bool,
-    /// `DecoderConfig::pose_trunk`.
+    /// `DecoderOptions::pose_trunk`.
     pose_trunk: bool,
 }
 
@@ -171,12 +171,15 @@ fn bend_error(lr: f64, setup: Setup) -> (f32, f32) {
     let grid = VoxelGrid::new([0.0, 0.0, 1.0], [8.0, 8.0, 2.0], [32, 32, 8]).unwrap();
     let steps = 300;
     let mut dec = DecoderConfig::new(32)
-        .with_dim(128)
-        .with_heads(4)
-        .with_pool(2)
-        .with_query_norm(true)
+        .with_options(DecoderOptions {
+            dim: 128,
+            heads: 4,
+            pool: 2,
+            query_norm: true,
+            pose_trunk: setup.pose_trunk,
+            ..Default::default()
+        })
         .with_joint_channels(if via_joints { 3 } else { 0 })
-        .with_pose_trunk(setup.pose_trunk)
         .init(&d);
     let mut optim = AdamConfig::new().init();
     let present =

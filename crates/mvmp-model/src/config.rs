@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use mvmp_backbone::{HRNetConfig, HrnetVariant, ViTConfig, VitVariant};
-use mvmp_decoder::DecoderConfig;
+use mvmp_decoder::DecoderOptions;
 use mvmp_fusion::{FusionMode, RootRefine, VolumeNorm};
 use mvmp_geom::VoxelGrid;
 use mvmp_smplx::names::NUM_JOINTS_WITH_LANDMARKS;
@@ -73,59 +73,6 @@ fn check_lattice(
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
-pub struct DecoderSection {
-    /// Model width D.
-    pub dim: usize,
-    /// Human Transformer Blocks (paper: 2).
-    pub depth: usize,
-    pub heads: usize,
-    /// Average-pool factor of the volume before cross-attention (1 = every voxel).
-    pub pool: usize,
-    /// false: the VoxelSMPLX baseline (an MLP on the sampled queries, no HTB).
-    pub use_htb: bool,
-    /// Layer-normalise each root's volume sample before it joins the query (`DecoderConfig::query_norm`;
-    /// false, the paper, keeps it raw).
-    pub query_norm: bool,
-    /// Points per axis of the lattice around each root where its query samples the volume
-    /// (`DecoderConfig::query_lattice`; `[1, 1, 1]`, the paper, samples the root alone).
-    pub query_lattice: [usize; 3],
-    /// Metres from the lattice's first point to its last per axis.
-    pub query_span: [f64; 3],
-    /// Each heatmap joint's centroid near the root, from the joint heatmap volume (the RootNet's input),
-    /// joins the query (`QueryInputs::joints`). false (the paper) reads the feature volume alone.
-    pub query_joints: bool,
-    /// Points per axis of the box around the root where the centroids are taken.
-    pub joint_lattice: [usize; 3],
-    /// Metres the box spans per axis.
-    pub joint_span: [f64; 3],
-    /// Only the body-pose head trains the decoder's shared path (`DecoderConfig::pose_trunk`; false,
-    /// the paper, shares it among all heads).
-    pub pose_trunk: bool,
-}
-
-impl Default for DecoderSection {
-    /// The decoder's own defaults ([`DecoderConfig`]), so that they are written once.
-    fn default() -> Self {
-        let d = DecoderConfig::new(0);
-        DecoderSection {
-            dim: d.dim,
-            depth: d.depth,
-            heads: d.heads,
-            pool: d.pool,
-            use_htb: d.use_htb,
-            query_norm: d.query_norm,
-            query_lattice: d.query_lattice,
-            query_span: d.query_span,
-            query_joints: false,
-            joint_lattice: d.joint_lattice,
-            joint_span: d.joint_span,
-            pose_trunk: d.pose_trunk,
-        }
-    }
-}
-
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
 pub struct ModelConfig {
     /// Network input size S (images are letterboxed to S x S).
     pub image_size: u32,
@@ -159,7 +106,7 @@ pub struct ModelConfig {
     /// Where a root sits within its peak voxel: `offset` (the offset head, paper) or `peak` (the vertex
     /// of the likelihood's Gaussian peak).
     pub root_refine: RootRefine,
-    pub decoder: DecoderSection,
+    pub decoder: DecoderOptions,
     /// A facing head on HRNet (two maps: the cosine and sine of each person's heading relative to the
     /// direction to the camera, trained where the person's torso shows) whose reading at each person,
     /// turned into the world by the cameras' directions, the decoder adds to its query. false (the paper)
@@ -183,6 +130,8 @@ pub const MAX_IMAGE_SIZE: u32 = 4096;
 pub const MAX_WIDTH: usize = 4096;
 /// Most Human Transformer Blocks (the paper has 2).
 pub const MAX_DEPTH: usize = 64;
+/// The widest FFN a decoder block may have, in multiples of its width (the paper's has 4).
+pub const MAX_FFN_RATIO: usize = 16;
 
 /// The most people a config may decode per scene: 1000 slots of 10475 vertices are 126 MB of meshes per
 /// batch item, which every stage after the decoder holds several times.
@@ -209,7 +158,7 @@ impl Default for ModelConfig {
             max_people: 10,
             root_threshold: 0.3,
             root_refine: RootRefine::Offset,
-            decoder: DecoderSection {
+            decoder: DecoderOptions {
                 dim: 128,
                 heads: 4,
                 pool: 2,
@@ -395,6 +344,15 @@ impl ModelConfig {
         }
         if d.pool == 0 {
             return Err(("decoder.pool", "must be at least 1".into()));
+        }
+        if !(1..=MAX_FFN_RATIO).contains(&d.ffn_ratio) {
+            return Err((
+                "decoder.ffn_ratio",
+                format!(
+                    "{}: expected 1 to {MAX_FFN_RATIO} (the FFN's width in multiples of decoder.dim)",
+                    d.ffn_ratio
+                ),
+            ));
         }
         check_lattice(
             ("decoder.query_lattice", "decoder.query_span"),

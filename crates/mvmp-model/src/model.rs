@@ -143,22 +143,12 @@ impl ModelConfig {
                 .with_norm(self.rootnet_norm)
                 .init(device),
             decoder: DecoderConfig::new(self.feature_channels)
-                .with_dim(self.decoder.dim)
-                .with_depth(self.decoder.depth)
-                .with_heads(self.decoder.heads)
-                .with_pool(self.decoder.pool)
-                .with_use_htb(self.decoder.use_htb)
-                .with_query_norm(self.decoder.query_norm)
-                .with_query_lattice(self.decoder.query_lattice)
-                .with_query_span(self.decoder.query_span)
+                .with_options(self.decoder.clone())
                 .with_joint_channels(if self.decoder.query_joints {
                     self.heatmap_joints.len()
                 } else {
                     0
                 })
-                .with_joint_lattice(self.decoder.joint_lattice)
-                .with_joint_span(self.decoder.joint_span)
-                .with_pose_trunk(self.decoder.pose_trunk)
                 .with_heading(self.facing)
                 .with_attention_tile(self.attention_tile)
                 .init(device),
