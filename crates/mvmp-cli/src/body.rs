@@ -1,5 +1,5 @@
 //! `mvmp body ...` and `mvmp bench smplx`.
-use mvmp_smplx::names::NUM_JOINTS;
+use mvmp_smplx::names::{NUM_BETAS, NUM_EXPRESSION, NUM_JOINTS};
 use std::path::Path;
 use std::time::Instant;
 
@@ -249,12 +249,12 @@ pub fn bench(model: Option<&Path>, batch: usize, iters: usize, device: &Device) 
     let pose: Vec<f32> = (0..batch * NUM_JOINTS * 3)
         .map(|i| ((i * 7919 % 1000) as f32 / 1000.0 - 0.5) * 0.6)
         .collect();
-    let betas: Vec<f32> = (0..batch * 10)
+    let betas: Vec<f32> = (0..batch * NUM_BETAS)
         .map(|i| (i * 104729 % 1000) as f32 / 500.0 - 1.0)
         .collect();
     let pose = Tensor::<3>::from_data(TensorData::new(pose, [batch, NUM_JOINTS, 3]), device);
-    let betas = Tensor::<2>::from_data(TensorData::new(betas, [batch, 10]), device);
-    let expr = Tensor::<2>::zeros([batch, 10], device);
+    let betas = Tensor::<2>::from_data(TensorData::new(betas, [batch, NUM_BETAS]), device);
+    let expr = Tensor::<2>::zeros([batch, NUM_EXPRESSION], device);
     let transl = Tensor::<2>::zeros([batch, 3], device);
     let run = || {
         let out = layer.forward_axis_angle(

@@ -1,5 +1,5 @@
 //! `mvmp model summary`, `mvmp bench model` and `mvmp bench fusion`.
-use mvmp_smplx::names::NUM_REGRESSED;
+use mvmp_smplx::names::{NUM_BETAS, NUM_EXPRESSION, NUM_REGRESSED};
 
 use crate::probe::{ring_rig, ring_roots};
 use std::path::Path;
@@ -387,8 +387,8 @@ impl StageBench<'_> {
             layer
                 .forward(
                     regressed_to_full_pose(rotm.clone()),
-                    Tensor::zeros([k, 10], device),
-                    Tensor::zeros([k, 10], device),
+                    Tensor::zeros([k, NUM_BETAS], device),
+                    Tensor::zeros([k, NUM_EXPRESSION], device),
                     Tensor::zeros([k, 3], device),
                     Translation::Pelvis,
                 )

@@ -17,7 +17,7 @@ use burn::tensor::{Device, Tensor};
 use mvmp_data::loader::{FrameBatcher, FrameSample, PersonGt};
 use mvmp_losses::LossWeights;
 use mvmp_model::ModelConfig;
-use mvmp_smplx::names::{NUM_JOINTS, NUM_JOINTS_WITH_LANDMARKS};
+use mvmp_smplx::names::{NUM_BETAS, NUM_EXPRESSION, NUM_JOINTS, NUM_JOINTS_WITH_LANDMARKS};
 use mvmp_smplx::{BodyModel, SmplxLayer};
 use mvmp_train::Stage;
 
@@ -91,8 +91,8 @@ fn people(cfg: &ModelConfig, views: usize, people: usize) -> Vec<PersonGt> {
             PersonGt {
                 id: i as u32,
                 pose: vec![0.0; NUM_JOINTS * 3],
-                betas: [0.0; 10],
-                expression: [0.0; 10],
+                betas: [0.0; NUM_BETAS],
+                expression: [0.0; NUM_EXPRESSION],
                 pelvis,
                 joints_3d: vec![pelvis; NUM_JOINTS_WITH_LANDMARKS],
                 joints_2d: vec![vec![[half, half, 1.0]; NUM_JOINTS_WITH_LANDMARKS]; views],

@@ -11,7 +11,7 @@ use nalgebra::{Vector2, Vector3};
 use crate::DataError;
 use crate::layout::{Annotation, DatasetLayout, FrameRef, Person};
 use mvmp_geom::{Camera, Letterbox, Rig};
-use mvmp_smplx::names::{NUM_JOINTS, NUM_JOINTS_WITH_LANDMARKS};
+use mvmp_smplx::names::{NUM_BETAS, NUM_EXPRESSION, NUM_JOINTS, NUM_JOINTS_WITH_LANDMARKS};
 
 /// ImageNet normalisation (RGB).
 pub const IMAGENET_MEAN: [f32; 3] = [0.485, 0.456, 0.406];
@@ -126,8 +126,8 @@ pub struct PersonGt {
     pub id: u32,
     /// 55 x 3 axis-angle.
     pub pose: Vec<f32>,
-    pub betas: [f32; 10],
-    pub expression: [f32; 10],
+    pub betas: [f32; NUM_BETAS],
+    pub expression: [f32; NUM_EXPRESSION],
     /// Pelvis in the world (T_wld).
     pub pelvis: [f32; 3],
     /// `[J][3]` world joints.
@@ -333,8 +333,12 @@ fn person_gt(p: &Person, views: &[usize], letterboxes: &[Letterbox]) -> PersonGt
     PersonGt {
         id: p.id,
         pose,
-        betas: f32s(&p.smplx.betas, 10).try_into().expect("10 betas"),
-        expression: f32s(&p.smplx.expression, 10).try_into().expect("10 values"),
+        betas: f32s(&p.smplx.betas, NUM_BETAS)
+            .try_into()
+            .expect("10 betas"),
+        expression: f32s(&p.smplx.expression, NUM_EXPRESSION)
+            .try_into()
+            .expect("10 values"),
         pelvis: p.pelvis.map(|x| x as f32),
         joints_3d: p.joints_3d.iter().map(|j| j.map(|x| x as f32)).collect(),
         joint_valid: vec![1.0; p.joints_3d.len()],
@@ -497,8 +501,8 @@ impl Batcher<FrameSample, FrameBatch> for FrameBatcher {
             let n = b * p;
             let out = layer.forward_axis_angle(
                 Tensor::from_data(t(h.pose.clone(), vec![n, NUM_JOINTS, 3]), device),
-                Tensor::from_data(t(h.betas.clone(), vec![n, 10]), device),
-                Tensor::from_data(t(h.expr.clone(), vec![n, 10]), device),
+                Tensor::from_data(t(h.betas.clone(), vec![n, NUM_BETAS]), device),
+                Tensor::from_data(t(h.expr.clone(), vec![n, NUM_EXPRESSION]), device),
                 Tensor::from_data(t(h.pelvis.clone(), vec![n, 3]), device),
                 mvmp_smplx::Translation::Pelvis,
             );
@@ -512,8 +516,8 @@ impl Batcher<FrameSample, FrameBatch> for FrameBatcher {
             letterboxes: items.iter().map(|i| i.letterboxes.clone()).collect(),
             mask: Tensor::from_data(TensorData::new(h.mask, [b, p]), device),
             pose: Tensor::from_data(t(h.pose, vec![b, p, NUM_JOINTS, 3]), device),
-            betas: Tensor::from_data(t(h.betas, vec![b, p, 10]), device),
-            expression: Tensor::from_data(t(h.expr, vec![b, p, 10]), device),
+            betas: Tensor::from_data(t(h.betas, vec![b, p, NUM_BETAS]), device),
+            expression: Tensor::from_data(t(h.expr, vec![b, p, NUM_EXPRESSION]), device),
             pelvis: Tensor::from_data(t(h.pelvis, vec![b, p, 3]), device),
             joints_3d: Tensor::from_data(t(h.j3, vec![b, p, j, 3]), device),
             joints_2d: Tensor::from_data(t(h.j2, vec![b, v, p, j, 3]), device),
@@ -553,8 +557,8 @@ impl Padded {
             images: Vec::with_capacity(b * v * 3 * s * s),
             mask: vec![false; b * p],
             pose: vec![0f32; b * p * NUM_JOINTS * 3],
-            betas: vec![0f32; b * p * 10],
-            expr: vec![0f32; b * p * 10],
+            betas: vec![0f32; b * p * NUM_BETAS],
+            expr: vec![0f32; b * p * NUM_EXPRESSION],
             pelvis: vec![0f32; b * p * 3],
             j3: vec![0f32; b * p * j * 3],
             j2: vec![0f32; b * v * p * j * 3],
@@ -579,8 +583,8 @@ impl Padded {
         let k = bi * p + pi;
         self.mask[k] = true;
         self.pose[k * NUM_JOINTS * 3..(k + 1) * NUM_JOINTS * 3].copy_from_slice(&q.pose);
-        self.betas[k * 10..(k + 1) * 10].copy_from_slice(&q.betas);
-        self.expr[k * 10..(k + 1) * 10].copy_from_slice(&q.expression);
+        self.betas[k * NUM_BETAS..(k + 1) * NUM_BETAS].copy_from_slice(&q.betas);
+        self.expr[k * NUM_EXPRESSION..(k + 1) * NUM_EXPRESSION].copy_from_slice(&q.expression);
         self.pelvis[k * 3..(k + 1) * 3].copy_from_slice(&q.pelvis);
         self.smplx[k] = if q.smplx { 1.0 } else { 0.0 };
         for (ji, &x) in q.joint_valid.iter().enumerate().take(j) {

@@ -109,7 +109,12 @@ mod tests {
         for (j, aa) in pose {
             full[j * 3..j * 3 + 3].copy_from_slice(aa);
         }
-        mvmp_smplx::SmplxParams::from_full_pose(&full, &[betas; 10], &[0.0; 10], [0.0; 3])
+        mvmp_smplx::SmplxParams::from_full_pose(
+            &full,
+            &[betas; NUM_BETAS],
+            &[0.0; NUM_EXPRESSION],
+            [0.0; 3],
+        )
     }
 
     /// Two turns about one axis average to the turn halfway between them; coefficients average.

@@ -23,7 +23,7 @@ use crate::loader::{
 use crate::panoptic::PanopticSequence;
 use mvmp_geom::{Camera, Letterbox};
 use mvmp_smplx::joint_sets::JointSet;
-use mvmp_smplx::names::NUM_JOINTS_WITH_LANDMARKS;
+use mvmp_smplx::names::{NUM_BETAS, NUM_EXPRESSION, NUM_JOINTS_WITH_LANDMARKS};
 
 /// One annotated person of a joint-annotated frame, in the dataset's joint set (world metres).
 #[derive(Debug, Clone, PartialEq)]
@@ -183,8 +183,8 @@ pub fn person_from_joints(
     PersonGt {
         id: p.id.max(0) as u32,
         pose: vec![0.0; mvmp_smplx::names::NUM_JOINTS * 3],
-        betas: [0.0; 10],
-        expression: [0.0; 10],
+        betas: [0.0; NUM_BETAS],
+        expression: [0.0; NUM_EXPRESSION],
         pelvis: root,
         joints_3d,
         joints_2d,

@@ -25,7 +25,7 @@ use mvmp_fusion::{
 };
 use mvmp_geom::rotation::rot6d_to_matrix;
 use mvmp_geom::{Camera, Letterbox};
-use mvmp_smplx::names::NUM_REGRESSED;
+use mvmp_smplx::names::{NUM_BETAS, NUM_EXPRESSION, NUM_REGRESSED};
 use mvmp_smplx::{SmplxLayer, Translation, regressed_to_full_pose};
 
 /// The trainable network.
@@ -308,8 +308,8 @@ impl MvmpHmr {
         };
         let body = layer.forward(
             regressed_to_full_pose(rotmats.clone()),
-            dec.betas.clone().reshape([n, 10]),
-            dec.expression.clone().reshape([n, 10]),
+            dec.betas.clone().reshape([n, NUM_BETAS]),
+            dec.expression.clone().reshape([n, NUM_EXPRESSION]),
             dec.transl.clone().reshape([n, 3]),
             Translation::Pelvis,
         );

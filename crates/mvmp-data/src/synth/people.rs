@@ -4,6 +4,7 @@
 //! Angles are axis-angle in the body's rest frame (y up, facing +z, the person's left at +x): hip flexion
 //! is a rotation about -x, knee flexion about +x, the left shoulder lowers the arm about -z and the right
 //! about +z, elbows bend forward about -y (left) and +y (right).
+use mvmp_smplx::names::{NUM_BETAS, NUM_EXPRESSION};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
@@ -115,8 +116,8 @@ pub struct PersonState {
     pub position: [f64; 2],
     /// Gait phase (radians).
     pub phase: f64,
-    pub betas: [f64; 10],
-    pub expression: [f64; 10],
+    pub betas: [f64; NUM_BETAS],
+    pub expression: [f64; NUM_EXPRESSION],
     pub appearance: Appearance,
     /// Full pose: 55 x 3 axis-angle (joint 0 is the global orientation).
     pub pose: Vec<f64>,

@@ -6,7 +6,7 @@ use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
 use super::people::{PersonState, advance, new_person};
-use mvmp_smplx::names::NUM_JOINTS;
+use mvmp_smplx::names::{NUM_BETAS, NUM_EXPRESSION, NUM_JOINTS};
 use mvmp_smplx::{SmplxLayer, SmplxParams, Translation};
 
 /// Closest allowed distance between the surfaces of two people (metres).
@@ -69,8 +69,14 @@ impl Poser {
             states.iter().flat_map(|s| s.pose.clone()).collect(),
             &[n, NUM_JOINTS, 3],
         );
-        let betas = f(states.iter().flat_map(|s| s.betas).collect(), &[n, 10]);
-        let expr = f(states.iter().flat_map(|s| s.expression).collect(), &[n, 10]);
+        let betas = f(
+            states.iter().flat_map(|s| s.betas).collect(),
+            &[n, NUM_BETAS],
+        );
+        let expr = f(
+            states.iter().flat_map(|s| s.expression).collect(),
+            &[n, NUM_EXPRESSION],
+        );
         let transl = f(
             states
                 .iter()
