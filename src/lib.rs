@@ -9,6 +9,7 @@ pub use mvmp_eval as eval;
 pub use mvmp_fusion as fusion;
 pub use mvmp_geom as geom;
 pub use mvmp_infer as infer;
+pub use mvmp_io as io;
 pub use mvmp_kernels as kernels;
 pub use mvmp_losses as losses;
 pub use mvmp_model as model;

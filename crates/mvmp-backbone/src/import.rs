@@ -23,9 +23,7 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use burn::store::{
-    BurnpackStore, ModuleSnapshot, PyTorchToBurnAdapter, PytorchStore, SafetensorsStore,
-};
+use burn::store::{ModuleSnapshot, PyTorchToBurnAdapter, PytorchStore, SafetensorsStore};
 
 use crate::ViT;
 
@@ -40,35 +38,13 @@ pub enum ImportError {
     #[error("{path}: {what}")]
     Format { path: PathBuf, what: String },
     #[error(transparent)]
-    Geom(#[from] mvmp_geom::GeomError),
+    Output(#[from] mvmp_io::IoError),
 }
 
-/// What an import did.
-#[derive(Debug, Clone, Default)]
-pub struct ImportReport {
-    /// mvmp parameters that received a value.
-    pub loaded: Vec<String>,
-    /// mvmp parameters the file did not provide.
-    pub missing: Vec<String>,
-    /// File tensors that went nowhere.
-    pub unused: Vec<String>,
-    /// Tensors that matched a key but could not be applied (shape or dtype), with the reason.
-    pub errors: Vec<String>,
-}
+pub use mvmp_io::checkpoint::{LoadReport as ImportReport, check_finite, first_invalid_weight};
 
 /// A tensor read from a file: dtype, shape, little-endian bytes.
 type Raw = (safetensors::Dtype, Vec<usize>, Vec<u8>);
-
-impl From<burn::store::ApplyResult> for ImportReport {
-    fn from(r: burn::store::ApplyResult) -> Self {
-        ImportReport {
-            loaded: r.applied,
-            missing: r.missing.into_iter().map(|(k, _)| k).collect(),
-            unused: r.unused,
-            errors: r.errors.iter().map(|e| e.to_string()).collect(),
-        }
-    }
-}
 
 const PREFIXES: &str = r"^(module\.)?(backbone\.)?(encoder\.)?";
 
@@ -212,101 +188,6 @@ pub fn import_dinov2(vit: &mut ViT, path: &Path) -> Result<ImportReport, ImportE
     };
     check_finite(vit, path)?;
     Ok(result.into())
-}
-
-/// The first parameter of `module` (its module path) that no trained network holds, and what is wrong
-/// with it: a NaN or infinite value (every prediction made with it is NaN), or a batch norm's negative
-/// running variance (its square root is NaN).
-pub fn first_invalid_weight<M: burn::module::Module>(module: &M) -> Option<(String, &'static str)> {
-    #[derive(Default)]
-    struct Finder {
-        path: Vec<String>,
-        found: Option<(String, &'static str)>,
-    }
-    impl burn::module::ModuleVisitor for Finder {
-        fn enter_module(&mut self, name: &str, _container: &str) {
-            self.path.push(name.to_string());
-        }
-        fn exit_module(&mut self, _name: &str, _container: &str) {
-            self.path.pop();
-        }
-        fn visit_float<const D: usize>(
-            &mut self,
-            p: &burn::module::Param<burn::tensor::Tensor<D>>,
-        ) {
-            if self.found.is_some() {
-                return;
-            }
-            // Read on the host: one pass over the weights, whatever the backend's own checks do.
-            let data = p.val().into_data();
-            let variance = self.path.last().is_some_and(|n| n == "running_var");
-            let problem = data.iter::<f32>().find_map(|x| {
-                if !x.is_finite() {
-                    Some("hold a NaN or infinite value")
-                } else if variance && x < 0.0 {
-                    Some("hold a negative variance")
-                } else {
-                    None
-                }
-            });
-            if let Some(what) = problem {
-                self.found = Some((self.path.join("."), what));
-            }
-        }
-    }
-    let mut f = Finder::default();
-    module.visit(&mut f);
-    f.found
-}
-
-/// Refuse weights read from `path` that no trained network holds ([`first_invalid_weight`]).
-pub fn check_finite<M: burn::module::Module>(module: &M, path: &Path) -> Result<(), ImportError> {
-    match first_invalid_weight(module) {
-        None => Ok(()),
-        Some((at, what)) => Err(ImportError::Format {
-            path: path.into(),
-            what: format!("the weights of `{at}` {what}"),
-        }),
-    }
-}
-
-/// Save a module in burn-store's native burnpack format (mvmp key names), atomically.
-pub fn save_native<M: burn::module::Module>(module: &M, path: &Path) -> Result<(), ImportError> {
-    mvmp_geom::io::write_atomic_via(path, |tmp| {
-        let mut store = BurnpackStore::from_file(tmp)
-            .auto_extension(false)
-            .overwrite(true);
-        module
-            .save_into(&mut store)
-            .map_err(|e| ImportError::Format {
-                path: path.into(),
-                what: e.to_string(),
-            })
-    })
-}
-
-/// Load weights written by [`save_native`].
-pub fn load_native<M: burn::module::Module>(
-    module: &mut M,
-    path: &Path,
-) -> Result<ImportReport, ImportError> {
-    if !path.exists() {
-        return Err(ImportError::Io {
-            path: path.into(),
-            source: std::io::Error::new(std::io::ErrorKind::NotFound, "no such file"),
-        });
-    }
-    // Partial: the caller decides which missing tensors it can do without (the report lists them).
-    let mut store = BurnpackStore::from_file(path)
-        .auto_extension(false)
-        .allow_partial(true);
-    let r = module
-        .load_from(&mut store)
-        .map_err(|e| ImportError::Format {
-            path: path.into(),
-            what: e.to_string(),
-        })?;
-    Ok(r.into())
 }
 
 /// Source-key rewrites from the reference HRNet (`pose_hrnet.py`) names to mvmp's, applied in order:

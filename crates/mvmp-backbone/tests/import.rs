@@ -116,9 +116,9 @@ fn check_variant(cfg: ViTConfig, prefix: &str, with_hf: bool) {
     assert_eq!(pe[c + 1], value("pos_embed", c + 1));
     // Saved in burn's native format and loaded back, unchanged.
     let native = dir.path().join("vit.bpk");
-    mvmp_backbone::import::save_native(&vit, &native).unwrap();
+    mvmp_io::checkpoint::save(&vit, &native).unwrap();
     let mut back = cfg.init(&d);
-    let rep = mvmp_backbone::import::load_native(&mut back, &native).unwrap();
+    let rep = mvmp_io::checkpoint::load(&mut back, &native).unwrap();
     assert!(rep.missing.is_empty() && rep.errors.is_empty());
     let qkv_back: Vec<f32> = back.blocks[depth - 1]
         .attn

@@ -8,8 +8,8 @@ use burn::tensor::{Device, Tensor, TensorData};
 use nalgebra::{Matrix3, Vector3};
 
 use mvmp_geom::Camera;
-use mvmp_geom::io::write_atomic_with;
 use mvmp_geom::raster::{Frame, Light, MeshRef, draw};
+use mvmp_io::write_atomic_with;
 use mvmp_smplx::export::{write_obj, write_ply};
 use mvmp_smplx::{BodyModel, ParamTensors, SmplxLayer, SmplxParams, Translation, standin_model};
 use npyz::WriterBuilder;
@@ -82,7 +82,7 @@ pub fn forward(model: Option<&Path>, params: &Path, out: &Path, device: &Device)
     let model = load_model(model)?;
     let (verts, joints) = pose(&model, &bodies, device)?;
     // Every file is written to a staging directory, moved into place once all are written.
-    let staged = mvmp_geom::io::StagedDir::new(out)?.owning(|name| {
+    let staged = mvmp_io::StagedDir::new(out)?.owning(|name| {
         name.starts_with("body_") && (name.ends_with(".obj") || name.ends_with(".ply"))
     });
     let dir = staged.path();

@@ -5,7 +5,8 @@ use anyhow::{Result, bail};
 use burn::tensor::Device;
 use mvmp_backbone::{HrnetVariant, VitVariant};
 
-use mvmp_backbone::import::{import_dinov2, save_native};
+use mvmp_backbone::import::import_dinov2;
+use mvmp_io::checkpoint;
 
 pub fn dinov2(variant: VitVariant, from: &Path, out: &Path) -> Result<()> {
     crate::paths::not_over_input("--out", out, from)?;
@@ -14,7 +15,7 @@ pub fn dinov2(variant: VitVariant, from: &Path, out: &Path) -> Result<()> {
     let mut vit = cfg.init(&device);
     let rep = import_dinov2(&mut vit, from)?;
     report(from, &rep)?;
-    save_native(&vit, out)?;
+    checkpoint::save(&vit, out)?;
     println!("wrote {} (burnpack, mvmp {variant} weights)", out.display());
     Ok(())
 }
@@ -28,7 +29,7 @@ pub fn hrnet(variant: HrnetVariant, joints: usize, from: &Path, out: &Path) -> R
     let mut net = cfg.init(&Device::flex());
     let rep = mvmp_backbone::import::import_hrnet(&mut net, from)?;
     report(from, &rep)?;
-    save_native(&net, out)?;
+    checkpoint::save(&net, out)?;
     println!(
         "wrote {} (burnpack, mvmp {variant} weights, {joints} joints)",
         out.display()

@@ -108,7 +108,7 @@ fn on_signal(signal: i32) {
         return;
     }
     say(format_args!("\ninterrupted"));
-    mvmp_geom::io::remove_live_partials();
+    mvmp_io::remove_live_partials();
     for u in s.unfinished.drain(..).rev() {
         remove(u);
     }
@@ -141,7 +141,7 @@ pub fn clear(dir: &Path, keep_dir: bool) -> std::io::Result<()> {
         return std::fs::remove_dir_all(dir);
     }
     for entry in std::fs::read_dir(dir)? {
-        mvmp_geom::io::remove_path(&entry?.path())?;
+        mvmp_io::remove_path(&entry?.path())?;
     }
     Ok(())
 }

@@ -13,7 +13,7 @@ use burn::tensor::Device;
 use mvmp_data::loader::Split;
 use mvmp_eval::Metrics;
 use mvmp_fusion::FusionMode;
-use mvmp_geom::io::write_atomic;
+use mvmp_io::write_atomic;
 use mvmp_model::ModelConfig;
 use mvmp_model::config::PrimaryJoint;
 use mvmp_train::TrainConfig;

@@ -14,10 +14,10 @@ use mvmp_eval::drivers::{
 };
 use mvmp_eval::joint_sets::JointSet;
 use mvmp_eval::{AP_THRESHOLDS, Evaluator, Metrics};
-use mvmp_geom::io::{StagedDir, write_atomic};
 use mvmp_geom::{Camera, Rig};
 use mvmp_infer::Predictor;
 use mvmp_infer::output::{read_people_npz, write_frame};
+use mvmp_io::{StagedDir, write_atomic};
 use mvmp_smplx::SmplxLayer;
 use mvmp_train::RunDir;
 use mvmp_train::run::file_hash;

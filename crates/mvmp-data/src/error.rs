@@ -20,6 +20,8 @@ pub enum DataError {
     #[error(transparent)]
     Geom(#[from] mvmp_geom::GeomError),
     #[error(transparent)]
+    Output(#[from] mvmp_io::IoError),
+    #[error(transparent)]
     Smplx(#[from] mvmp_smplx::SmplxError),
 }
 

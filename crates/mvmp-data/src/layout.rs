@@ -15,7 +15,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::DataError;
 use mvmp_geom::Rig;
-use mvmp_geom::io::write_atomic;
+use mvmp_io::write_atomic;
 use mvmp_smplx::SmplxParams;
 
 pub const DATASET_FORMAT: &str = "mvmp-dataset";
@@ -105,7 +105,7 @@ impl PersonView {
 
 fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T, DataError> {
     let text = std::fs::read_to_string(path).map_err(|e| DataError::io(path, e))?;
-    mvmp_geom::io::parse_json(&text).map_err(|e| DataError::file(path, format!("invalid: {e}")))
+    mvmp_io::parse_json(&text).map_err(|e| DataError::file(path, format!("invalid: {e}")))
 }
 
 fn check_header(path: &Path, format: &str, want: &str, version: u32) -> Result<(), DataError> {

@@ -158,7 +158,7 @@ pub fn contact_sheet(
         let (x, y) = ((i as u32 % cols) * tile, (i as u32 / cols) * th);
         image::imageops::overlay(&mut sheet, &small, x as i64, y as i64);
     }
-    mvmp_geom::io::write_atomic_with(out, |w| {
+    mvmp_io::write_atomic_with(out, |w| {
         let mut buf = std::io::Cursor::new(Vec::new());
         sheet
             .write_to(&mut buf, image::ImageFormat::Png)

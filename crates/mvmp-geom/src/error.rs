@@ -19,6 +19,8 @@ pub enum GeomError {
     },
     #[error("procrustes: {0}")]
     Procrustes(String),
+    #[error(transparent)]
+    Output(#[from] mvmp_io::IoError),
 }
 
 impl GeomError {

@@ -7,7 +7,6 @@
 
 pub mod camera;
 pub mod error;
-pub mod io;
 pub mod letterbox;
 pub mod procrustes;
 pub mod project;

@@ -24,7 +24,8 @@ use std::path::Path;
 use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
-use crate::{Camera, GeomError, io::write_atomic};
+use crate::{Camera, GeomError};
+use mvmp_io::write_atomic;
 
 pub const RIG_FORMAT: &str = "mvmp-rig";
 pub const RIG_VERSION: u32 = 1;
@@ -91,7 +92,7 @@ impl Rig {
 
     /// Parse a rig from JSON text; `path` is only used in messages.
     pub fn from_json_str(text: &str, path: &Path) -> Result<Self, GeomError> {
-        let file: RigFile = crate::io::parse_json(text)
+        let file: RigFile = mvmp_io::parse_json(text)
             .map_err(|e| GeomError::file(path, format!("not a valid rig file: {e}")))?;
         if file.format != RIG_FORMAT {
             return Err(GeomError::file(
@@ -185,6 +186,6 @@ impl Rig {
 
     /// Write the rig atomically.
     pub fn write(&self, path: &Path) -> Result<(), GeomError> {
-        write_atomic(path, self.to_json_string().as_bytes())
+        Ok(write_atomic(path, self.to_json_string().as_bytes())?)
     }
 }

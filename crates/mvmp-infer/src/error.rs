@@ -19,6 +19,8 @@ pub enum InferError {
     Smplx(#[from] mvmp_smplx::SmplxError),
     #[error(transparent)]
     Geom(#[from] mvmp_geom::GeomError),
+    #[error(transparent)]
+    Output(#[from] mvmp_io::IoError),
     /// Reading weights (burnpack).
     #[error(transparent)]
     Weights(#[from] mvmp_backbone::import::ImportError),

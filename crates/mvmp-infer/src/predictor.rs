@@ -219,7 +219,7 @@ impl Predictor {
 
 /// Load burnpack weights into a model, with an error naming the file.
 pub fn load_weights(model: &mut MvmpHmr, path: &Path) -> Result<(), InferError> {
-    let r = mvmp_backbone::import::load_native(model, path)?;
+    let r = mvmp_io::checkpoint::load(model, path)?;
     if let Some(e) = r.errors.first() {
         return Err(InferError::file(
             path,

@@ -45,4 +45,6 @@ pub enum SmplxError {
     Params(String),
     #[error(transparent)]
     Geom(#[from] mvmp_geom::GeomError),
+    #[error(transparent)]
+    Output(#[from] mvmp_io::IoError),
 }

@@ -9,11 +9,7 @@ use ply_rs_bw::ply::{
 use ply_rs_bw::writer::Writer;
 
 use crate::SmplxError;
-use mvmp_geom::io::write_atomic_with;
-
-fn geom_err(e: mvmp_geom::GeomError) -> SmplxError {
-    SmplxError::Geom(e)
-}
+use mvmp_io::write_atomic_with;
 
 /// Write a triangle mesh as OBJ (`v x y z` lines, then 1-based `f a b c`).
 pub fn write_obj(path: &Path, vertices: &[[f32; 3]], faces: &[[u32; 3]]) -> Result<(), SmplxError> {
@@ -32,7 +28,7 @@ pub fn write_obj(path: &Path, vertices: &[[f32; 3]], faces: &[[u32; 3]]) -> Resu
         }
         Ok(())
     })
-    .map_err(geom_err)
+    .map_err(SmplxError::Output)
 }
 
 /// Write a triangle mesh as binary little-endian PLY (float vertices, `vertex_indices` as uchar/int lists).
@@ -77,5 +73,6 @@ pub fn write_ply(path: &Path, vertices: &[[f32; 3]], faces: &[[u32; 3]]) -> Resu
         .collect();
     ply.payload.insert("vertex".into(), verts);
     ply.payload.insert("face".into(), fcs);
-    write_atomic_with(path, |w| Writer::new().write_ply(w, &mut ply).map(|_| ())).map_err(geom_err)
+    write_atomic_with(path, |w| Writer::new().write_ply(w, &mut ply).map(|_| ()))
+        .map_err(SmplxError::Output)
 }

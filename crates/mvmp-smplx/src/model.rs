@@ -14,7 +14,7 @@ use npyz::{TypeChar, WriterBuilder};
 
 use crate::SmplxError;
 use crate::names::{NUM_EXPRESSION, NUM_JOINTS, NUM_POSE_JOINTS, PARENTS};
-use mvmp_geom::io::{brief, write_atomic_with};
+use mvmp_io::{brief, write_atomic_with};
 
 /// Largest magnitude of any float in a body model: SMPL-X's template spans about 1.8 m, its shape and
 /// pose directions move vertices by centimetres per unit, and its weights, regressor rows and landmark
@@ -546,7 +546,7 @@ impl BodyModel {
             w.zip_writer().finish()?;
             Ok(())
         })
-        .map_err(SmplxError::Geom)
+        .map_err(SmplxError::Output)
     }
 }
 

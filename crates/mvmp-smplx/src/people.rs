@@ -5,7 +5,7 @@
 //! added to the model origin); and pelvis [N,3] (the pelvis in the world), scores [N].
 use std::path::Path;
 
-use mvmp_geom::io::write_atomic_with;
+use mvmp_io::write_atomic_with;
 use npyz::WriterBuilder;
 
 use crate::SmplxError;
@@ -15,7 +15,7 @@ use crate::params::{MAX_TRANSLATION, SmplxParams};
 fn npz_err(path: &Path, e: impl std::fmt::Display) -> SmplxError {
     SmplxError::File {
         path: path.to_path_buf(),
-        what: mvmp_geom::io::brief(&e.to_string(), 300),
+        what: mvmp_io::brief(&e.to_string(), 300),
     }
 }
 

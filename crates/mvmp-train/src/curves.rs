@@ -6,7 +6,7 @@ use plotters::prelude::*;
 use serde_json::Value;
 
 use crate::TrainError;
-use mvmp_geom::io::write_atomic_with;
+use mvmp_io::write_atomic_with;
 
 const WIDTH: u32 = 1400;
 const HEIGHT: u32 = 520;

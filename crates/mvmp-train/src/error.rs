@@ -37,6 +37,8 @@ pub enum TrainError {
     #[error(transparent)]
     Geom(#[from] mvmp_geom::GeomError),
     #[error(transparent)]
+    Output(#[from] mvmp_io::IoError),
+    #[error(transparent)]
     Infer(#[from] mvmp_infer::InferError),
     /// Reading or writing weights (burnpack).
     #[error(transparent)]

@@ -18,7 +18,7 @@ use sha2::{Digest, Sha256};
 
 use crate::TrainError;
 use crate::config::{Stage, TrainConfig};
-use mvmp_geom::io::write_atomic;
+use mvmp_io::write_atomic;
 use mvmp_model::ModelConfig;
 
 pub use mvmp_infer::run_files::STATE_FORMAT;
@@ -126,8 +126,7 @@ impl RunDir {
             return Ok(None);
         }
         let text = std::fs::read_to_string(&path).map_err(|e| TrainError::io(&path, e))?;
-        let s: RunState =
-            mvmp_geom::io::parse_json(&text).map_err(|e| TrainError::file(&path, e))?;
+        let s: RunState = mvmp_io::parse_json(&text).map_err(|e| TrainError::file(&path, e))?;
         if s.format != STATE_FORMAT || s.version != 1 {
             return Err(TrainError::file(
                 &path,

@@ -560,7 +560,7 @@ impl<'a> Trainer<'a> {
             }
         }
         let fin = self.run.root.join("model.bpk");
-        mvmp_backbone::import::save_native(&model, &fin)?;
+        mvmp_io::checkpoint::save(&model, &fin)?;
         let mut s = self
             .run
             .state()?
@@ -838,9 +838,9 @@ impl<'a> Trainer<'a> {
         // `valid()`/`train()` call folds them in; saving sees only the folded value. Fold them now so the
         // checkpoint holds the statistics the next step would read (resuming is then exact).
         let _ = model.valid();
-        mvmp_backbone::import::save_native(model, &weights)?;
+        mvmp_io::checkpoint::save(model, &weights)?;
         let opt = dir.join(format!("optim-{name}.bpk"));
-        mvmp_geom::io::write_atomic_via(&opt, |tmp| {
+        mvmp_io::write_atomic_via(&opt, |tmp| {
             optim
                 .save(tmp)
                 .map_err(|e| TrainError::file(&opt, e.to_string()))

@@ -23,8 +23,8 @@ use scene::{Posed, Poser, next_frame, place_people};
 
 use crate::DataError;
 use crate::layout::*;
-use mvmp_geom::io::write_atomic_with;
 use mvmp_geom::{Camera, Rig};
+use mvmp_io::write_atomic_with;
 
 /// What a synthesis run made.
 #[derive(Debug, Clone, Copy, Default)]
@@ -399,7 +399,7 @@ pub fn generate(
     }
     let model = load_body_model(&cfg.body_model, config_dir)?;
     let parts = face_parts(&model);
-    let staged = mvmp_geom::io::StagedDir::new(out)?;
+    let staged = mvmp_io::StagedDir::new(out)?;
     let results: Vec<Result<SceneOut, DataError>> = (0..cfg.scenes)
         .into_par_iter()
         .map(|s| {
@@ -443,7 +443,7 @@ pub fn generate(
     write_json(&staged.path().join("dataset.json"), &index)?;
     // The synthesis config, resolved, for the record.
     let toml = toml::to_string_pretty(cfg).expect("config serialises");
-    mvmp_geom::io::write_atomic(&staged.path().join("synth.toml"), toml.as_bytes())?;
+    mvmp_io::write_atomic(&staged.path().join("synth.toml"), toml.as_bytes())?;
     staged.finish()?;
     Ok(summary)
 }

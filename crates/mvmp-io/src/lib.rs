@@ -1,13 +1,17 @@
-//! Atomic file writes: data goes to a temporary file beside the target, then is renamed over it, so a
-//! crash or an error never leaves a half-written output; directories of outputs are staged the same way
-//! ([`StagedDir`]).
+//! File output for every crate: atomic writes (data goes to a temporary file beside the target, then is
+//! renamed over it, so a crash or an error never leaves a half-written output; directories of outputs are
+//! staged the same way, [`StagedDir`]), the sweep of temporaries a killed process left, JSON parsing that
+//! names the offending key, and model checkpoints ([`checkpoint`]).
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use crate::GeomError;
+pub mod checkpoint;
+mod error;
+
+pub use error::IoError;
 
 /// Write `bytes` to `path` atomically (temporary file in the same directory, then rename).
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), GeomError> {
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
     write_atomic_with(path, |w| w.write_all(bytes))
 }
 
@@ -15,8 +19,8 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), GeomError> {
 pub fn write_atomic_with(
     path: &Path,
     fill: impl FnOnce(&mut std::io::BufWriter<&mut std::fs::File>) -> std::io::Result<()>,
-) -> Result<(), GeomError> {
-    let io_err = |source| GeomError::Io {
+) -> Result<(), IoError> {
+    let io_err = |source| IoError::Io {
         path: path.to_path_buf(),
         source,
     };
@@ -40,11 +44,11 @@ pub fn write_atomic_with(
 /// [`write_atomic_with`] for a writer that opens the file itself, given a path (a checkpoint store, an
 /// optimizer's recorder): `fill` writes a temporary dot-file beside `path`, removed if `fill` fails,
 /// which then replaces `path`.
-pub fn write_atomic_via<E: From<GeomError>>(
+pub fn write_atomic_via<E: From<IoError>>(
     path: &Path,
     fill: impl FnOnce(&Path) -> Result<(), E>,
 ) -> Result<(), E> {
-    let io_err = |source| GeomError::Io {
+    let io_err = |source| IoError::Io {
         path: path.to_path_buf(),
         source,
     };
@@ -232,7 +236,7 @@ pub struct StagedDir {
 
 impl StagedDir {
     /// Stage outputs for `dest` (a directory, created by `finish` if missing).
-    pub fn new(dest: &Path) -> Result<Self, GeomError> {
+    pub fn new(dest: &Path) -> Result<Self, IoError> {
         // An existing destination by its real path: `.` or `out/..` would otherwise put the stage
         // inside the destination it is to replace.
         let real = dest.canonicalize().ok();
@@ -240,13 +244,13 @@ impl StagedDir {
             Some(d) if !d.as_os_str().is_empty() => d,
             Some(_) => Path::new("."),
             None => {
-                return Err(GeomError::Io {
+                return Err(IoError::Io {
                     path: dest.to_path_buf(),
                     source: std::io::Error::other("an output directory cannot be the root"),
                 });
             }
         };
-        let io_err = |source| GeomError::Io {
+        let io_err = |source| IoError::Io {
             path: parent.to_path_buf(),
             source,
         };
@@ -288,13 +292,13 @@ impl StagedDir {
     /// An existing one gets the staged files in place of their namesakes and keeps its other files: those
     /// are linked into the stage first and the two directories then swap in one rename (Linux), so the
     /// destination is never seen half-merged.
-    pub fn finish(self) -> Result<(), GeomError> {
+    pub fn finish(self) -> Result<(), IoError> {
         if !self.dest.exists() {
             // Held across the rename: a signal's `remove_live_partials` waits rather than removing
             // the tree as it moves into place.
             let live = live();
             let tmp = self.tmp.keep();
-            let moved = std::fs::rename(&tmp, &self.dest).map_err(|source| GeomError::Io {
+            let moved = std::fs::rename(&tmp, &self.dest).map_err(|source| IoError::Io {
                 path: self.dest.clone(),
                 source,
             });
@@ -302,7 +306,7 @@ impl StagedDir {
             return moved;
         }
         if !self.dest.is_dir() {
-            return Err(GeomError::Io {
+            return Err(IoError::Io {
                 path: self.dest.clone(),
                 source: std::io::Error::other("exists and is not a directory"),
             });
@@ -321,8 +325,8 @@ impl StagedDir {
     }
 }
 
-fn io_at(path: &Path) -> impl FnOnce(std::io::Error) -> GeomError + '_ {
-    move |source| GeomError::Io {
+fn io_at(path: &Path) -> impl FnOnce(std::io::Error) -> IoError + '_ {
+    move |source| IoError::Io {
         path: path.to_path_buf(),
         source,
     }
@@ -330,11 +334,7 @@ fn io_at(path: &Path) -> impl FnOnce(std::io::Error) -> GeomError + '_ {
 
 /// Link (or copy) into `stage` every entry of `dest` that the stage has no namesake of, recursing into
 /// directories both hold.
-fn keep_others(
-    dest: &Path,
-    stage: &Path,
-    owned: Option<fn(&str) -> bool>,
-) -> Result<(), GeomError> {
+fn keep_others(dest: &Path, stage: &Path, owned: Option<fn(&str) -> bool>) -> Result<(), IoError> {
     for entry in std::fs::read_dir(dest).map_err(io_at(dest))? {
         let entry = entry.map_err(io_at(dest))?;
         let (old, new) = (entry.path(), stage.join(entry.file_name()));
@@ -361,7 +361,7 @@ fn keep_others(
 
 /// Exchange two directories: one atomic rename on Linux; elsewhere two renames, the destination put back
 /// if the second fails.
-fn swap(stage: &Path, dest: &Path) -> Result<(), GeomError> {
+fn swap(stage: &Path, dest: &Path) -> Result<(), IoError> {
     #[cfg(target_os = "linux")]
     {
         use rustix::fs::{CWD, RenameFlags, renameat_with};

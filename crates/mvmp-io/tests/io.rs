@@ -1,7 +1,7 @@
 //! Atomic outputs. Staged directories: nothing appears at the destination until `finish`, a dropped stage
 //! leaves nothing behind, and finishing into an existing directory replaces namesakes and keeps the rest.
 //! Files written through a path: whole or not at all.
-use mvmp_geom::io::StagedDir;
+use mvmp_io::StagedDir;
 
 fn names(dir: &std::path::Path) -> Vec<String> {
     let mut v: Vec<String> = std::fs::read_dir(dir)
@@ -88,26 +88,26 @@ fn a_staged_directory_appears_whole_or_not_at_all() {
 
 #[test]
 fn a_file_written_through_a_path_appears_whole_or_not_at_all() {
-    use mvmp_geom::GeomError;
-    use mvmp_geom::io::write_atomic_via;
+    use mvmp_io::IoError;
+    use mvmp_io::write_atomic_via;
     let dir = tempfile::tempdir().unwrap();
     let dest = dir.path().join("optim.bpk");
     // A writer that, like burn's burnpack writer, adds an extension to a path that has none: the
     // temporary path must already carry the destination's.
-    let write = |p: &std::path::Path, text: &str| -> Result<(), GeomError> {
+    let write = |p: &std::path::Path, text: &str| -> Result<(), IoError> {
         let p = if p.extension().is_none() {
             p.with_extension("bpk")
         } else {
             p.to_path_buf()
         };
-        std::fs::write(&p, text).map_err(|source| GeomError::Io { path: p, source })
+        std::fs::write(&p, text).map_err(|source| IoError::Io { path: p, source })
     };
     write_atomic_via(&dest, |p| write(p, "first")).unwrap();
     assert_eq!(std::fs::read_to_string(&dest).unwrap(), "first");
     // A failing writer leaves the destination as it was and no temporary file behind.
     let failed = write_atomic_via(&dest, |p| {
         write(p, "half")?;
-        Err(GeomError::Io {
+        Err(IoError::Io {
             path: p.to_path_buf(),
             source: std::io::Error::other("disk full"),
         })
@@ -129,7 +129,7 @@ fn a_json_error_names_the_key_path() {
     struct Frame {
         people: Vec<Person>,
     }
-    let e = mvmp_geom::io::parse_json::<Frame>(
+    let e = mvmp_io::parse_json::<Frame>(
         r#"{"people": [{"pelvis": [0, 1, 2]}, {"pelvis": [0, null, 2]}]}"#,
     )
     .unwrap_err();
@@ -137,14 +137,14 @@ fn a_json_error_names_the_key_path() {
         e.starts_with("key `people[1].pelvis[1]`: invalid type: null"),
         "{e}"
     );
-    let e = mvmp_geom::io::parse_json::<Frame>("{").unwrap_err();
+    let e = mvmp_io::parse_json::<Frame>("{").unwrap_err();
     assert!(e.contains("line 1"), "{e}");
 }
 
 #[test]
 #[cfg(target_os = "linux")]
 fn a_new_output_sweeps_what_killed_processes_left_beside_it() {
-    use mvmp_geom::io::{partial_prefix_of, write_atomic};
+    use mvmp_io::{partial_prefix_of, write_atomic};
     let root = tempfile::tempdir().unwrap();
     // A process that has exited: its id names no live process (ids are not reused this quickly).
     let mut child = std::process::Command::new("true").spawn().unwrap();
@@ -210,7 +210,7 @@ fn a_destination_named_through_dot_dot_is_staged_beside_it_not_inside() {
 /// A long message is cut at a character boundary and says how much was left out; a short one is kept.
 #[test]
 fn brief_messages_keep_their_start_and_count_the_rest() {
-    use mvmp_geom::io::brief;
+    use mvmp_io::brief;
     assert_eq!(brief("short", 10), "short");
     assert_eq!(brief("exactly10!", 10), "exactly10!");
     let long = format!("header: {}", "é".repeat(70_000));
