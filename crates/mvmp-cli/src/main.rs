@@ -460,6 +460,7 @@ fn output_errors_are_errors() {
 }
 
 fn main() -> ExitCode {
+    alloc::keep_freed_memory();
     output_errors_are_errors();
     tracing_subscriber::fmt()
         .with_env_filter(
