@@ -103,9 +103,9 @@ mod tests {
     }
 
     /// mimalloc's purge delay (milliseconds; -1: never).
-    fn purge_delay() -> i64 {
+    fn purge_delay() -> std::ffi::c_long {
         // SAFETY: reads one integer option.
-        i64::from(unsafe { mi_option_get(super::PURGE_DELAY) })
+        unsafe { mi_option_get(super::PURGE_DELAY) }
     }
 
     /// The option the binary sets is the purge delay: mimalloc's default for it is 1000 ms (v3; 10 in
