@@ -41,7 +41,7 @@ pub enum ImportError {
     Output(#[from] mvmp_io::IoError),
 }
 
-pub use mvmp_io::checkpoint::{LoadReport as ImportReport, check_finite, first_invalid_weight};
+use mvmp_io::checkpoint::{LoadReport, check_finite};
 
 /// A tensor read from a file: dtype, shape, little-endian bytes.
 type Raw = (safetensors::Dtype, Vec<usize>, Vec<u8>);
@@ -130,7 +130,7 @@ fn hf_to_hub(st: &safetensors::SafeTensors, path: &Path) -> Result<Vec<u8>, Impo
 }
 
 /// Load DINOv2 weights from `path` into `vit`.
-pub fn import_dinov2(vit: &mut ViT, path: &Path) -> Result<ImportReport, ImportError> {
+pub fn import_dinov2(vit: &mut ViT, path: &Path) -> Result<LoadReport, ImportError> {
     let io = |source| ImportError::Io {
         path: path.into(),
         source,
@@ -241,7 +241,7 @@ const HRNET_RULES: [(&str, &str); 10] = [
 ];
 
 /// Load reference HRNet weights (`.pth` or `.safetensors`) into `net`.
-pub fn import_hrnet(net: &mut crate::HRNet, path: &Path) -> Result<ImportReport, ImportError> {
+pub fn import_hrnet(net: &mut crate::HRNet, path: &Path) -> Result<LoadReport, ImportError> {
     let fmt = |what: String| ImportError::Format {
         path: path.into(),
         what,

@@ -37,7 +37,7 @@ pub fn hrnet(variant: HrnetVariant, joints: usize, from: &Path, out: &Path) -> R
     Ok(())
 }
 
-fn report(from: &Path, rep: &mvmp_backbone::import::ImportReport) -> Result<()> {
+fn report(from: &Path, rep: &mvmp_io::checkpoint::LoadReport) -> Result<()> {
     println!("{}: loaded {} tensors", from.display(), rep.loaded.len());
     if !rep.missing.is_empty() {
         println!(
