@@ -252,8 +252,20 @@ pub fn density_grid(side: usize, extent: f64, device: &Device) -> Tensor<2> {
     Tensor::from_data(TensorData::new(v, [side * side * side, 3]), device)
 }
 
+/// The coordinates of the density cube along each axis: `side` points spanning `extent` metres, centred
+/// on the origin, voxel-centre convention, `[side]`. The cube's points ([`density_grid`]) are their
+/// product.
+pub fn density_axis(side: usize, extent: f64, device: &Device) -> Tensor<1> {
+    let step = extent / side as f64;
+    let v: Vec<f32> = (0..side)
+        .map(|i| (-extent / 2.0 + (i as f64 + 0.5) * step) as f32)
+        .collect();
+    Tensor::from_data(TensorData::new(v, [side]), device)
+}
+
 /// Joint density `[B, K, G]`: at each local grid point `grid` `[G, 3]` around `centre` `[B, K, 3]`, the sum over
-/// joints `[B, K, J, 3]` of `exp(-|c - j|^2 / (2 sigma^2))`.
+/// joints `[B, K, J, 3]` of `exp(-|c - j|^2 / (2 sigma^2))`. Every point against every joint at once
+/// (`[B, K, G, J]`); the loss takes [`joint_density_cube`], which gives the same on a cube.
 pub fn joint_density(
     joints: Tensor<4>,
     centre: Tensor<3>,
@@ -272,18 +284,48 @@ pub fn joint_density(
         .reshape([b, k, g])
 }
 
-/// 3D joint density loss: MSE between the densities of predicted and ground-truth joints on a local grid
-/// around the ground-truth pelvis.
+/// [`joint_density`] on the cube whose axis coordinates are `axis` `[S]` (see [`density_axis`]), in
+/// [`density_grid`]'s order (x slowest) `[B, K, S^3]`. A Gaussian is the product of one per axis, so the
+/// density is a sum over joints of outer products of three `[S]` vectors: one batched matrix product,
+/// where every point against every joint is `S^3 x J` values per person (3 M for 127 joints and 16
+/// points a side).
+pub fn joint_density_cube(
+    joints: Tensor<4>,
+    centre: Tensor<3>,
+    axis: Tensor<1>,
+    sigma: f32,
+) -> Tensor<3> {
+    let [b, k, nj, _] = joints.dims();
+    let s = axis.dims()[0];
+    let rel = joints - centre.reshape([b, k, 1, 3]);
+    // Each joint's Gaussian along each axis `[B, K, J, 3, S]`.
+    let g = (axis.reshape([1, 1, 1, 1, s]) - rel.reshape([b, k, nj, 3, 1]))
+        .powi_scalar(2)
+        .div_scalar(-2.0 * sigma * sigma)
+        .exp();
+    let along = |a: usize| g.clone().narrow(3, a, 1).reshape([b * k, nj, s]);
+    let xy = (along(0).reshape([b * k, nj, s, 1]) * along(1).reshape([b * k, nj, 1, s])).reshape([
+        b * k,
+        nj,
+        s * s,
+    ]);
+    xy.swap_dims(1, 2)
+        .matmul(along(2))
+        .reshape([b, k, s * s * s])
+}
+
+/// 3D joint density loss: MSE between the densities of predicted and ground-truth joints on the cube
+/// `axis^3` (see [`density_axis`]) around the ground-truth pelvis.
 pub fn density_loss(
     joints: Tensor<4>,
     gt_joints: Tensor<4>,
     gt_pelvis: Tensor<3>,
-    grid: Tensor<2>,
+    axis: Tensor<1>,
     sigma: f32,
     mask: Tensor<2>,
 ) -> Tensor<1> {
-    let p = joint_density(joints, gt_pelvis.clone(), grid.clone(), sigma);
-    let t = joint_density(gt_joints, gt_pelvis, grid, sigma);
+    let p = joint_density_cube(joints, gt_pelvis.clone(), axis.clone(), sigma);
+    let t = joint_density_cube(gt_joints, gt_pelvis, axis, sigma);
     masked_mean((p - t).powi_scalar(2), mask)
 }
 
@@ -427,8 +469,8 @@ impl Default for LossWeights {
     }
 }
 
-/// Most points per side of the density loss's cube: every joint of every person is evaluated at each
-/// of its side^3 points (the default is 16).
+/// Most points per side of the density loss's cube (the default is 16): each person's density holds
+/// side^3 values, and side^2 per joint on the way.
 pub const MAX_DENSITY_GRID: usize = 64;
 
 impl LossWeights {

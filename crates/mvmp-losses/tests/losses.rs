@@ -64,13 +64,13 @@ fn orientation_by_hand() {
 #[test]
 fn density_by_hand() {
     let d = Device::flex();
-    let grid = density_grid(1, 1.0, &d); // one point, at the centre
+    let axis = density_axis(1, 1.0, &d); // one point, at the centre
     let (sigma, off) = (0.1f32, 0.05f32);
     let l = density_loss(
         t(vec![off, 0.0, 0.0], [1, 1, 1, 3], &d),
         t(vec![0.0, 0.0, 0.0], [1, 1, 1, 3], &d),
         t(vec![0.0, 0.0, 0.0], [1, 1, 3], &d),
-        grid,
+        axis,
         sigma,
         mask(vec![1.0], 1, 1, &d),
     );
@@ -78,6 +78,36 @@ fn density_by_hand() {
     assert!((scalar(l) - want).abs() < 1e-6);
     let g: Vec<f32> = density_grid(2, 1.0, &d).into_data().try_into_vec().unwrap();
     assert_eq!(g[..6], [-0.25, -0.25, -0.25, -0.25, -0.25, 0.25]);
+}
+
+/// The loss's separable density on a cube equals every point's sum over joints on the same cube's
+/// points (5 a side, off-centre people, joints inside and outside it): float rounding apart, 1e-6.
+#[test]
+fn density_on_the_cube_is_the_pointwise_density() {
+    let d = Device::flex();
+    let (side, extent, sigma) = (5, 1.3, 0.2f32);
+    let people = joints(3, 7);
+    let centre = t(vec![0.1, -0.2, 0.05, -0.3, 0.0, 0.2], [1, 2, 3], &d);
+    let p = t(people, [1, 2, 7, 3], &d);
+    let v = |x: Tensor<3>| -> Vec<f32> { x.into_data().try_into_vec().unwrap() };
+    let cube = v(joint_density_cube(
+        p.clone(),
+        centre.clone(),
+        density_axis(side, extent, &d),
+        sigma,
+    ));
+    let points = v(joint_density(
+        p,
+        centre,
+        density_grid(side, extent, &d),
+        sigma,
+    ));
+    assert_eq!(cube.len(), 2 * side * side * side);
+    let peak = points.iter().cloned().fold(0.0f32, f32::max);
+    assert!(peak > 0.5, "some joints lie near the cube's points: {peak}");
+    for (i, (a, b)) in cube.iter().zip(&points).enumerate() {
+        assert!((a - b).abs() < 1e-6, "point {i}: {a} against {b}");
+    }
 }
 
 #[test]
@@ -186,7 +216,7 @@ fn gradients_match_finite_differences() {
     check_gradient("density", joints(0, 6), [1, 2, 6, 3], &|x| {
         let d = x.device();
         let pelvis = t(vec![0.0, 0.0, 0.0, 0.1, 0.0, 0.0], [1, 2, 3], &d);
-        density_loss(x, gtm(&d), pelvis, density_grid(4, 1.2, &d), 0.15, m(&d))
+        density_loss(x, gtm(&d), pelvis, density_axis(4, 1.2, &d), 0.15, m(&d))
     });
     check_gradient("mesh_3d", joints(0, 6), [1, 2, 6, 3], &|x| {
         let d = x.device();

@@ -8,7 +8,7 @@ use mvmp_fusion::roots::{gaussian_target, root_voxel_and_offset};
 use mvmp_geom::CameraTensors;
 use mvmp_geom::rotation::axis_angle_to_matrix;
 use mvmp_losses::{
-    LossTerms, LossWeights, MeshFrame, density_grid, density_loss, detection_loss_weighted,
+    LossTerms, LossWeights, MeshFrame, density_axis, density_loss, detection_loss_weighted,
     detection_positive_loss, facing_loss, heatmap_loss, heatmap_target, mesh_2d_loss_weighted,
     mesh_3d_loss_weighted, orientation_loss, parameter_loss, to_body_frame, translation_loss,
 };
@@ -866,14 +866,14 @@ fn density_term(
     weights: &LossWeights,
     device: &Device,
 ) -> Tensor<1> {
-    let grid = density_grid(weights.density_grid, weights.density_extent, device);
+    let axis = density_axis(weights.density_grid, weights.density_extent, device);
     if let Some(f) = frames {
         let [b, k] = f.ok.dims();
         return density_loss(
             f.pred(out.joints.clone()),
             f.gt(t.joints.clone()),
             Tensor::zeros([b, k, 3], device),
-            grid,
+            axis.clone(),
             weights.density_sigma,
             t.smplx.clone() * f.ok.clone(),
         );
@@ -882,7 +882,7 @@ fn density_term(
         out.joints.clone(),
         t.joints.clone(),
         t.at.pick3(batch.pelvis.clone()),
-        grid,
+        axis,
         weights.density_sigma,
         t.smplx.clone(),
     )
