@@ -487,7 +487,7 @@ fn model_and_training_step(other: &Device, r: &mut Report) {
         let grids: Vec<RigGrids> = mvmp::train::step::batch_grids(&cfg, &batch, d);
         let roots = t(vec![0.3, -0.2, 0.9, -0.8, 0.5, 1.0], [1, 2, 3], d);
         let present = Tensor::<2, Bool>::from_data(TensorData::new(vec![true, true], [1, 2]), d);
-        let o = m.forward(batch.images, &grids, &cfg, &layer, Some((roots, present)));
+        let o = m.forward(batch.images, &grids, &layer, Some((roots, present)));
         [
             host(o.heatmaps),
             host(o.likelihood),
@@ -522,7 +522,6 @@ fn model_and_training_step(other: &Device, r: &mut Report) {
         let l = stage2_loss(
             m,
             &batch,
-            &cfg,
             &layer,
             &Stage2::at_true_roots(&mvmp::losses::LossWeights::default()),
             d,

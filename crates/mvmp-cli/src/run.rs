@@ -266,7 +266,7 @@ fn eval_run(
     let ev = evaluate(&pred, args.data, &opts, |i, n, fp| {
         if let Some(dir) = &staged {
             let d = dir.path().join(&fp.scene).join(&fp.frame);
-            write_frame(&d, &fp.people, &faces, &fp.cameras, None, &pred.cfg.grid)?;
+            write_frame(&d, &fp.people, &faces, &fp.cameras, None, &pred.cfg().grid)?;
         }
         pb.done(i, n);
         Ok(())
@@ -467,7 +467,7 @@ fn infer_frame(pred: &Predictor, rig: &Rig, paths: &[PathBuf], out: &Path) -> Re
         pred.layer.faces(),
         &rig.cameras,
         Some(&imgs),
-        &pred.cfg.grid,
+        &pred.cfg().grid,
     )?;
     Ok(people.len())
 }
@@ -701,7 +701,7 @@ fn demo_references(
     let (train_cfg, model_cfg) = mvmp_train::TrainConfig::read(&cfg_dir.join("train.toml"))?;
     let body = mvmp_data::layout::load_body_model(&model_cfg.body_model, cfg_dir)?;
     let init = mvmp_train::seeded_init(&model_cfg, device, train_cfg.seed);
-    let untrained = Predictor::new(init, model_cfg.clone(), body, device);
+    let untrained = Predictor::new(init, body, device);
     let opts = EvalOptions {
         split: Split::Test,
         views: train_cfg.test_views,

@@ -131,11 +131,10 @@ fn probe(cfg: &ModelConfig, shape: Shape, stage: Stage, body: &BodyModel) -> Res
     let w = LossWeights::default();
     let base = GLOBAL.reset_peak();
     let loss = match stage {
-        Stage::Detection => mvmp_train::step::stage1_loss(&net, &batch, cfg, &w, &device),
+        Stage::Detection => mvmp_train::step::stage1_loss(&net, &batch, &w, &device),
         Stage::Whole => mvmp_train::step::stage2_loss(
             &net,
             &batch,
-            cfg,
             &layer,
             &mvmp_train::step::Stage2::at_true_roots(&w),
             &device,

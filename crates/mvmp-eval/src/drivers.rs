@@ -167,7 +167,7 @@ pub fn evaluate(
     evaluate_frames(
         data,
         opts,
-        pred.cfg.image_size,
+        pred.cfg().image_size,
         &pred.device,
         |i, n, batch| {
             let people = pred

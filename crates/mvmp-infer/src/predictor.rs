@@ -8,7 +8,7 @@ use burn::tensor::{Device, Tensor};
 use mvmp_fusion::Root;
 use mvmp_geom::rotation::matrix_to_axis_angle;
 use mvmp_geom::{Camera, Letterbox};
-use mvmp_model::{Detection, ModelConfig, MvmpHmr, RigGrids, detect_roots};
+use mvmp_model::{Detection, ModelConfig, MvmpHmr, RigGrids};
 use mvmp_smplx::names::{NUM_BETAS, NUM_EXPRESSION, NUM_JOINTS, NUM_REGRESSED};
 use mvmp_smplx::people::StoredPerson;
 use mvmp_smplx::{BodyModel, SmplxLayer, SmplxParams, regressed_to_full_pose};
@@ -59,7 +59,6 @@ impl PersonPrediction {
 /// A model ready to predict (inference mode, no autodiff) with its config and body model.
 pub struct Predictor {
     pub model: MvmpHmr,
-    pub cfg: ModelConfig,
     pub layer: SmplxLayer,
     pub body: BodyModel,
     pub device: Device,
@@ -76,25 +75,28 @@ impl Predictor {
         let mut model = cfg.init(device);
         load_weights(&mut model, &weights)?;
         let body = mvmp_data::layout::load_body_model(&cfg.body_model, root)?;
-        Ok((Predictor::new(model, cfg, body, device), weights))
+        Ok((Predictor::new(model, body, device), weights))
     }
 
-    pub fn new(model: MvmpHmr, cfg: ModelConfig, body: BodyModel, device: &Device) -> Predictor {
+    pub fn new(model: MvmpHmr, body: BodyModel, device: &Device) -> Predictor {
         let layer = SmplxLayer::new(&body, device);
-        Predictor::with_layer(model, cfg, body, layer, device)
+        Predictor::with_layer(model, body, layer, device)
+    }
+
+    /// The model's config (the one it was built from).
+    pub fn cfg(&self) -> &ModelConfig {
+        &self.model.config
     }
 
     /// As [`Predictor::new`] with a body layer already built for `device`.
     pub fn with_layer(
         model: MvmpHmr,
-        cfg: ModelConfig,
         body: BodyModel,
         layer: SmplxLayer,
         device: &Device,
     ) -> Predictor {
         Predictor {
             model: model.valid(),
-            cfg,
             layer,
             body,
             device: device.clone(),
@@ -118,9 +120,11 @@ impl Predictor {
         cameras: &[Vec<Camera>],
         letterboxes: &[Vec<Letterbox>],
     ) -> (Vec<Vec<Root>>, Detection, Vec<RigGrids>) {
-        let grids = RigGrids::for_batch(&self.cfg, cameras, letterboxes, &self.device);
+        let grids = RigGrids::for_batch(self.cfg(), cameras, letterboxes, &self.device);
         let det = self.model.detect(images, &grids);
-        let roots = detect_roots(det.likelihood.clone(), det.offset.clone(), &self.cfg);
+        let roots = self
+            .model
+            .detect_roots(det.likelihood.clone(), det.offset.clone());
         (roots, det, grids)
     }
 
@@ -131,10 +135,10 @@ impl Predictor {
         images: &[image::RgbImage],
         cameras: &[Camera],
     ) -> Result<Vec<PersonPrediction>, InferError> {
-        let s = self.cfg.image_size as usize;
+        let s = self.cfg().image_size as usize;
         let lbs: Vec<Letterbox> = cameras
             .iter()
-            .map(|c| Letterbox::new(c.width, c.height, self.cfg.image_size))
+            .map(|c| Letterbox::new(c.width, c.height, self.cfg().image_size))
             .collect::<Result<_, _>>()?;
         let mut data = vec![0f32; images.len() * 3 * s * s];
         for (v, (img, lb)) in images.iter().zip(&lbs).enumerate() {
@@ -158,10 +162,8 @@ impl Predictor {
         cameras: &[Vec<Camera>],
         letterboxes: &[Vec<Letterbox>],
     ) -> Vec<Vec<PersonPrediction>> {
-        let grids = RigGrids::for_batch(&self.cfg, cameras, letterboxes, &self.device);
-        let out = self
-            .model
-            .forward(images, &grids, &self.cfg, &self.layer, None);
+        let grids = RigGrids::for_batch(self.cfg(), cameras, letterboxes, &self.device);
+        let out = self.model.forward(images, &grids, &self.layer, None);
         let [b, k, nv, _] = out.vertices.dims();
         let nj = out.joints.dims()[2];
         let n = b * k;

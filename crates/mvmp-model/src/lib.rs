@@ -5,4 +5,4 @@ pub mod model;
 pub mod summary;
 
 pub use config::{ModelConfig, ModelConfigError};
-pub use model::{Detection, MvmpHmr, MvmpOutput, RigGrids, detect_roots, roots_tensor};
+pub use model::{Detection, MvmpHmr, MvmpOutput, RigGrids, roots_tensor};

@@ -41,6 +41,10 @@ pub struct MvmpHmr {
     pub deformable: Option<DeformableFusion>,
     /// Present when the config asks for a facing head (`facing`).
     pub facing: Option<FacingHead>,
+    /// The config the network was built from: the forward reads its grid, fusion mode, people cap,
+    /// threshold and root placement from here (not saved with the weights).
+    #[module(skip)]
+    pub config: ModelConfig,
 }
 
 /// Sampling grids of one rig: for the ViT feature maps (stride 14) and the HRNet heatmaps (stride 4).
@@ -157,6 +161,7 @@ impl ModelConfig {
             facing: self
                 .facing
                 .then(|| FacingHead::new(self.hrnet_config().width, device)),
+            config: self.clone(),
         }
     }
 }
@@ -235,17 +240,14 @@ impl MvmpHmr {
         &self,
         images: Tensor<5>,
         grids: &[RigGrids],
-        cfg: &ModelConfig,
         layer: &SmplxLayer,
         roots: Option<(Tensor<3>, Tensor<2, Bool>)>,
     ) -> MvmpOutput {
         match roots {
-            Some(r) => self.forward_select(images, grids, cfg, layer, |_| r),
+            Some(r) => self.forward_select(images, grids, layer, |_| r),
             None => {
-                let (k, device) = (cfg.max_people, images.device());
-                self.forward_select(images, grids, cfg, layer, |det| {
-                    roots_tensor(det, k, &device)
-                })
+                let (k, device) = (self.config.max_people, images.device());
+                self.forward_select(images, grids, layer, |det| roots_tensor(det, k, &device))
             }
         }
     }
@@ -257,10 +259,10 @@ impl MvmpHmr {
         &self,
         images: Tensor<5>,
         grids: &[RigGrids],
-        cfg: &ModelConfig,
         layer: &SmplxLayer,
         select: impl FnOnce(&[Vec<Root>]) -> (Tensor<3>, Tensor<2, Bool>),
     ) -> MvmpOutput {
+        let cfg = &self.config;
         let [b, v, _, s, _] = images.dims();
         let x = images.clone().reshape([b * v, 3, s, s]);
         let feats = self.view_features(x); // [B*V, Cf, h, w]
@@ -280,7 +282,7 @@ impl MvmpHmr {
             },
             hvol,
         ) = self.detect_with_volume(images, grids);
-        let detections = detect_roots(likelihood.clone().detach(), offset.clone().detach(), cfg);
+        let detections = self.detect_roots(likelihood.clone().detach(), offset.clone().detach());
         let (roots, present) = select(&detections);
         let kk = roots.dims()[1];
         // The decoder reads the facing head's estimate; the facing loss alone trains the head.
@@ -334,16 +336,19 @@ impl MvmpHmr {
     }
 }
 
-/// The roots a detection gives, per batch item, best first: the likelihood's peaks above the threshold
-/// (at most `max_people`), placed within their voxels as `root_refine` says.
-pub fn detect_roots(likelihood: Tensor<5>, offset: Tensor<5>, cfg: &ModelConfig) -> Vec<Vec<Root>> {
-    extract_roots(
-        likelihood,
-        cfg.root_refine.with_offset(offset),
-        &cfg.grid,
-        cfg.max_people,
-        cfg.root_threshold,
-    )
+impl MvmpHmr {
+    /// The roots a detection gives, per batch item, best first: the likelihood's peaks above the
+    /// threshold (at most `max_people`), placed within their voxels as `root_refine` says.
+    pub fn detect_roots(&self, likelihood: Tensor<5>, offset: Tensor<5>) -> Vec<Vec<Root>> {
+        let cfg = &self.config;
+        extract_roots(
+            likelihood,
+            cfg.root_refine.with_offset(offset),
+            &cfg.grid,
+            cfg.max_people,
+            cfg.root_threshold,
+        )
+    }
 }
 
 /// Roots `[B, K, 3]` and presence `[B, K]` from per-item root lists (at most `k` each, in order).

@@ -91,7 +91,7 @@ fn forward_shapes(cfg: ModelConfig) {
         .map(|c| Letterbox::new(c.width, c.height, 64).unwrap())
         .collect();
     let grids = vec![RigGrids::new(&cfg, &cams, &lbs, &d)];
-    let out = net.forward(images(&d), &grids, &cfg, &layer, None);
+    let out = net.forward(images(&d), &grids, &layer, None);
     assert_eq!(out.heatmaps.dims(), [1, 2, 17, 16, 16]);
     assert_eq!(out.likelihood.dims(), [1, 1, 16, 16, 4]);
     assert_eq!(out.vertices.dims(), [1, 3, 10475, 3]);
@@ -102,7 +102,7 @@ fn forward_shapes(cfg: ModelConfig) {
         &d,
     );
     let present = Tensor::<2, Bool>::from_data(TensorData::new(vec![true, false], [1, 2]), &d);
-    let out = net.forward(images(&d), &grids, &cfg, &layer, Some((roots, present)));
+    let out = net.forward(images(&d), &grids, &layer, Some((roots, present)));
     assert_eq!(out.rotmats.dims(), [1, 2, 53, 3, 3]);
     assert_eq!(out.transl.dims(), [1, 2, 3]);
 }
@@ -124,7 +124,7 @@ fn a_loss_reaches_every_trainable_parameter() {
         &d,
     );
     let present = Tensor::<2, Bool>::from_data(TensorData::new(vec![true, true], [1, 2]), &d);
-    let out = net.forward(images(&d), &grids, &cfg, &layer, Some((roots, present)));
+    let out = net.forward(images(&d), &grids, &layer, Some((roots, present)));
     let facing = out.facing.expect("tiny.toml has a facing head");
     let loss = out.likelihood.powi_scalar(2).sum() * 1e3
         + facing.powi_scalar(2).sum()

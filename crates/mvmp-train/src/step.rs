@@ -396,10 +396,10 @@ pub fn facing_errors_deg(
 pub fn stage1_loss(
     model: &MvmpHmr,
     batch: &FrameBatch,
-    cfg: &ModelConfig,
     weights: &LossWeights,
     device: &Device,
 ) -> StepLoss {
+    let cfg = &model.config;
     let gt = HostGt::new(batch);
     let grids = batch_grids(cfg, batch, device);
     let det = model.detect(batch.images.clone(), &grids);
@@ -517,11 +517,11 @@ impl<'a> Stage2<'a> {
 pub fn stage2_loss(
     model: &MvmpHmr,
     batch: &FrameBatch,
-    cfg: &ModelConfig,
     layer: &SmplxLayer,
     setup: &Stage2,
     device: &Device,
 ) -> StepLoss {
+    let cfg = &model.config;
     let Stage2 {
         weights,
         queries: mode,
@@ -531,7 +531,7 @@ pub fn stage2_loss(
     let grids = batch_grids(cfg, batch, device);
     let gt_roots = gt.roots(cfg.primary_joint.joint());
     let mut slots: Vec<Vec<([f64; 3], usize)>> = Vec::new();
-    let out = model.forward_select(batch.images.clone(), &grids, cfg, layer, |det| {
+    let out = model.forward_select(batch.images.clone(), &grids, layer, |det| {
         slots = choose_queries(det, &gt_roots, mode, gate);
         let roots = exact_roots(slots.iter().map(|s| s.iter().map(|q| q.0).collect()));
         let k = slots.iter().map(Vec::len).max().unwrap_or(0);

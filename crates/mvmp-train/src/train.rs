@@ -444,7 +444,6 @@ fn gt_batcher(
 struct Trainer<'a> {
     run: &'a RunDir,
     cfg: &'a TrainConfig,
-    model_cfg: &'a ModelConfig,
     opts: &'a TrainOptions,
     started: Instant,
     plain: Device,
@@ -517,7 +516,6 @@ impl<'a> Trainer<'a> {
         let trainer = Trainer {
             run,
             cfg,
-            model_cfg,
             opts,
             started,
             layer,
@@ -683,14 +681,14 @@ impl<'a> Trainer<'a> {
         let (cfg, ad) = (self.cfg, &self.ad);
         let stage2_weights = stage2_weights(&cfg.loss, sc);
         let loss_of = |model: &MvmpHmr| match stage {
-            Stage::Detection => stage1_loss(model, &batch, self.model_cfg, &cfg.loss, ad),
+            Stage::Detection => stage1_loss(model, &batch, &cfg.loss, ad),
             Stage::Whole => {
                 let setup = Stage2 {
                     weights: &stage2_weights,
                     queries: cfg.queries,
                     gate: cfg.match_gate,
                 };
-                stage2_loss(model, &batch, self.model_cfg, &self.layer, &setup, ad)
+                stage2_loss(model, &batch, &self.layer, &setup, ad)
             }
         };
         if cfg.term_gradients && bi == 0 {
@@ -788,15 +786,7 @@ impl<'a> Trainer<'a> {
             ..
         } = self.cursor;
         let metrics = match &self.val_source {
-            Some(src) => validate(
-                model,
-                self.model_cfg,
-                self.cfg,
-                &self.body,
-                src,
-                stage,
-                &self.plain,
-            )?,
+            Some(src) => validate(model, self.cfg, &self.body, src, stage, &self.plain)?,
             None => Vec::new(),
         };
         let val = ValRecord {

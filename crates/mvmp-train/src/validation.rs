@@ -13,7 +13,7 @@ use mvmp_eval::drivers::{EvalOptions, evaluate, ground_truth};
 use mvmp_eval::spread;
 use mvmp_eval::{Evaluator, PersonPose};
 use mvmp_infer::Predictor;
-use mvmp_model::{ModelConfig, MvmpHmr};
+use mvmp_model::MvmpHmr;
 
 use crate::TrainError;
 use crate::config::{Stage, TrainConfig};
@@ -105,17 +105,15 @@ fn validation_sequences(
 }
 
 /// Validation on the test split: root error and recall in stage 1, the mesh metrics in stage 2.
-#[allow(clippy::too_many_arguments)]
 pub(crate) fn validate(
     model: &MvmpHmr,
-    model_cfg: &ModelConfig,
     cfg: &TrainConfig,
     body: &mvmp_smplx::BodyModel,
     source: &SourceSpec,
     stage: Stage,
     device: &Device,
 ) -> Result<Vec<(String, f64)>, TrainError> {
-    let pred = Predictor::new(model.valid(), model_cfg.clone(), body.clone(), device);
+    let pred = Predictor::new(model.valid(), body.clone(), device);
     if source.format != SourceFormat::Mvmp {
         return validate_joints(&pred, cfg, source, stage);
     }
@@ -200,7 +198,7 @@ fn validate_joints(
             &source.root,
             seqs,
             ViewChoice::Fixed((0..cfg.test_views).collect()),
-            pred.cfg.image_size,
+            pred.cfg().image_size,
         )?;
         root_metrics_of(
             pred,
@@ -235,7 +233,7 @@ pub fn root_metrics(
         data,
         opts.split,
         ViewChoice::Fixed((0..opts.views).collect()),
-        pred.cfg.image_size,
+        pred.cfg().image_size,
     )?;
     root_metrics_of(
         pred,
@@ -259,7 +257,7 @@ fn root_metrics_of(
         0 => len,
         m => m.min(len),
     };
-    let primary = pred.cfg.primary_joint.joint();
+    let primary = pred.cfg().primary_joint.joint();
     let mut ev = Evaluator::new(gate);
     let mut facing = Vec::new();
     for i in 0..n {
@@ -271,7 +269,7 @@ fn root_metrics_of(
             &det,
             &grids,
             &crate::step::HostGt::new(&batch),
-            &pred.cfg,
+            pred.cfg(),
             &pred.device,
         ));
         let gt: Vec<PersonPose> = ground_truth(&batch)

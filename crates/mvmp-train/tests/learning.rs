@@ -121,7 +121,7 @@ fn two_frames_are_overfitted_and_every_person_is_found() {
     let mut model = mvmp_train::seeded_init(&model_cfg, &device, 0);
     load_weights(&mut model, &run.root.join("model.bpk")).unwrap();
     let body = mvmp_data::layout::load_body_model(&model_cfg.body_model, &run.root).unwrap();
-    let pred = Predictor::new(model, model_cfg.clone(), body, &device);
+    let pred = Predictor::new(model, body, &device);
     let eval = EvalOptions {
         split: Split::Train,
         views: 4,

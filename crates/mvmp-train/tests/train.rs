@@ -185,7 +185,6 @@ fn a_few_steps_on_one_batch_lower_the_loss() {
         let l = stage2_loss(
             &model,
             &batch,
-            &cfg,
             &layer,
             &Stage2::at_true_roots(&weights),
             &ad,
@@ -207,7 +206,7 @@ fn a_few_steps_on_one_batch_lower_the_loss() {
     let mut optim = AdamConfig::new().init();
     let mut totals = Vec::new();
     for _ in 0..10 {
-        let l = stage1_loss(&model, &batch, &cfg, &weights, &ad);
+        let l = stage1_loss(&model, &batch, &weights, &ad);
         totals.push(l.total.clone().into_scalar::<f32>());
         let g = GradientsParams::from_grads(l.total.backward(), &model);
         model = optim.step(1e-3, model, g);
@@ -560,7 +559,7 @@ fn inference_outputs_load_back_and_reproject_into_the_overlays() {
     let cfg = model_config();
     let d = Device::flex();
     let body = mvmp_smplx::standin_model(0);
-    let pred = Predictor::new(mvmp_train::seeded_init(&cfg, &d, 2), cfg.clone(), body, &d);
+    let pred = Predictor::new(mvmp_train::seeded_init(&cfg, &d, 2), body, &d);
     let ds =
         FrameDataset::open(dataset(), Split::Test, ViewChoice::Fixed(vec![0, 1, 2]), 64).unwrap();
     let batch = FrameBatcher::default().batch(vec![ds.load(0).unwrap()], &d);
@@ -775,7 +774,6 @@ fn a_run_scores_on_panoptic_read_in_place() {
     let d = Device::flex();
     let pred = Predictor::new(
         mvmp_train::seeded_init(&cfg, &d, 4),
-        cfg.clone(),
         mvmp_smplx::standin_model(0),
         &d,
     );
@@ -861,7 +859,6 @@ fn a_run_scores_on_h36m_read_in_place() {
     let d = Device::flex();
     let pred = Predictor::new(
         mvmp_train::seeded_init(&cfg, &d, 4),
-        cfg.clone(),
         mvmp_smplx::standin_model(0),
         &d,
     );
@@ -939,7 +936,7 @@ fn pseudo_ground_truth_meshes_give_pve_on_joint_datasets() {
     let d = Device::flex();
     let body = mvmp_smplx::standin_model(0);
     let layer = SmplxLayer::new(&body, &d);
-    let pred = Predictor::new(mvmp_train::seeded_init(&cfg, &d, 4), cfg.clone(), body, &d);
+    let pred = Predictor::new(mvmp_train::seeded_init(&cfg, &d, 4), body, &d);
     let subjects = ["S9".to_string()];
     // Fits at the annotated pelvis of rows 0, 2, 4 (fixture joint 0: x = 1000 + 5 f, y = -400,
     // z = 900 + f mm), and a second, far one that must not be taken.
@@ -1135,7 +1132,6 @@ fn term_values(l: &mvmp_train::step::StepLoss) -> std::collections::BTreeMap<&'s
 struct TwoKinds {
     _root: tempfile::TempDir,
     ad: Device,
-    cfg: ModelConfig,
     model: MvmpHmr,
     layer: SmplxLayer,
     batcher: FrameBatcher,
@@ -1164,7 +1160,6 @@ fn two_kinds() -> TwoKinds {
         layer: SmplxLayer::new(&body, &ad),
         batcher: FrameBatcher::with_vertices(body),
         ad,
-        cfg,
         model,
         smplx,
         joints,
@@ -1176,7 +1171,6 @@ fn joint_annotated_people_get_joint_losses_only() {
     let TwoKinds {
         _root,
         ad,
-        cfg,
         model,
         layer,
         batcher,
@@ -1185,14 +1179,7 @@ fn joint_annotated_people_get_joint_losses_only() {
     } = two_kinds();
     let weights = mvmp_losses::LossWeights::default();
     let terms = |batch: &mvmp_data::loader::FrameBatch| {
-        let l = stage2_loss(
-            &model,
-            batch,
-            &cfg,
-            &layer,
-            &Stage2::at_true_roots(&weights),
-            &ad,
-        );
+        let l = stage2_loss(&model, batch, &layer, &Stage2::at_true_roots(&weights), &ad);
         let t = term_values(&l);
         (l, t)
     };
@@ -1207,7 +1194,7 @@ fn joint_annotated_people_get_joint_losses_only() {
     assert_eq!(t["orientation"], 0.0, "{t:?}");
     assert!(t["mesh"].is_finite() && t["mesh"] > 0.0, "{t:?}");
     assert!(t["detection"].is_finite(), "{t:?}");
-    let s1 = stage1_loss(&model, &joints_only, &cfg, &weights, &ad);
+    let s1 = stage1_loss(&model, &joints_only, &weights, &ad);
     for (n, v) in &s1.terms {
         let v: f32 = v.clone().into_scalar();
         assert!(v.is_finite() && v > 0.0, "stage 1 {n} = {v}");
@@ -1565,7 +1552,6 @@ fn pseudo_ground_truth_fits_become_smplx_targets() {
     let l = stage2_loss(
         &net,
         &batch,
-        &mcfg,
         &SmplxLayer::new(&mvmp_smplx::standin_model(0), &ad),
         &Stage2::at_true_roots(&mvmp_losses::LossWeights::default()),
         &ad,
@@ -1649,20 +1635,13 @@ fn a_torn_log_line_and_stale_temporaries_do_not_stop_a_resume() {
 #[test]
 fn body_frame_mesh_terms_run_on_smplx_and_joint_people() {
     let k = two_kinds();
-    let (ad, cfg, model, layer) = (&k.ad, &k.cfg, &k.model, &k.layer);
+    let (ad, model, layer) = (&k.ad, &k.model, &k.layer);
     let batch = k.batcher.batch(
         vec![k.smplx.load(0).unwrap(), k.joints.load(0).unwrap()],
         ad,
     );
     let terms = |weights: &mvmp_losses::LossWeights| {
-        let l = stage2_loss(
-            model,
-            &batch,
-            cfg,
-            layer,
-            &Stage2::at_true_roots(weights),
-            ad,
-        );
+        let l = stage2_loss(model, &batch, layer, &Stage2::at_true_roots(weights), ad);
         let t = term_values(&l);
         (l, t)
     };
