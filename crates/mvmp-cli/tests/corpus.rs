@@ -244,7 +244,11 @@ fn run_all(cases: Vec<(Case, String)>, failures: &mut Vec<String>) -> usize {
         failures.extend(failure(&case));
         // An accepted case's output would make the next one fail for the wrong reason.
         if let Some(out) = case.out.as_ref().filter(|o| o.exists()) {
-            std::fs::remove_dir_all(out).unwrap();
+            if out.is_dir() {
+                std::fs::remove_dir_all(out).unwrap();
+            } else {
+                std::fs::remove_file(out).unwrap();
+            }
         }
         match original {
             Some(b) => std::fs::write(&case.file, b).unwrap(),
@@ -546,6 +550,49 @@ fn no_malformed_input_gets_through() {
     }
     n += run_all(cases, &mut failures);
     assert!(n > 300, "{n} cases");
+    assert!(
+        failures.is_empty(),
+        "{} of {n} cases failed:\n{}",
+        failures.len(),
+        failures.join("\n")
+    );
+}
+
+/// Dataset files through `data stats --sheet`: every number of the index, a rig, a scene and an
+/// annotation replaced by null, text or an empty list, and by +-1e300. Every case must exit non-zero
+/// naming the file and the key, and leave no contact sheet behind.
+#[test]
+fn no_malformed_dataset_gets_through_stats() {
+    let dir = tempfile::tempdir().unwrap();
+    let ds = synth_dataset(dir.path());
+    let sheet = dir.path().join("sheet.png");
+    let stats = ["data", "stats", &s(&ds), "--sheet", &s(&sheet)]
+        .map(String::from)
+        .to_vec();
+    let o = mvmp(&stats.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    std::fs::remove_file(&sheet).unwrap();
+    let values = [
+        serde_json::Value::Null,
+        serde_json::json!("x"),
+        serde_json::json!([]),
+        serde_json::json!(1e300),
+        serde_json::json!(-1e300),
+    ];
+    let (mut failures, mut n) = (Vec::new(), 0);
+    for f in [
+        "dataset.json",
+        "scene_000/cameras.json",
+        "scene_000/scene.json",
+        "scene_000/frame_000000/annotation.json",
+    ] {
+        let mut cases = json_cases(&ds.join(f), &values, &stats);
+        for (c, _) in &mut cases {
+            c.out = Some(sheet.clone());
+        }
+        n += run_all(cases, &mut failures);
+    }
+    assert!(n > 100, "{n} cases");
     assert!(
         failures.is_empty(),
         "{} of {n} cases failed:\n{}",
