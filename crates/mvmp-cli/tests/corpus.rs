@@ -601,6 +601,166 @@ fn no_malformed_dataset_gets_through_stats() {
     );
 }
 
+/// The corpus's dataset (`dir/ds`) and a run trained on it for one step (`dir/run`).
+fn one_step_run(dir: &Path) -> (PathBuf, PathBuf) {
+    let ds = synth_dataset(dir);
+    std::fs::write(dir.join("model.toml"), small_model()).unwrap();
+    let train = format!("data = {:?}\n", s(&ds)) + TRAIN;
+    std::fs::write(dir.join("train.toml"), train).unwrap();
+    let run = dir.join("run");
+    let o = mvmp(&[
+        "train",
+        "--config",
+        &s(&dir.join("train.toml")),
+        "--out",
+        &s(&run),
+        "--stop-after-steps",
+        "1",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    (ds, run)
+}
+
+/// A Panoptic sequence of one frame in the reference layout: a calibration of the five VoxelPose
+/// cameras (160 x 120), two bodies, grey JPEGs.
+fn panoptic_tree(root: &Path, name: &str) -> PathBuf {
+    let d = root.join(name);
+    std::fs::create_dir_all(d.join("hdPose3d_stage1_coco19")).unwrap();
+    let cams: Vec<serde_json::Value> = mvmp_data::panoptic::VOXELPOSE_CAMERAS
+        .iter()
+        .enumerate()
+        .map(|(i, n)| {
+            let (c, s) = ((i as f64).cos(), (i as f64).sin());
+            serde_json::json!({
+                "name": n, "type": "hd", "resolution": [160, 120], "panel": 0, "node": i,
+                "K": [[120.0, 0.0, 80.0], [0.0, 120.0, 60.0], [0.0, 0.0, 1.0]],
+                "distCoef": [0.0, 0.0, 0.0, 0.0, 0.0],
+                "R": [[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]],
+                "t": [[0.0], [50.0], [500.0]],
+            })
+        })
+        .collect();
+    let calib = serde_json::json!({"calibDataSource": "corpus", "cameras": cams});
+    std::fs::write(
+        d.join(format!("calibration_{name}.json")),
+        calib.to_string(),
+    )
+    .unwrap();
+    let bodies: Vec<serde_json::Value> = (0..2)
+        .map(|k| {
+            let j: Vec<f64> = (0..19)
+                .flat_map(|i| [60.0 * k as f64, -90.0 - 3.0 * i as f64, 20.0, 0.8])
+                .collect();
+            serde_json::json!({"id": k, "joints19": j})
+        })
+        .collect();
+    let scene = serde_json::json!({"version": 0.7, "bodies": bodies});
+    let pose = d.join("hdPose3d_stage1_coco19/body3DScene_00000000.json");
+    std::fs::write(pose, scene.to_string()).unwrap();
+    for c in mvmp_data::panoptic::VOXELPOSE_CAMERAS {
+        let dir = d.join("hdImgs").join(c);
+        std::fs::create_dir_all(&dir).unwrap();
+        image::RgbImage::from_pixel(160, 120, image::Rgb([90, 120, 150]))
+            .save(dir.join(format!("{c}_00000000.jpg")))
+            .unwrap();
+    }
+    d
+}
+
+/// A Human3.6M tree with the data crate's fixtures: the camera file, S9 "Walking" (5 pose rows) and
+/// grey images of its first two cameras at the dataset's sizes.
+fn h36m_tree(root: &Path) -> PathBuf {
+    use mvmp_data::h36m::{CAMERAS, RESOLUTIONS, camera_file, image_file, pose_file};
+    let h36m = root.join("h36m");
+    let fixtures = Path::new(env!("CARGO_MANIFEST_DIR")).join("../mvmp-data/tests/fixtures/h36m");
+    std::fs::create_dir_all(&h36m).unwrap();
+    std::fs::copy(fixtures.join("camera-parameters.json"), camera_file(&h36m)).unwrap();
+    let pf = pose_file(&h36m, "S9", "Walking");
+    std::fs::create_dir_all(pf.parent().unwrap()).unwrap();
+    std::fs::copy(fixtures.join("pose_float_one_record.cdf"), pf).unwrap();
+    for (cam, (w, h)) in CAMERAS.iter().zip(RESOLUTIONS).take(2) {
+        for row in 0..5 {
+            let f = image_file(&h36m, "S9", "Walking", cam, row);
+            std::fs::create_dir_all(f.parent().unwrap()).unwrap();
+            image::RgbImage::from_pixel(w, h, image::Rgb([90, 100, 110]))
+                .save(f)
+                .unwrap();
+        }
+    }
+    h36m
+}
+
+/// Panoptic and Human3.6M trees read in place, through `eval --format`: every number of a Panoptic
+/// calibration and of a frame's bodies, and of the Human3.6M camera file, replaced by null, text, an
+/// empty list or 1e300. Every case must exit non-zero naming the file and the key, and leave no report.
+#[test]
+fn no_malformed_panoptic_or_h36m_file_gets_through_eval() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_, run) = one_step_run(dir.path());
+    let report = dir.path().join("report.json");
+    let seq = "160906_pizza1";
+    let pan = panoptic_tree(dir.path(), seq);
+    let h36m = h36m_tree(dir.path());
+    let eval = |format: &str, data: &Path, split: &str, extra: &[&str]| {
+        let mut a = owned(&["eval", "--run", &s(&run), "--format", format, "--data"]);
+        a.extend(owned(&[
+            &s(data),
+            "--split",
+            split,
+            "--stride",
+            "1",
+            "--views",
+            "2",
+        ]));
+        a.extend(owned(extra));
+        a.extend(owned(&["--out", &s(&report)]));
+        a
+    };
+    let panoptic = eval("panoptic", dir.path(), seq, &[]);
+    let human = eval("h36m", &h36m, "S9", &[]);
+    for args in [&panoptic, &human] {
+        let o = mvmp(&args.iter().map(String::as_str).collect::<Vec<_>>());
+        assert!(
+            o.status.success(),
+            "{args:?}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        std::fs::remove_file(&report).unwrap();
+    }
+    let values = [
+        serde_json::Value::Null,
+        serde_json::json!("x"),
+        serde_json::json!([]),
+        serde_json::json!(1e300),
+    ];
+    let mut cases = json_cases(
+        &pan.join(format!("calibration_{seq}.json")),
+        &values,
+        &panoptic,
+    );
+    let pose = pan.join("hdPose3d_stage1_coco19/body3DScene_00000000.json");
+    cases.extend(json_cases(&pose, &values, &panoptic));
+    let cameras = mvmp_data::h36m::camera_file(&h36m);
+    cases.extend(json_cases(&cameras, &values, &human));
+    // Keys the readers do not read (a camera's panel and node, the body file's version), as the
+    // reference loaders do not.
+    let unread =
+        |key: &str| ["panel", "node", "version"].contains(&key.rsplit('.').next().unwrap());
+    cases.retain(|(c, _)| !unread(&c.key));
+    for (c, _) in &mut cases {
+        c.out = Some(report.clone());
+    }
+    let mut failures = Vec::new();
+    let n = run_all(cases, &mut failures);
+    assert!(n > 100, "{n} cases");
+    assert!(
+        failures.is_empty(),
+        "{} of {n} cases failed:\n{}",
+        failures.len(),
+        failures.join("\n")
+    );
+}
+
 /// One defect planted in a body model.
 type Defect = Box<dyn Fn(&mut mvmp_smplx::BodyModel)>;
 
@@ -893,21 +1053,7 @@ fn owned(args: &[&str]) -> Vec<String> {
 fn no_malformed_image_rig_run_or_flag_gets_through() {
     let dir = tempfile::tempdir().unwrap();
     let p = |n: &str| dir.path().join(n);
-    let ds = synth_dataset(dir.path());
-    std::fs::write(p("model.toml"), small_model()).unwrap();
-    let train = format!("data = {:?}\n", s(&ds)) + TRAIN;
-    std::fs::write(p("train.toml"), train).unwrap();
-    let run = p("run");
-    let o = mvmp(&[
-        "train",
-        "--config",
-        &s(&p("train.toml")),
-        "--out",
-        &s(&run),
-        "--stop-after-steps",
-        "1",
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let (ds, run) = one_step_run(dir.path());
     let frame = ds.join("scene_000/frame_000000");
     let rig = ds.join("scene_000/cameras.json");
     let views = [frame.join("view_00.png"), frame.join("view_01.png")];

@@ -40,3 +40,16 @@ impl DataError {
         }
     }
 }
+
+/// A camera's error as a file reader words it: an invalid value is named by the key the file keeps it
+/// under (`key` of the part: Human3.6M's intrinsics are `calibration_matrix`, Panoptic's distortion
+/// `distCoef`), so that a user finds it in the file.
+pub(crate) fn camera_error(
+    err: mvmp_geom::GeomError,
+    key: impl Fn(mvmp_geom::CameraPart) -> String,
+) -> String {
+    match &err {
+        mvmp_geom::GeomError::InvalidCamera { part, .. } => format!("key `{}`: {err}", key(*part)),
+        _ => err.to_string(),
+    }
+}

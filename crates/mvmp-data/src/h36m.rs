@@ -31,7 +31,8 @@ use nalgebra::{Matrix3, Vector3};
 use serde::Deserialize;
 
 use crate::DataError;
-use mvmp_geom::{Camera, Rig};
+use crate::error::camera_error;
+use mvmp_geom::{Camera, CameraPart, Rig};
 
 /// The four camera ids, in the usual order.
 pub const CAMERAS: [&str; 4] = ["54138969", "55011271", "58860488", "60457274"];
@@ -60,21 +61,35 @@ struct Extrinsics {
     t: Vec<Vec<f64>>,
 }
 
-/// The four cameras of `subject` (for example "S9") as a rig in metres.
+/// The four cameras of `subject` (for example "S9") as a rig in metres. Every subject's cameras in the
+/// file are checked, so that a bad value is refused wherever it is, not only in the subject read.
 pub fn read_cameras(path: &Path, subject: &str) -> Result<Rig, DataError> {
     let text = std::fs::read_to_string(path).map_err(|e| DataError::io(path, e))?;
     let file: File = serde_json::from_str(&text).map_err(|e| {
         DataError::file(path, format!("not a Human3.6M camera-parameters file: {e}"))
     })?;
-    let ext = file.extrinsics.get(subject).ok_or_else(|| {
-        DataError::file(
+    if !file.extrinsics.contains_key(subject) {
+        return Err(DataError::file(
             path,
             format!(
                 "subject {subject:?} is not in `extrinsics` (it has {:?})",
                 file.extrinsics.keys().collect::<Vec<_>>()
             ),
-        )
-    })?;
+        ));
+    }
+    let mut found = None;
+    for s in file.extrinsics.keys() {
+        let rig = subject_rig(&file, path, s)?;
+        if s == subject {
+            found = Some(rig);
+        }
+    }
+    found.ok_or_else(|| DataError::file(path, format!("subject {subject:?} has no cameras")))
+}
+
+/// The rig of one subject of the camera file.
+fn subject_rig(file: &File, path: &Path, subject: &str) -> Result<Rig, DataError> {
+    let ext = &file.extrinsics[subject];
     let mut cams = Vec::with_capacity(4);
     for (id, (w, h)) in CAMERAS.iter().zip(RESOLUTIONS) {
         let i = file.intrinsics.get(*id).ok_or_else(|| {
@@ -116,10 +131,28 @@ pub fn read_cameras(path: &Path, subject: &str) -> Result<Rig, DataError> {
             w,
             h,
         )
-        .map_err(|err| DataError::file(path, format!("camera {subject}/{id}: {err}")))?;
+        .map_err(|err| {
+            let key = |part| h36m_key(part, subject, id);
+            DataError::file(
+                path,
+                format!("camera {subject}/{id}: {}", camera_error(err, key)),
+            )
+        })?;
         cams.push(cam);
     }
     Ok(Rig::new(cams))
+}
+
+/// The camera file's key for a camera's values.
+fn h36m_key(part: CameraPart, subject: &str, id: &str) -> String {
+    match part {
+        CameraPart::Intrinsics => format!("intrinsics.{id}.calibration_matrix"),
+        CameraPart::Distortion => format!("intrinsics.{id}.distortion"),
+        CameraPart::Rotation => format!("extrinsics.{subject}.{id}.R"),
+        CameraPart::Translation => format!("extrinsics.{subject}.{id}.t"),
+        CameraPart::Placement => format!("extrinsics.{subject}.{id}.R` and `t"),
+        CameraPart::ImageSize => format!("the image size of camera {id}"),
+    }
 }
 
 /// Sequences the protocol leaves out: (subject, action).

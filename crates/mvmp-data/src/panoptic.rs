@@ -9,7 +9,8 @@ use nalgebra::{Matrix3, Vector3};
 use serde::Deserialize;
 
 use crate::DataError;
-use mvmp_geom::{Camera, Rig};
+use crate::error::camera_error;
+use mvmp_geom::{Camera, CameraPart, Rig};
 
 /// Panoptic world (cm, y down) to mvmp world (m, z up).
 pub fn panoptic_to_world() -> Matrix3<f64> {
@@ -86,10 +87,22 @@ pub fn read_calibration(path: &Path, names: &[&str]) -> Result<Rig, DataError> {
             c.resolution[0],
             c.resolution[1],
         )
-        .map_err(|e| DataError::file(path, e.to_string()))?;
+        .map_err(|e| DataError::file(path, camera_error(e, |p| panoptic_key(p).into())))?;
         cams.push(cam);
     }
     Ok(Rig::new(cams))
+}
+
+/// The calibration file's key for a camera's values.
+fn panoptic_key(part: CameraPart) -> &'static str {
+    match part {
+        CameraPart::Intrinsics => "K",
+        CameraPart::Rotation => "R",
+        CameraPart::Translation => "t",
+        CameraPart::Placement => "R` and `t",
+        CameraPart::Distortion => "distCoef",
+        CameraPart::ImageSize => "resolution",
+    }
 }
 
 /// One person of a `body3DScene_*.json`: the 19 joints in mvmp's world and their confidences.

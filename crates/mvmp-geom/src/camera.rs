@@ -2,6 +2,7 @@
 use nalgebra::{Matrix3, Vector2, Vector3};
 
 use crate::GeomError;
+use crate::error::CameraPart;
 
 /// Tolerance on `R^T R = I` (largest absolute entry of the difference) accepted by [`Camera::new`].
 /// Calibration files print rotations with 6-10 digits; 1e-5 accepts those and rejects real errors.
@@ -67,76 +68,84 @@ impl Camera {
         Ok(cam)
     }
 
-    fn invalid(&self, what: String) -> GeomError {
+    fn invalid(&self, part: CameraPart, what: String) -> GeomError {
         GeomError::InvalidCamera {
             camera: self.name.clone(),
+            part,
             what,
         }
     }
 
     /// Check the invariants listed on [`Camera::new`].
     pub fn validate(&self) -> Result<(), GeomError> {
-        for (what, vals) in [
-            ("K", self.k.as_slice()),
-            ("R", self.r.as_slice()),
-            ("t", self.t.as_slice()),
-            ("dist", &self.dist[..]),
+        for (what, part, vals) in [
+            ("K", CameraPart::Intrinsics, self.k.as_slice()),
+            ("R", CameraPart::Rotation, self.r.as_slice()),
+            ("t", CameraPart::Translation, self.t.as_slice()),
+            ("dist", CameraPart::Distortion, &self.dist[..]),
         ] {
             if let Some(v) = vals.iter().find(|v| !v.is_finite()) {
-                return Err(self.invalid(format!("{what} holds a non-finite value ({v})")));
+                return Err(self.invalid(part, format!("{what} holds a non-finite value ({v})")));
             }
         }
         if let Some(v) = self.k.iter().find(|v| v.abs() > MAX_INTRINSIC) {
-            return Err(self.invalid(format!(
-                "K holds {v}; focal lengths, skew and principal point are within +-{MAX_INTRINSIC:.0e} \
+            return Err(self.invalid(CameraPart::Intrinsics, format!(
+                "K holds {v:?}; focal lengths, skew and principal point are within +-{MAX_INTRINSIC:.0e} \
                  pixels"
             )));
         }
         let (fx, fy) = (self.k[(0, 0)], self.k[(1, 1)]);
         if fx <= 0.0 || fy <= 0.0 {
-            return Err(self.invalid(format!(
-                "K: focal lengths must be positive, got fx = {fx}, fy = {fy}"
-            )));
+            return Err(self.invalid(
+                CameraPart::Intrinsics,
+                format!("K: focal lengths must be positive, got fx = {fx}, fy = {fy}"),
+            ));
         }
         let bottom = [self.k[(1, 0)], self.k[(2, 0)], self.k[(2, 1)]];
         if bottom.iter().any(|v| *v != 0.0) || self.k[(2, 2)] != 1.0 {
-            return Err(self.invalid(format!(
-                "K must be upper triangular with K[2][2] = 1, got rows {:?}",
-                [
-                    self.k.row(1).iter().collect::<Vec<_>>(),
-                    self.k.row(2).iter().collect()
-                ]
-            )));
+            return Err(self.invalid(
+                CameraPart::Intrinsics,
+                format!(
+                    "K must be upper triangular with K[2][2] = 1, got rows {:?}",
+                    [
+                        self.k.row(1).iter().collect::<Vec<_>>(),
+                        self.k.row(2).iter().collect()
+                    ]
+                ),
+            ));
         }
         let err = (self.r.transpose() * self.r - Matrix3::identity())
             .abs()
             .max();
         if err > ROTATION_TOLERANCE {
-            return Err(self.invalid(format!(
+            return Err(self.invalid(CameraPart::Rotation, format!(
                 "R is not orthonormal: max |R^T R - I| = {err:.3e} (tolerance {ROTATION_TOLERANCE:.0e})"
             )));
         }
         let det = self.r.determinant();
         if det <= 0.0 {
-            return Err(self.invalid(format!("R has determinant {det:.6}, expected +1")));
+            return Err(self.invalid(
+                CameraPart::Rotation,
+                format!("R has determinant {det:.6}, expected +1"),
+            ));
         }
         let side = 1..=MAX_IMAGE_SIDE;
         if !(side.contains(&self.width) && side.contains(&self.height)) {
-            return Err(self.invalid(format!(
+            return Err(self.invalid(CameraPart::ImageSize, format!(
                 "image size (resolution) must be 1 to {MAX_IMAGE_SIDE} pixels a side, got {} x {}",
                 self.width, self.height
             )));
         }
         let centre = self.centre().norm();
         if centre > MAX_CENTRE_DISTANCE {
-            return Err(self.invalid(format!(
+            return Err(self.invalid(CameraPart::Placement, format!(
                 "R and t put the camera {centre:.3e} m from the origin; a rig's cameras are within \
                  {MAX_CENTRE_DISTANCE:.0e} m (metres expected)"
             )));
         }
         if let Some(k) = self.dist.iter().find(|k| k.abs() > MAX_DISTORTION) {
-            return Err(self.invalid(format!(
-                "dist holds {k}; lens distortion coefficients are within +-{MAX_DISTORTION:.0e}"
+            return Err(self.invalid(CameraPart::Distortion, format!(
+                "dist holds {k:?}; lens distortion coefficients are within +-{MAX_DISTORTION:.0e}"
             )));
         }
         Ok(())

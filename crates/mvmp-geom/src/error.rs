@@ -4,7 +4,12 @@ use std::path::PathBuf;
 #[derive(Debug, thiserror::Error)]
 pub enum GeomError {
     #[error("camera `{camera}`: {what}")]
-    InvalidCamera { camera: String, what: String },
+    InvalidCamera {
+        camera: String,
+        /// Which of the camera's values are wrong, for readers that name them by their file's key.
+        part: CameraPart,
+        what: String,
+    },
     #[error("voxel grid: {0}")]
     InvalidGrid(String),
     #[error("letterbox: {0}")]
@@ -21,6 +26,23 @@ pub enum GeomError {
     Procrustes(String),
     #[error(transparent)]
     Output(#[from] mvmp_io::IoError),
+}
+
+/// The values of a camera an [`GeomError::InvalidCamera`] is about.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CameraPart {
+    /// The intrinsic matrix K.
+    Intrinsics,
+    /// The rotation R.
+    Rotation,
+    /// The translation t.
+    Translation,
+    /// R and t together (where they put the camera).
+    Placement,
+    /// The lens distortion coefficients.
+    Distortion,
+    /// The image width and height.
+    ImageSize,
 }
 
 impl GeomError {

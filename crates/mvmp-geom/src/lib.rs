@@ -16,7 +16,7 @@ pub mod rotation;
 pub mod voxel;
 
 pub use camera::Camera;
-pub use error::GeomError;
+pub use error::{CameraPart, GeomError};
 pub use letterbox::Letterbox;
 pub use procrustes::{Similarity, similarity_procrustes};
 pub use project::CameraTensors;
