@@ -943,23 +943,9 @@ fn train_eval_infer_end_to_end() {
     // The same run on a Human3.6M tree read in place (the data crate's fixtures: S9 "Walking", 5 pose
     // rows; images of the first two cameras at the dataset's sizes), with pseudo-ground-truth fits taken
     // from the run's own predictions on those frames.
-    use mvmp_data::h36m::{CAMERAS, RESOLUTIONS, camera_file, image_file, pose_file};
     let h36m = dir.path().join("h36m");
-    let fixtures = Path::new(env!("CARGO_MANIFEST_DIR")).join("../mvmp-data/tests/fixtures/h36m");
-    std::fs::create_dir_all(&h36m).unwrap();
-    std::fs::copy(fixtures.join("camera-parameters.json"), camera_file(&h36m)).unwrap();
-    let pf = pose_file(&h36m, "S9", "Walking");
-    std::fs::create_dir_all(pf.parent().unwrap()).unwrap();
-    std::fs::copy(fixtures.join("pose_float_one_record.cdf"), pf).unwrap();
-    for (cam, (w, h)) in CAMERAS.iter().zip(RESOLUTIONS).take(2) {
-        for row in 0..5 {
-            let f = image_file(&h36m, "S9", "Walking", cam, row);
-            std::fs::create_dir_all(f.parent().unwrap()).unwrap();
-            image::RgbImage::from_pixel(w, h, image::Rgb([90, 100, 110]))
-                .save(f)
-                .unwrap();
-        }
-    }
+    let files = Path::new(env!("CARGO_MANIFEST_DIR")).join("../mvmp-data/tests/fixtures/h36m");
+    mvmp_data::fixtures::h36m_tree(&h36m, &files, &[("S9", "Walking")], 2).unwrap();
     let report = p("h36m.json");
     let o = mvmp(&[
         "eval",

@@ -621,75 +621,6 @@ fn one_step_run(dir: &Path) -> (PathBuf, PathBuf) {
     (ds, run)
 }
 
-/// A Panoptic sequence of one frame in the reference layout: a calibration of the five VoxelPose
-/// cameras (160 x 120), two bodies, grey JPEGs.
-fn panoptic_tree(root: &Path, name: &str) -> PathBuf {
-    let d = root.join(name);
-    std::fs::create_dir_all(d.join("hdPose3d_stage1_coco19")).unwrap();
-    let cams: Vec<serde_json::Value> = mvmp_data::panoptic::VOXELPOSE_CAMERAS
-        .iter()
-        .enumerate()
-        .map(|(i, n)| {
-            let (c, s) = ((i as f64).cos(), (i as f64).sin());
-            serde_json::json!({
-                "name": n, "type": "hd", "resolution": [160, 120], "panel": 0, "node": i,
-                "K": [[120.0, 0.0, 80.0], [0.0, 120.0, 60.0], [0.0, 0.0, 1.0]],
-                "distCoef": [0.0, 0.0, 0.0, 0.0, 0.0],
-                "R": [[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]],
-                "t": [[0.0], [50.0], [500.0]],
-            })
-        })
-        .collect();
-    let calib = serde_json::json!({"calibDataSource": "corpus", "cameras": cams});
-    std::fs::write(
-        d.join(format!("calibration_{name}.json")),
-        calib.to_string(),
-    )
-    .unwrap();
-    let bodies: Vec<serde_json::Value> = (0..2)
-        .map(|k| {
-            let j: Vec<f64> = (0..19)
-                .flat_map(|i| [60.0 * k as f64, -90.0 - 3.0 * i as f64, 20.0, 0.8])
-                .collect();
-            serde_json::json!({"id": k, "joints19": j})
-        })
-        .collect();
-    let scene = serde_json::json!({"version": 0.7, "bodies": bodies});
-    let pose = d.join("hdPose3d_stage1_coco19/body3DScene_00000000.json");
-    std::fs::write(pose, scene.to_string()).unwrap();
-    for c in mvmp_data::panoptic::VOXELPOSE_CAMERAS {
-        let dir = d.join("hdImgs").join(c);
-        std::fs::create_dir_all(&dir).unwrap();
-        image::RgbImage::from_pixel(160, 120, image::Rgb([90, 120, 150]))
-            .save(dir.join(format!("{c}_00000000.jpg")))
-            .unwrap();
-    }
-    d
-}
-
-/// A Human3.6M tree with the data crate's fixtures: the camera file, S9 "Walking" (5 pose rows) and
-/// grey images of its first two cameras at the dataset's sizes.
-fn h36m_tree(root: &Path) -> PathBuf {
-    use mvmp_data::h36m::{CAMERAS, RESOLUTIONS, camera_file, image_file, pose_file};
-    let h36m = root.join("h36m");
-    let fixtures = Path::new(env!("CARGO_MANIFEST_DIR")).join("../mvmp-data/tests/fixtures/h36m");
-    std::fs::create_dir_all(&h36m).unwrap();
-    std::fs::copy(fixtures.join("camera-parameters.json"), camera_file(&h36m)).unwrap();
-    let pf = pose_file(&h36m, "S9", "Walking");
-    std::fs::create_dir_all(pf.parent().unwrap()).unwrap();
-    std::fs::copy(fixtures.join("pose_float_one_record.cdf"), pf).unwrap();
-    for (cam, (w, h)) in CAMERAS.iter().zip(RESOLUTIONS).take(2) {
-        for row in 0..5 {
-            let f = image_file(&h36m, "S9", "Walking", cam, row);
-            std::fs::create_dir_all(f.parent().unwrap()).unwrap();
-            image::RgbImage::from_pixel(w, h, image::Rgb([90, 100, 110]))
-                .save(f)
-                .unwrap();
-        }
-    }
-    h36m
-}
-
 /// Panoptic and Human3.6M trees read in place, through `eval --format`: every number of a Panoptic
 /// calibration and of a frame's bodies, and of the Human3.6M camera file, replaced by null, text, an
 /// empty list or 1e300. Every case must exit non-zero naming the file and the key, and leave no report.
@@ -699,8 +630,10 @@ fn no_malformed_panoptic_or_h36m_file_gets_through_eval() {
     let (_, run) = one_step_run(dir.path());
     let report = dir.path().join("report.json");
     let seq = "160906_pizza1";
-    let pan = panoptic_tree(dir.path(), seq);
-    let h36m = h36m_tree(dir.path());
+    let pan = mvmp_data::fixtures::panoptic_sequence(dir.path(), seq, 1).unwrap();
+    let h36m = dir.path().join("h36m");
+    let files = Path::new(env!("CARGO_MANIFEST_DIR")).join("../mvmp-data/tests/fixtures/h36m");
+    mvmp_data::fixtures::h36m_tree(&h36m, &files, &[("S9", "Walking")], 2).unwrap();
     let eval = |format: &str, data: &Path, split: &str, extra: &[&str]| {
         let mut a = owned(&["eval", "--run", &s(&run), "--format", format, "--data"]);
         a.extend(owned(&[

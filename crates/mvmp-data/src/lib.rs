@@ -4,6 +4,7 @@ pub mod augment;
 pub mod cdf_pose;
 pub mod check;
 pub mod error;
+pub mod fixtures;
 pub mod h36m;
 pub mod layout;
 pub mod loader;

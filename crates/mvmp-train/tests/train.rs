@@ -718,52 +718,7 @@ fn every_shipped_training_config_reads() {
 /// A Panoptic sequence in the real layout: five HD cameras at 160 x 120, `frames` pose files with two
 /// people (the second without an annotated body centre in frame 1), a JPEG per camera and frame.
 fn panoptic_fixture(root: &Path, name: &str, frames: usize) {
-    let d = root.join(name);
-    std::fs::create_dir_all(d.join("hdPose3d_stage1_coco19")).unwrap();
-    let cams: Vec<serde_json::Value> = mvmp_data::panoptic::VOXELPOSE_CAMERAS
-        .iter()
-        .enumerate()
-        .map(|(i, n)| {
-            let (c, s) = ((i as f64).cos(), (i as f64).sin());
-            serde_json::json!({
-                "name": n, "type": "hd", "resolution": [160, 120], "panel": 0, "node": i,
-                "K": [[120.0, 0.0, 80.0], [0.0, 120.0, 60.0], [0.0, 0.0, 1.0]],
-                "distCoef": [0.0, 0.0, 0.0, 0.0, 0.0],
-                "R": [[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]],
-                "t": [[0.0], [50.0], [500.0]],
-            })
-        })
-        .collect();
-    std::fs::write(
-        d.join(format!("calibration_{name}.json")),
-        serde_json::json!({"calibDataSource": "fixture", "cameras": cams}).to_string(),
-    )
-    .unwrap();
-    for f in 0..frames {
-        let idx = format!("{f:08}");
-        let bodies: Vec<serde_json::Value> = (0..2)
-            .map(|k| {
-                let mut j = Vec::new();
-                for i in 0..19 {
-                    let conf = if f == 1 && k == 1 && i == 2 { 0.0 } else { 0.8 };
-                    j.extend([60.0 * k as f64, -90.0 - 3.0 * i as f64, 20.0, conf]);
-                }
-                serde_json::json!({"id": k, "joints19": j})
-            })
-            .collect();
-        std::fs::write(
-            d.join(format!("hdPose3d_stage1_coco19/body3DScene_{idx}.json")),
-            serde_json::json!({"version": 0.7, "bodies": bodies}).to_string(),
-        )
-        .unwrap();
-        for c in mvmp_data::panoptic::VOXELPOSE_CAMERAS {
-            let dir = d.join("hdImgs").join(c);
-            std::fs::create_dir_all(&dir).unwrap();
-            image::RgbImage::from_pixel(160, 120, image::Rgb([90, 120, 150]))
-                .save(dir.join(format!("{c}_{idx}.jpg")))
-                .unwrap();
-        }
-    }
+    mvmp_data::fixtures::panoptic_sequence(root, name, frames).unwrap();
 }
 
 #[test]
@@ -831,23 +786,9 @@ fn a_run_scores_on_panoptic_read_in_place() {
 /// A Human3.6M tree (mvmp_data::h36m's layout) with the data crate's fixtures: S9 "Walking" (5 frames),
 /// the images of the first two cameras at the dataset's sizes, and S11 "Directions" (left out).
 fn h36m_fixture(root: &Path) {
-    use mvmp_data::h36m::{CAMERAS, RESOLUTIONS, camera_file, image_file, pose_file};
-    let fixtures = Path::new(env!("CARGO_MANIFEST_DIR")).join("../mvmp-data/tests/fixtures/h36m");
-    std::fs::copy(fixtures.join("camera-parameters.json"), camera_file(root)).unwrap();
-    for (s, a) in [("S9", "Walking"), ("S11", "Directions")] {
-        let p = pose_file(root, s, a);
-        std::fs::create_dir_all(p.parent().unwrap()).unwrap();
-        std::fs::copy(fixtures.join("pose_float_one_record.cdf"), p).unwrap();
-    }
-    for (cam, (w, h)) in CAMERAS.iter().zip(RESOLUTIONS).take(2) {
-        for row in 0..5 {
-            let p = image_file(root, "S9", "Walking", cam, row);
-            std::fs::create_dir_all(p.parent().unwrap()).unwrap();
-            image::RgbImage::from_pixel(w, h, image::Rgb([100, 110, 120]))
-                .save(p)
-                .unwrap();
-        }
-    }
+    let files = Path::new(env!("CARGO_MANIFEST_DIR")).join("../mvmp-data/tests/fixtures/h36m");
+    let sequences = [("S9", "Walking"), ("S11", "Directions")];
+    mvmp_data::fixtures::h36m_tree(root, &files, &sequences, 2).unwrap();
 }
 
 #[test]
