@@ -64,6 +64,17 @@ fn failure(c: &Case) -> Option<String> {
     verdict(&mvmp(&args), &what, names, c.out.as_deref())
 }
 
+/// At least `min` cases ran (`n`) and none got through.
+fn all_refused(n: usize, min: usize, failures: &[String]) {
+    assert!(n > min, "{n} cases");
+    assert!(
+        failures.is_empty(),
+        "{} of {n} cases failed:\n{}",
+        failures.len(),
+        failures.join("\n")
+    );
+}
+
 /// The corpus's small valid dataset, synthesised into `dir/ds`.
 fn synth_dataset(dir: &Path) -> PathBuf {
     std::fs::write(dir.join("synth.toml"), SYNTH).unwrap();
@@ -549,13 +560,7 @@ fn no_malformed_input_gets_through() {
         c.out = Some(p("body"));
     }
     n += run_all(cases, &mut failures);
-    assert!(n > 300, "{n} cases");
-    assert!(
-        failures.is_empty(),
-        "{} of {n} cases failed:\n{}",
-        failures.len(),
-        failures.join("\n")
-    );
+    all_refused(n, 300, &failures);
 }
 
 /// Dataset files through `data stats --sheet`: every number of the index, a rig, a scene and an
@@ -592,13 +597,7 @@ fn no_malformed_dataset_gets_through_stats() {
         }
         n += run_all(cases, &mut failures);
     }
-    assert!(n > 100, "{n} cases");
-    assert!(
-        failures.is_empty(),
-        "{} of {n} cases failed:\n{}",
-        failures.len(),
-        failures.join("\n")
-    );
+    all_refused(n, 100, &failures);
 }
 
 /// The corpus's dataset (`dir/ds`) and a run trained on it for one step (`dir/run`).
@@ -685,13 +684,7 @@ fn no_malformed_panoptic_or_h36m_file_gets_through_eval() {
     }
     let mut failures = Vec::new();
     let n = run_all(cases, &mut failures);
-    assert!(n > 100, "{n} cases");
-    assert!(
-        failures.is_empty(),
-        "{} of {n} cases failed:\n{}",
-        failures.len(),
-        failures.join("\n")
-    );
+    all_refused(n, 100, &failures);
 }
 
 /// One defect planted in a body model.
@@ -951,13 +944,7 @@ fn no_malformed_predictions_get_through() {
             ));
         }
     }
-    assert!(n >= 40, "{n} cases");
-    assert!(
-        failures.is_empty(),
-        "{} of {n} cases:\n{}",
-        failures.len(),
-        failures.join("\n")
-    );
+    all_refused(n, 39, &failures);
 }
 
 /// A PNG of `w` x `h` grey pixels.
@@ -1389,13 +1376,7 @@ fn no_malformed_image_rig_run_or_flag_gets_through() {
             .find_map(|f| args.iter().skip_while(|a| a != f).nth(1).map(PathBuf::from));
         check(&args, &what, &names, out);
     }
-    assert!(n > 60, "{n} cases");
-    assert!(
-        failures.is_empty(),
-        "{} of {n} cases failed:\n{}",
-        failures.len(),
-        failures.join("\n")
-    );
+    all_refused(n, 60, &failures);
 }
 
 /// Copy a directory tree.
