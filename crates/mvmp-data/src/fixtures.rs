@@ -7,17 +7,21 @@ use crate::DataError;
 use crate::h36m::{CAMERAS, RESOLUTIONS, camera_file, image_file, pose_file};
 use crate::panoptic::VOXELPOSE_CAMERAS;
 
-fn write(path: &Path, bytes: impl AsRef<[u8]>) -> Result<(), DataError> {
-    if let Some(dir) = path.parent() {
-        std::fs::create_dir_all(dir).map_err(|e| DataError::io(dir, e))?;
+/// Make the folder `path` goes in.
+fn make_parent(path: &Path) -> Result<(), DataError> {
+    match path.parent() {
+        Some(dir) => std::fs::create_dir_all(dir).map_err(|e| DataError::io(dir, e)),
+        None => Ok(()),
     }
+}
+
+fn write(path: &Path, bytes: impl AsRef<[u8]>) -> Result<(), DataError> {
+    make_parent(path)?;
     std::fs::write(path, bytes).map_err(|e| DataError::io(path, e))
 }
 
 fn grey(path: &Path, w: u32, h: u32, level: [u8; 3]) -> Result<(), DataError> {
-    if let Some(dir) = path.parent() {
-        std::fs::create_dir_all(dir).map_err(|e| DataError::io(dir, e))?;
-    }
+    make_parent(path)?;
     image::RgbImage::from_pixel(w, h, image::Rgb(level))
         .save(path)
         .map_err(|e| DataError::file(path, e.to_string()))
