@@ -13,5 +13,6 @@ pub use mvmp_io as io;
 pub use mvmp_kernels as kernels;
 pub use mvmp_losses as losses;
 pub use mvmp_model as model;
+pub use mvmp_render as render;
 pub use mvmp_smplx as smplx;
 pub use mvmp_train as train;

@@ -8,8 +8,8 @@ use burn::tensor::{Device, Tensor, TensorData};
 use nalgebra::{Matrix3, Vector3};
 
 use mvmp_geom::Camera;
-use mvmp_geom::raster::{Frame, Light, MeshRef, draw};
 use mvmp_io::write_atomic_with;
+use mvmp_render::{Frame, Light, MeshRef, draw};
 use mvmp_smplx::export::{write_obj, write_ply};
 use mvmp_smplx::{BodyModel, ParamTensors, SmplxLayer, SmplxParams, Translation, standin_model};
 use npyz::WriterBuilder;

@@ -10,7 +10,6 @@ pub mod error;
 pub mod letterbox;
 pub mod procrustes;
 pub mod project;
-pub mod raster;
 pub mod rig;
 pub mod rotation;
 pub mod voxel;

@@ -11,9 +11,9 @@
 use std::path::Path;
 
 use image::{Rgb, RgbImage};
-use mvmp_geom::raster::{Frame, Light, MeshRef, draw};
 use mvmp_geom::{Camera, VoxelGrid};
 use mvmp_io::write_atomic_with;
+use mvmp_render::{Frame, Light, MeshRef, draw};
 pub use mvmp_smplx::people::{StoredPerson, read_people_npz};
 use nalgebra::Vector3;
 

@@ -5,7 +5,7 @@ use nalgebra::{Vector2, Vector3};
 use super::people::Appearance;
 use super::scene::Posed;
 use mvmp_geom::Camera;
-use mvmp_geom::raster::{Frame, Light, MeshRef, coverage, draw};
+use mvmp_render::{Frame, Light, MeshRef, coverage, draw};
 
 /// Which garment (or skin, or hair) covers a face of the body mesh.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -4,7 +4,7 @@
 //! perspective-correct depth.
 use nalgebra::{Vector2, Vector3};
 
-use crate::Camera;
+use mvmp_geom::Camera;
 
 /// One mesh to draw.
 pub struct MeshRef<'a> {
