@@ -72,7 +72,8 @@ fn report(from: &Path, rep: &mvmp_io::checkpoint::LoadReport) -> Result<()> {
             );
         }
         bail!(
-            "{mismatched} tensors could not be applied (shape or dtype mismatch); are --variant and --joints right?"
+            "{}: {mismatched} tensors could not be applied (shape or dtype mismatch); are --variant and --joints right?",
+            from.display()
         );
     }
     if rep.loaded.is_empty() {

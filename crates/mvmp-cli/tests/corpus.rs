@@ -1392,3 +1392,194 @@ fn copy_dir(from: &Path, to: &Path) {
         }
     }
 }
+
+/// A module's weights as a PyTorch-layout `.safetensors` file (PyTorch names and layouts): for the
+/// tiny ViT that is a torch-hub DINOv2 checkpoint.
+fn pytorch_safetensors<M: burn::module::Module>(module: &M, path: &Path) {
+    use burn::store::{BurnToPyTorchAdapter, ModuleSnapshot, SafetensorsStore};
+    let mut store = SafetensorsStore::from_file(path).with_to_adapter(BurnToPyTorchAdapter);
+    module.save_into(&mut store).unwrap();
+}
+
+/// The tensors of a safetensors file, each passed through `edit` (which may rename it, change its
+/// dtype, shape or bytes, or drop it), serialised again.
+fn rewrite(
+    bytes: &[u8],
+    edit: impl Fn(&str, safetensors::Dtype, &[usize], &[u8]) -> Option<Raw>,
+) -> Vec<u8> {
+    let st = safetensors::SafeTensors::deserialize(bytes).unwrap();
+    let raws: Vec<(String, Raw)> = st
+        .tensors()
+        .into_iter()
+        .filter_map(|(n, v)| edit(&n, v.dtype(), v.shape(), v.data()).map(|r| (n, r)))
+        .map(|(n, (name, dt, shape, data))| (name.unwrap_or(n), (None, dt, shape, data)))
+        .collect();
+    let views: Vec<(String, safetensors::tensor::TensorView)> = raws
+        .iter()
+        .map(|(n, (_, dt, shape, data))| {
+            let v = safetensors::tensor::TensorView::new(*dt, shape.clone(), data).unwrap();
+            (n.clone(), v)
+        })
+        .collect();
+    safetensors::serialize(views, None).unwrap()
+}
+
+/// A tensor as [`rewrite`] writes it: a new name (or the old), dtype, shape, bytes.
+type Raw = (Option<String>, safetensors::Dtype, Vec<usize>, Vec<u8>);
+
+/// A change to one tensor's shape and bytes.
+type Change = Box<dyn Fn(&[usize], &[u8]) -> Raw>;
+
+/// The malformed checkpoints of `good` (a PyTorch-layout safetensors file holding `key`, a float
+/// tensor of at least two dimensions), each with the message it must name beside the file.
+fn checkpoint_cases(good: &[u8], key: &str) -> Vec<(&'static str, Vec<u8>)> {
+    let at_key = |f: Change| {
+        move |n: &str, dt, shape: &[usize], data: &[u8]| {
+            Some(if n == key {
+                f(shape, data)
+            } else {
+                (None, dt, shape.to_vec(), data.to_vec())
+            })
+        }
+    };
+    let first_to = |x: f32| -> Change {
+        Box::new(move |shape, data| {
+            let mut d = data.to_vec();
+            d[..4].copy_from_slice(&x.to_le_bytes());
+            (None, safetensors::Dtype::F32, shape.to_vec(), d)
+        })
+    };
+    let mut huge_header = good.to_vec();
+    huge_header[..8].copy_from_slice(&(1u64 << 60).to_le_bytes());
+    vec![
+        ("empty", Vec::new()),
+        ("cut short", good[..good.len() / 2].to_vec()),
+        ("header only", good[..8].to_vec()),
+        ("a header length of 2^60", huge_header),
+        ("a NaN weight", rewrite(good, at_key(first_to(f32::NAN)))),
+        (
+            "an infinite weight",
+            rewrite(good, at_key(first_to(f32::INFINITY))),
+        ),
+        (
+            "a tensor one row short",
+            rewrite(
+                good,
+                at_key(Box::new(|shape, data| {
+                    let mut s = shape.to_vec();
+                    let row = data.len() / s[0];
+                    s[0] -= 1;
+                    (None, safetensors::Dtype::F32, s, data[row..].to_vec())
+                })),
+            ),
+        ),
+        (
+            "an integer tensor",
+            rewrite(
+                good,
+                at_key(Box::new(|shape, data| {
+                    (None, safetensors::Dtype::I32, shape.to_vec(), data.to_vec())
+                })),
+            ),
+        ),
+        (
+            "no known key",
+            rewrite(good, |n, dt, shape, data| {
+                Some((
+                    Some(format!("other.{n}")),
+                    dt,
+                    shape.to_vec(),
+                    data.to_vec(),
+                ))
+            }),
+        ),
+    ]
+}
+
+#[test]
+fn no_malformed_checkpoint_gets_through_import() {
+    let dir = tempfile::tempdir().unwrap();
+    let device = burn::tensor::Device::flex();
+    let out = dir.path().join("w.bpk");
+    let nets = [
+        (
+            "dinov2",
+            "blocks.0.attn.qkv.weight",
+            dir.path().join("hub.safetensors"),
+        ),
+        (
+            "hrnet",
+            "conv1.weight",
+            dir.path().join("pose_hrnet.safetensors"),
+        ),
+    ];
+    pytorch_safetensors(
+        &mvmp_backbone::VitVariant::Tiny.config().init(&device),
+        &nets[0].2,
+    );
+    pytorch_safetensors(
+        &mvmp_backbone::HrnetVariant::Tiny.config(17).init(&device),
+        &nets[1].2,
+    );
+    let args = |net: &str, from: &Path| {
+        owned(&[
+            "import",
+            net,
+            "--variant",
+            "tiny",
+            "--from",
+            &s(from),
+            "--out",
+            &s(&out),
+        ])
+    };
+    let (mut n, mut failures) = (0, Vec::new());
+    for (net, key, good) in &nets {
+        // The file the cases are made from imports: each case differs from it in one thing.
+        let ok = mvmp(
+            &args(net, good)
+                .iter()
+                .map(String::as_str)
+                .collect::<Vec<_>>(),
+        );
+        assert!(
+            ok.status.success(),
+            "{net}: {}",
+            String::from_utf8_lossy(&ok.stderr)
+        );
+        std::fs::remove_file(&out).unwrap();
+        // So does the same file through `rewrite` unchanged: the cases are refused for what they change.
+        let same = dir.path().join(format!("{net}-same.safetensors"));
+        let bytes = std::fs::read(good).unwrap();
+        let unchanged = |_: &str, dt, shape: &[usize], data: &[u8]| {
+            Some((None, dt, shape.to_vec(), data.to_vec()))
+        };
+        std::fs::write(&same, rewrite(&bytes, unchanged)).unwrap();
+        let ok = mvmp(
+            &args(net, &same)
+                .iter()
+                .map(String::as_str)
+                .collect::<Vec<_>>(),
+        );
+        assert!(
+            ok.status.success(),
+            "{net}: {}",
+            String::from_utf8_lossy(&ok.stderr)
+        );
+        std::fs::remove_file(&out).unwrap();
+        for (what, bytes) in checkpoint_cases(&bytes, key) {
+            let bad = dir.path().join(format!("{net}-case.safetensors"));
+            std::fs::write(&bad, bytes).unwrap();
+            let a = args(net, &bad);
+            let o = mvmp(&a.iter().map(String::as_str).collect::<Vec<_>>());
+            let name = bad.file_name().unwrap().to_string_lossy().into_owned();
+            let what = format!("import {net}: {what}");
+            failures.extend(verdict(&o, &what, |t| t.contains(&name), Some(&out)));
+            if out.exists() {
+                std::fs::remove_file(&out).unwrap();
+            }
+            n += 1;
+        }
+    }
+    all_refused(n, 17, &failures);
+}
