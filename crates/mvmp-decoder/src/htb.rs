@@ -61,7 +61,17 @@ pub struct DecoderOptions {
     /// and on random betas and expression, the bend error stayed at 1.00 of predicting none
     /// shared, and fell to 0.42 this way. false (the paper) shares one rotation head.
     pub pose_trunk: bool,
+    /// Radial basis features of each root's height above the floor (world z = 0), added to the
+    /// normalised query the heads read through `height_proj`; 0 (the paper) reads none. A person's
+    /// pelvis height tells crouching and sitting from standing, but inside the root's position
+    /// encoding, beside its x and y and the heading, the heads did not find it: on the demo the 15%
+    /// of held-out people who crouch (pelvis 0.61 m high against 0.92) got everyone's knee bend (0.198
+    /// rad against their true 1.9).
+    pub height_features: usize,
 }
+
+/// The heights (metres) spanned by the centres of [`DecoderOptions::height_features`].
+const HEIGHT_RANGE: [f32; 2] = [0.2, 1.4];
 
 impl Default for DecoderOptions {
     fn default() -> Self {
@@ -79,6 +89,7 @@ impl Default for DecoderOptions {
             joint_lattice: [5, 5, 8],
             joint_span: [1.0, 1.0, 1.75],
             pose_trunk: false,
+            height_features: 0,
         }
     }
 }
@@ -227,6 +238,8 @@ pub struct Decoder {
     pub pose_trunk: bool,
     /// Present when the decoder reads a heading per person (see [`Decoder::forward_with`]).
     pub heading_proj: Option<Linear>,
+    /// Present with [`DecoderOptions::height_features`].
+    pub height_proj: Option<Linear>,
     /// Present with [`DecoderOptions::query_norm`].
     pub query_norm: Option<LayerNorm>,
     /// Present with joint centroids ([`DecoderConfig::joint_channels`] > 0): they are layer-normalised
@@ -330,6 +343,20 @@ pub fn point_encoding(points: Tensor<3>, grid: &VoxelGrid) -> Tensor<3> {
     Tensor::stack::<5>(vec![w.clone().sin(), w.cos()], 4).reshape([b, k, 6 * POS_FREQS])
 }
 
+/// `n` Gaussian bumps of each root's height `[B, K, 3]` -> `[B, K, n]`, centred evenly over
+/// [`HEIGHT_RANGE`], each as wide as their spacing: a height becomes a few features near 1 that a head
+/// reads linearly.
+pub fn height_features(roots: Tensor<3>, n: usize) -> Tensor<3> {
+    let [b, k, _] = roots.dims();
+    let [lo, hi] = HEIGHT_RANGE;
+    let step = (hi - lo) / (n.max(2) - 1) as f32;
+    let centres: Vec<f32> = (0..n).map(|i| lo + step * i as f32).collect();
+    let centres = Tensor::<1>::from_data(TensorData::new(centres, [n]), &roots.device());
+    let z = roots.narrow(2, 2, 1); // [B, K, 1]
+    let d = (z - centres.reshape([1, 1, n])) / step;
+    (d.powi_scalar(2) * -0.5).exp().reshape([b, k, n])
+}
+
 impl DecoderConfig {
     pub fn init(&self, device: &Device) -> Decoder {
         let o = &self.options;
@@ -371,6 +398,8 @@ impl DecoderConfig {
             expr_head: Head::new(d, NUM_EXPRESSION, device),
             offset_head: Head::new(d, 3, device),
             heading_proj: self.heading.then(|| LinearConfig::new(2, d).init(device)),
+            height_proj: (o.height_features > 0)
+                .then(|| LinearConfig::new(o.height_features, d).init(device)),
             query_norm: o
                 .query_norm
                 .then(|| LayerNormConfig::new(self.sample_width()).init(device)),
@@ -580,7 +609,10 @@ impl Decoder {
                 q = blk.forward(q, padding.clone(), tokens.clone());
             }
         }
-        let q = self.norm.forward(q);
+        let mut q = self.norm.forward(q);
+        if let Some(proj) = &self.height_proj {
+            q = q + proj.forward(height_features(roots.clone(), proj.weight.dims()[0]));
+        }
         // What every head but the body pose's reads (see `DecoderOptions::pose_trunk`).
         let side = if self.pose_trunk {
             q.clone().detach()

@@ -415,3 +415,26 @@ fn with_pose_trunk_only_the_body_pose_trains_the_query_path() {
     let body = grad_of(&|o| o.rot6d.narrow(2, 1, 21).sum());
     assert!(body.is_some_and(|s| s > 0.0), "{body:?}");
 }
+
+/// Height features by hand: 7 centres over 0.2-1.4 m are 0.2 m apart, so a root 0.6 m high is 1 at the
+/// third, exp(-1/2) at its neighbours and exp(-2) two centres away, whatever its x and y.
+#[test]
+fn height_features_are_gaussian_bumps_of_the_root_height() {
+    let d = Device::flex();
+    let roots = Tensor::<3>::from_data(TensorData::new(vec![3.0f32, -2.0, 0.6], [1, 1, 3]), &d);
+    let f: Vec<f32> = mvmp_decoder::height_features(roots, 7)
+        .into_data()
+        .try_into_vec()
+        .unwrap();
+    let want = [
+        (-2.0f32).exp(),
+        (-0.5f32).exp(),
+        1.0,
+        (-0.5f32).exp(),
+        (-2.0f32).exp(),
+    ];
+    for (i, w) in want.iter().enumerate() {
+        assert!((f[i] - w).abs() < 1e-5, "{f:?}");
+    }
+    assert!(f[6] < 1e-3, "{f:?}");
+}

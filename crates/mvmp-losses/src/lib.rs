@@ -442,6 +442,9 @@ pub struct LossWeights {
     /// Weight of [`translation_loss`], added to the mesh term (the paper: 0; the world-frame mesh term
     /// carries the translation there).
     pub translation: f32,
+    /// The mesh, 2D mesh and density terms train the body-pose rotations too (the paper). false leaves
+    /// those rotations to the parameter term (the terms see them detached).
+    pub mesh_pose: bool,
 }
 
 impl Default for LossWeights {
@@ -465,6 +468,7 @@ impl Default for LossWeights {
             facing: 0.1,
             mesh_frame: MeshFrame::World,
             translation: 0.0,
+            mesh_pose: true,
         }
     }
 }

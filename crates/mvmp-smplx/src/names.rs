@@ -8,6 +8,8 @@ pub const NUM_POSE_JOINTS: usize = NUM_JOINTS - 1;
 /// Rotations the network regresses (docs/architecture.md, SMPL-X): global, 21 body, 15 left hand,
 /// 15 right hand, jaw.
 pub const NUM_REGRESSED: usize = 53;
+/// Body joints (pelvis excluded) among them, right after the global orientation.
+pub const NUM_BODY: usize = 21;
 /// Body-model shape and expression components used by mvmp.
 pub const NUM_BETAS: usize = 10;
 pub const NUM_EXPRESSION: usize = 10;

@@ -22,6 +22,7 @@ use mvmp_infer::{PersonPrediction, Predictor, load_weights};
 use mvmp_losses::MeshFrame;
 use mvmp_model::{ModelConfig, MvmpHmr};
 use mvmp_smplx::SmplxLayer;
+use mvmp_smplx::names::NUM_BODY;
 use mvmp_train::step::{Stage2, stage1_loss, stage2_loss};
 use mvmp_train::{Outcome, Quiet, RunDir, TrainConfig, TrainError, TrainOptions};
 
@@ -1662,4 +1663,40 @@ fn stage_two_can_keep_detection_fixed() {
         assert!(s.get("facing").is_none(), "{s}");
         assert!(s.get("mesh").is_some(), "{s}");
     }
+}
+
+/// With `mesh_pose = false` the mesh and density terms train the global rotation (and the rest) but
+/// not the body-pose rotations, whose head columns get no gradient from them; by default they do.
+#[test]
+fn mesh_terms_can_leave_the_body_pose_to_the_parameter_term() {
+    let k = two_kinds();
+    let (ad, model, layer) = (&k.ad, &k.model, &k.layer);
+    let batch = k.batcher.batch(vec![k.smplx.load(0).unwrap()], ad);
+    // The rotation head's output columns: 6 for the global rotation, then 6 per body joint.
+    let columns = |mesh_pose: bool| {
+        let weights = mvmp_losses::LossWeights {
+            parameters: 0.0,
+            orientation: 0.0,
+            mesh_pose,
+            ..Default::default()
+        };
+        let l = stage2_loss(model, &batch, layer, &Stage2::at_true_roots(&weights), ad);
+        let g = model
+            .decoder
+            .rot_head
+            .fc2
+            .weight
+            .val()
+            .grad(&l.total.backward());
+        let g = g.expect("the mesh terms reach the rotation head");
+        let norm = |from: usize, n: usize| -> f32 {
+            g.clone().narrow(1, from, n).abs().sum().into_scalar()
+        };
+        (norm(0, 6), norm(6, NUM_BODY * 6))
+    };
+    let (global, body) = columns(true);
+    assert!(global > 0.0 && body > 0.0, "{global} {body}");
+    let (global, body) = columns(false);
+    assert!(global > 0.0, "{global}");
+    assert_eq!(body, 0.0);
 }
