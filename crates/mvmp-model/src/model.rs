@@ -25,7 +25,7 @@ use mvmp_fusion::{
 };
 use mvmp_geom::rotation::rot6d_to_matrix;
 use mvmp_geom::{Camera, Letterbox};
-use mvmp_smplx::names::{NUM_BETAS, NUM_EXPRESSION, NUM_REGRESSED};
+use mvmp_smplx::names::{NUM_BETAS, NUM_BODY, NUM_EXPRESSION, NUM_REGRESSED};
 use mvmp_smplx::{SmplxLayer, Translation, regressed_to_full_pose};
 
 /// The trainable network.
@@ -262,6 +262,20 @@ impl MvmpHmr {
         layer: &SmplxLayer,
         select: impl FnOnce(&[Vec<Root>]) -> (Tensor<3>, Tensor<2, Bool>),
     ) -> MvmpOutput {
+        self.forward_posed(images, grids, layer, select, true)
+    }
+
+    /// [`MvmpHmr::forward_select`] whose vertices and joints are posed from body-pose rotations
+    /// detached when `pose_grad` is false: the same values, but what reads them trains the global
+    /// rotation, shape and placement and not the body pose (training's `mesh_pose = false`).
+    pub fn forward_posed(
+        &self,
+        images: Tensor<5>,
+        grids: &[RigGrids],
+        layer: &SmplxLayer,
+        select: impl FnOnce(&[Vec<Root>]) -> (Tensor<3>, Tensor<2, Bool>),
+        pose_grad: bool,
+    ) -> MvmpOutput {
         let cfg = &self.config;
         let [b, v, _, s, _] = images.dims();
         let x = images.clone().reshape([b * v, 3, s, s]);
@@ -308,8 +322,13 @@ impl MvmpHmr {
             Some(h) => turn_to_heading(rotmats, h.reshape([n, 2])),
             None => rotmats,
         };
+        let posed = if pose_grad {
+            rotmats.clone()
+        } else {
+            detach_body_pose(rotmats.clone())
+        };
         let body = layer.forward(
-            regressed_to_full_pose(rotmats.clone()),
+            regressed_to_full_pose(posed),
             dec.betas.clone().reshape([n, NUM_BETAS]),
             dec.expression.clone().reshape([n, NUM_EXPRESSION]),
             dec.transl.clone().reshape([n, 3]),
@@ -334,6 +353,19 @@ impl MvmpHmr {
             joints: body.joints.reshape([b, kk, nj, 3]),
         }
     }
+}
+
+/// Rotations `[N, 53, 3, 3]` with the 21 body-pose ones (after the global rotation) detached.
+fn detach_body_pose(rot: Tensor<4>) -> Tensor<4> {
+    let r = rot.dims()[1];
+    Tensor::cat(
+        vec![
+            rot.clone().narrow(1, 0, 1),
+            rot.clone().narrow(1, 1, NUM_BODY).detach(),
+            rot.narrow(1, 1 + NUM_BODY, r - 1 - NUM_BODY),
+        ],
+        1,
+    )
 }
 
 impl MvmpHmr {

@@ -15,9 +15,7 @@ use mvmp_losses::{
 use mvmp_model::facing::{facing_readout, relative_heading};
 use mvmp_model::{Detection, ModelConfig, MvmpHmr, MvmpOutput, RigGrids, roots_tensor};
 use mvmp_smplx::SmplxLayer;
-use mvmp_smplx::names::{
-    NUM_BETAS, NUM_BODY, NUM_EXPRESSION, NUM_JOINTS, NUM_REGRESSED, REGRESSED_TO_JOINT,
-};
+use mvmp_smplx::names::{NUM_JOINTS, NUM_REGRESSED, REGRESSED_TO_JOINT};
 
 use crate::config::QueryMode;
 
@@ -533,12 +531,14 @@ pub fn stage2_loss(
     let grids = batch_grids(cfg, batch, device);
     let gt_roots = gt.roots(cfg.primary_joint.joint());
     let mut slots: Vec<Vec<([f64; 3], usize)>> = Vec::new();
-    let out = model.forward_select(batch.images.clone(), &grids, layer, |det| {
+    let select = |det: &[Vec<Root>]| {
         slots = choose_queries(det, &gt_roots, mode, gate);
         let roots = exact_roots(slots.iter().map(|s| s.iter().map(|q| q.0).collect()));
         let k = slots.iter().map(Vec::len).max().unwrap_or(0);
         roots_tensor(&roots, k, device)
-    });
+    };
+    let images = batch.images.clone();
+    let out = model.forward_posed(images, &grids, layer, select, weights.mesh_pose);
     let queries: usize = slots.iter().map(Vec::len).sum();
     let t = QueryTargets::new(batch, &slots, out.roots.dims()[1], device);
     let det = Detection {
@@ -548,11 +548,6 @@ pub fn stage2_loss(
         facing: out.facing.clone(),
     };
     let (d, diag) = detection_term(&det, &gt, cfg, weights, device);
-    let out = if weights.mesh_pose {
-        out
-    } else {
-        body_pose_detached(out, layer)
-    };
     let frames = BodyFrames::new(&out, batch, &t, weights.mesh_frame);
     let on = |w: f32| w > 0.0;
     let terms = LossTerms {
@@ -571,35 +566,6 @@ pub fn stage2_loss(
         facing: facing_weighted(&det, &gt, batch, weights, device),
     };
     finish(terms.named(), queries, diag, device)
-}
-
-/// The output with its vertices and joints posed again from body-pose rotations detached, so that the
-/// terms that read them train the global rotation, shape and placement but not the body pose.
-fn body_pose_detached(out: MvmpOutput, layer: &SmplxLayer) -> MvmpOutput {
-    let [b, k, r, _, _] = out.rotmats.dims();
-    let n = b * k;
-    let rot = out.rotmats.clone().reshape([n, r, 3, 3]);
-    let rot = Tensor::cat(
-        vec![
-            rot.clone().narrow(1, 0, 1),
-            rot.clone().narrow(1, 1, NUM_BODY).detach(),
-            rot.narrow(1, 1 + NUM_BODY, r - 1 - NUM_BODY),
-        ],
-        1,
-    );
-    let body = layer.forward(
-        mvmp_smplx::regressed_to_full_pose(rot),
-        out.betas.clone().reshape([n, NUM_BETAS]),
-        out.expression.clone().reshape([n, NUM_EXPRESSION]),
-        out.transl.clone().reshape([n, 3]),
-        mvmp_smplx::Translation::Pelvis,
-    );
-    let (nv, nj) = (layer.num_vertices(), layer.num_joints());
-    MvmpOutput {
-        vertices: body.vertices.reshape([b, k, nv, 3]),
-        joints: body.joints.reshape([b, k, nj, 3]),
-        ..out
-    }
 }
 
 /// Where each query slot's ground truth sits among the batch's padded people.
