@@ -1533,21 +1533,18 @@ fn no_malformed_checkpoint_gets_through_import() {
             &s(&out),
         ])
     };
+    // A file that must import: it does, and its output is removed for the next case.
+    let imports = |net: &str, from: &Path| {
+        let a = args(net, from);
+        let ok = mvmp(&a.iter().map(String::as_str).collect::<Vec<_>>());
+        let err = String::from_utf8_lossy(&ok.stderr);
+        assert!(ok.status.success(), "{net}: {err}");
+        std::fs::remove_file(&out).unwrap();
+    };
     let (mut n, mut failures) = (0, Vec::new());
     for (net, key, good) in &nets {
         // The file the cases are made from imports: each case differs from it in one thing.
-        let ok = mvmp(
-            &args(net, good)
-                .iter()
-                .map(String::as_str)
-                .collect::<Vec<_>>(),
-        );
-        assert!(
-            ok.status.success(),
-            "{net}: {}",
-            String::from_utf8_lossy(&ok.stderr)
-        );
-        std::fs::remove_file(&out).unwrap();
+        imports(net, good);
         // So does the same file through `rewrite` unchanged: the cases are refused for what they change.
         let same = dir.path().join(format!("{net}-same.safetensors"));
         let bytes = std::fs::read(good).unwrap();
@@ -1555,18 +1552,7 @@ fn no_malformed_checkpoint_gets_through_import() {
             Some((None, dt, shape.to_vec(), data.to_vec()))
         };
         std::fs::write(&same, rewrite(&bytes, unchanged)).unwrap();
-        let ok = mvmp(
-            &args(net, &same)
-                .iter()
-                .map(String::as_str)
-                .collect::<Vec<_>>(),
-        );
-        assert!(
-            ok.status.success(),
-            "{net}: {}",
-            String::from_utf8_lossy(&ok.stderr)
-        );
-        std::fs::remove_file(&out).unwrap();
+        imports(net, &same);
         for (what, bytes) in checkpoint_cases(&bytes, key) {
             let bad = dir.path().join(format!("{net}-case.safetensors"));
             std::fs::write(&bad, bytes).unwrap();

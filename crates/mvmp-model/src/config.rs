@@ -130,6 +130,9 @@ pub const MAX_IMAGE_SIZE: u32 = 4096;
 pub const MAX_WIDTH: usize = 4096;
 /// Most Human Transformer Blocks (the paper has 2).
 pub const MAX_DEPTH: usize = 64;
+/// Most height features a decoder reads (`[decoder] height_features`).
+pub const MAX_HEIGHT_FEATURES: usize = 64;
+
 /// The widest FFN a decoder block may have, in multiples of its width (the paper's has 4).
 pub const MAX_FFN_RATIO: usize = 16;
 
@@ -364,6 +367,13 @@ impl ModelConfig {
             d.joint_lattice,
             d.joint_span,
         )?;
+        // Each feature is one input of `height_proj`: a count past this only sizes an allocation.
+        if d.height_features > MAX_HEIGHT_FEATURES {
+            return Err((
+                "decoder.height_features",
+                format!("{}: expected 0 to {MAX_HEIGHT_FEATURES}", d.height_features),
+            ));
+        }
         Ok(())
     }
 }
