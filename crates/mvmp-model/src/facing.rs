@@ -11,7 +11,7 @@ use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::{GroupNorm, GroupNormConfig, PaddingConfig2d};
 use burn::tensor::activation::gelu;
 use burn::tensor::ops::{GridSampleOptions, GridSamplePaddingMode, InterpolateMode};
-use burn::tensor::{Device, Tensor, TensorData};
+use burn::tensor::{Bool, Device, Tensor, TensorData};
 use mvmp_kernels::conv::conv2d;
 
 use mvmp_decoder::trilinear_sample;
@@ -81,13 +81,15 @@ impl FacingHead {
 /// Each person's heading in the world `[B, K, 2]` from the facing maps `[B, V, 2, h, w]` read at
 /// `FACING_HEIGHT` above the roots `[B, K, 3]`: per view the (cos, sin) there, relative to the
 /// horizontal unit direction `d` from the root to the camera, becomes `cos d + sin d_perp` (`d_perp`
-/// is `d` turned 90 degrees anticlockwise about the vertical), averaged over the views and scaled to
-/// unit length.
+/// is `d` turned 90 degrees anticlockwise about the vertical), averaged over the views that see the
+/// person's chest ([`chest_view_weights`], from the other present people `present [B, K]`) and scaled
+/// to unit length.
 pub fn facing_readout(
     facing: Tensor<5>,
     grids: &[RigGrids],
     grid: &VoxelGrid,
     roots: Tensor<3>,
+    present: Tensor<2, Bool>,
 ) -> Tensor<3> {
     let b = facing.dims()[0];
     let items: Vec<Tensor<3>> = (0..b)
@@ -97,17 +99,36 @@ pub fn facing_readout(
                 &grids[bi],
                 grid,
                 roots.clone().narrow(0, bi, 1),
+                present.clone().narrow(0, bi, 1),
             )
         })
         .collect();
     Tensor::cat(items, 0)
 }
 
-/// [`facing_readout`] of one batch item: `facing [1, V, 2, h, w]`, `roots [1, K, 3]` -> `[1, K, 2]`.
-fn readout_item(facing: Tensor<5>, g: &RigGrids, grid: &VoxelGrid, roots: Tensor<3>) -> Tensor<3> {
+/// [`facing_readout`] of one batch item: `facing [1, V, 2, h, w]`, `roots [1, K, 3]`,
+/// `present [1, K]` -> `[1, K, 2]`.
+fn readout_item(
+    facing: Tensor<5>,
+    g: &RigGrids,
+    grid: &VoxelGrid,
+    roots: Tensor<3>,
+    present: Tensor<2, Bool>,
+) -> Tensor<3> {
     let [_, v, c, h, w] = facing.dims();
     let k = roots.dims()[1];
     let device = facing.device();
+    let weights = {
+        let r: Vec<f32> = roots
+            .clone()
+            .into_data()
+            .convert::<f32>()
+            .try_into_vec()
+            .unwrap_or_default();
+        let p: Vec<bool> = present.into_data().try_into_vec().unwrap_or_default();
+        let w = chest_view_weights(&g.centres, &r, &p);
+        Tensor::<2>::from_data(TensorData::new(w, [v, k]), &device)
+    };
     let lift = Tensor::<1>::from_data(TensorData::new(vec![0.0, 0.0, FACING_HEIGHT], [3]), &device);
     let points = roots.clone() + lift.reshape([1, 1, 3]);
     let rel = sample_views(facing.reshape([v, c, h, w]), g, grid, points); // [V, 2, K]
@@ -120,14 +141,75 @@ fn readout_item(facing: Tensor<5>, g: &RigGrids, grid: &VoxelGrid, roots: Tensor
         d.clone().narrow(2, 0, 1).reshape([v, k]),
         d.narrow(2, 1, 1).reshape([v, k]),
     );
-    let x = cos.clone() * dx.clone() - sin.clone() * dy.clone();
-    let y = cos * dy + sin * dx;
+    let x = (cos.clone() * dx.clone() - sin.clone() * dy.clone()) * weights.clone();
+    let y = (cos * dy + sin * dx) * weights;
     let mean = Tensor::stack::<3>(vec![x, y], 2)
         .mean_dim(0)
         .reshape([1, k, 2]);
     // A squared-error head shrinks its maps towards 0 where it is unsure, and its mean over the views
     // is shorter still; the decoder gets the direction alone, at the scale of its other inputs.
     unit(mean, 1e-6)
+}
+
+/// Radii (metres) about another person's vertical axis within which the line from a camera to a chest
+/// is fully hidden (`OCCLUDER_INNER`) or starts to be hidden (`OCCLUDER_OUTER`).
+pub const OCCLUDER_INNER: f64 = 0.1;
+pub const OCCLUDER_OUTER: f64 = 0.3;
+/// How far below and above their root another person's body reaches (metres).
+const OCCLUDER_BELOW: f64 = 1.2;
+const OCCLUDER_ABOVE: f64 = 0.9;
+
+/// How well each view sees each person's chest, `[V, K]` row-major in 0..=1, from the cameras' centres,
+/// the roots (`K x 3`, flat) and which of them are people. Another person stands in the way of a view
+/// when the line from its camera to the chest (`FACING_HEIGHT` above the root) passes, between them,
+/// within `OCCLUDER_OUTER` of their vertical axis and within their height; the view's weight is the
+/// product over people in the way of a ramp from 1 at `OCCLUDER_OUTER` to 0 at `OCCLUDER_INNER`. A view
+/// that shows someone else shows their heading: unweighted, such views turned the demo's readings of
+/// people hidden in one view to a median error of 40 degrees against 19 for people seen in all four. A
+/// person hidden in every view gets every view at weight 1.
+pub fn chest_view_weights(centres: &[[f64; 3]], roots: &[f32], present: &[bool]) -> Vec<f32> {
+    let k = present.len().min(roots.len() / 3);
+    let root = |i: usize| [0, 1, 2].map(|a| roots[i * 3 + a] as f64);
+    let mut out = vec![1.0f32; centres.len() * present.len()];
+    for p in (0..k).filter(|&p| present[p]) {
+        let r = root(p);
+        let chest = [r[0], r[1], r[2] + FACING_HEIGHT as f64];
+        let seen: Vec<f64> = centres
+            .iter()
+            .map(|o| {
+                (0..k)
+                    .filter(|&q| q != p && present[q])
+                    .map(|q| 1.0 - cover(*o, chest, root(q)))
+                    .product()
+            })
+            .collect();
+        if seen.iter().sum::<f64>() > 1e-3 {
+            for (v, w) in seen.into_iter().enumerate() {
+                out[v * present.len() + p] = w as f32;
+            }
+        }
+    }
+    out
+}
+
+/// How much of the line from `camera` to `chest` the body standing at root `q` hides, 0..=1.
+fn cover(camera: [f64; 3], chest: [f64; 3], q: [f64; 3]) -> f64 {
+    let d = [0, 1, 2].map(|a| chest[a] - camera[a]);
+    let hh = d[0] * d[0] + d[1] * d[1];
+    if hh < 1e-12 {
+        return 0.0;
+    }
+    // The point of the line horizontally nearest the other person's axis; it must lie between the two.
+    let s = ((q[0] - camera[0]) * d[0] + (q[1] - camera[1]) * d[1]) / hh;
+    if s <= 0.0 || s >= 1.0 {
+        return 0.0;
+    }
+    let at = [0, 1, 2].map(|a| camera[a] + s * d[a]);
+    if at[2] < q[2] - OCCLUDER_BELOW || at[2] > q[2] + OCCLUDER_ABOVE {
+        return 0.0;
+    }
+    let dist = (at[0] - q[0]).hypot(at[1] - q[1]);
+    ((OCCLUDER_OUTER - dist) / (OCCLUDER_OUTER - OCCLUDER_INNER)).clamp(0.0, 1.0)
 }
 
 /// `x` `[.., .., 2]` divided by its length along the last axis (at least `eps`).

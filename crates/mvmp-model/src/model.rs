@@ -302,7 +302,7 @@ impl MvmpHmr {
         // The decoder reads the facing head's estimate; the facing loss alone trains the head.
         let heading = facing
             .clone()
-            .map(|f| facing_readout(f.detach(), grids, &cfg.grid, roots.clone()));
+            .map(|f| facing_readout(f.detach(), grids, &cfg.grid, roots.clone(), present.clone()));
         // The joint heatmap volume, where the decoder reads it, is trained by the detection's terms alone.
         let inputs = QueryInputs {
             heading: heading.clone(),

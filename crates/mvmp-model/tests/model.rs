@@ -337,10 +337,17 @@ fn facing_readout_turns_each_views_relative_heading_into_the_world() {
         TensorData::new(root.iter().map(|&x| x as f32).collect(), [1, 1, 3]),
         &d,
     );
-    let got: Vec<f32> = facing_readout(facing, std::slice::from_ref(&grids), &cfg.grid, roots)
-        .into_data()
-        .try_into_vec()
-        .unwrap();
+    let present = Tensor::<2, Bool>::from_data(TensorData::new(vec![true], [1, 1]), &d);
+    let got: Vec<f32> = facing_readout(
+        facing,
+        std::slice::from_ref(&grids),
+        &cfg.grid,
+        roots,
+        present,
+    )
+    .into_data()
+    .try_into_vec()
+    .unwrap();
     for a in 0..2 {
         assert!(
             (got[a] as f64 - heading[a]).abs() < 1e-5,
@@ -431,4 +438,31 @@ fn a_downsampled_hrnet_reads_the_pooled_input() {
     bad.hrnet_downsample = 3;
     let e = bad.validate().unwrap_err().to_string();
     assert!(e.contains("hrnet_downsample"), "{e}");
+}
+
+#[test]
+fn chest_view_weights_drop_the_views_another_person_stands_in() {
+    use mvmp_model::facing::chest_view_weights;
+    // Camera 0 looks along +y at the chest of the person at the origin (root height 1.0, chest 1.3);
+    // camera 1 along -x. The second root is that of the other person.
+    let cams = [[0.0, -5.0, 1.3], [5.0, 0.0, 1.3]];
+    let weights = |other: [f32; 3], present: bool| {
+        let roots = [0.0, 0.0, 1.0, other[0], other[1], other[2]];
+        let w = chest_view_weights(&cams, &roots, &[true, present]);
+        // Row-major [view, person]: the first person's weight in each view.
+        [w[0], w[2]]
+    };
+    // Right in the line of camera 0, between it and the chest: hidden there, seen by camera 1.
+    assert_eq!(weights([0.0, -2.0, 1.0], true), [0.0, 1.0]);
+    // 0.2 m off the line: halfway along the ramp from 0.3 m (seen) to 0.1 m (hidden).
+    let w = weights([0.2, -2.0, 1.0], true);
+    assert!((w[0] - 0.5).abs() < 1e-6 && w[1] == 1.0, "{w:?}");
+    // Behind the chest, a metre aside, above the line's reach, or not a person: seen by both.
+    for other in [[0.0, 2.0, 1.0], [1.0, -2.0, 1.0], [0.0, -2.0, 3.5]] {
+        assert_eq!(weights(other, true), [1.0, 1.0], "{other:?}");
+    }
+    assert_eq!(weights([0.0, -2.0, 1.0], false), [1.0, 1.0]);
+    // Hidden from the only camera: that view is all there is.
+    let w = chest_view_weights(&cams[..1], &[0.0, 0.0, 1.0, 0.0, -2.0, 1.0], &[true, true]);
+    assert_eq!(w, vec![1.0, 1.0]);
 }

@@ -372,8 +372,8 @@ pub fn facing_errors_deg(
     if k == 0 {
         return Vec::new();
     }
-    let (rt, _) = roots_tensor(&exact_roots(roots.into_iter()), k, device);
-    let read: Vec<f32> = facing_readout(facing, grids, &cfg.grid, rt)
+    let (rt, present) = roots_tensor(&exact_roots(roots.into_iter()), k, device);
+    let read: Vec<f32> = facing_readout(facing, grids, &cfg.grid, rt, present)
         .into_data()
         .try_into_vec::<f32>()
         .unwrap_or_default();
