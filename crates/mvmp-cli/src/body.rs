@@ -143,67 +143,9 @@ pub fn render(
     };
     let model = load_model(model)?;
     let (verts, _) = pose(&model, &bodies, device)?;
-    // Frame all bodies: a camera on +z (the model faces +z, y up) at a distance that fits the bounds.
-    let (mut lo, mut hi) = ([f32::MAX; 3], [f32::MIN; 3]);
-    for v in verts.iter().flatten() {
-        for a in 0..3 {
-            lo[a] = lo[a].min(v[a]);
-            hi[a] = hi[a].max(v[a]);
-        }
-    }
-    let c = [
-        0.5 * (lo[0] + hi[0]),
-        0.5 * (lo[1] + hi[1]),
-        0.5 * (lo[2] + hi[2]),
-    ]
-    .map(|x| x as f64);
-    let extent = ((hi[0] - lo[0]).max(hi[1] - lo[1]) as f64).max(0.1);
-    // One picture frames every body: people kilometres apart would be specks, and a camera that far
-    // out is past what the projection takes.
-    const MAX_EXTENT: f64 = 1.0e3;
-    if extent > MAX_EXTENT || !extent.is_finite() {
-        bail!(
-            "{}: the bodies span {extent:.0} m, more than a preview frames ({MAX_EXTENT} m); render people far apart in files of their own",
-            params.map_or("the bodies".into(), |p| p.display().to_string())
-        );
-    }
-    // Framed about their centre, so that bodies far from the origin render as near it.
-    let verts: Vec<Vec<[f32; 3]>> = verts
-        .iter()
-        .map(|v| {
-            v.iter()
-                .map(|p| std::array::from_fn(|a| (p[a] as f64 - c[a]) as f32))
-                .collect()
-        })
-        .collect();
-    let front = hi[2] as f64 - c[2];
-    let c = [0.0f64; 3];
-    let f = size as f64 * 2.0;
-    let dist = f * extent * 1.15 / size as f64 + front;
-    // A slight three-quarter view: rotate the camera 20 degrees about the vertical axis.
-    let yaw = 20f64.to_radians();
-    let eye = Vector3::new(
-        c[0] + dist * yaw.sin(),
-        c[1] + 0.1 * dist,
-        c[2] + dist * yaw.cos(),
-    );
-    let target = Vector3::from(c);
-    let z = (target - eye).normalize();
-    let x = z.cross(&Vector3::y()).normalize();
-    let y = z.cross(&x);
-    let r = Matrix3::from_rows(&[x.transpose(), y.transpose(), z.transpose()]);
-    let k = Matrix3::new(
-        f,
-        0.0,
-        size as f64 / 2.0,
-        0.0,
-        f,
-        size as f64 / 2.0,
-        0.0,
-        0.0,
-        1.0,
-    );
-    let cam = Camera::new("preview", k, r, -(r * eye), [0.0; 5], size, size)?;
+    let what = params.map_or("the bodies".into(), |p| p.display().to_string());
+    let (verts, extent, front) = centred(&verts, &what)?;
+    let cam = preview_camera(size, extent, front)?;
     let mut frame = Frame::new(size, size, [0.93, 0.94, 0.96]);
     let palette = [
         [0.80, 0.55, 0.45],
@@ -237,6 +179,62 @@ pub fn render(
     })?;
     println!("wrote {} ({size} x {size})", out.display());
     Ok(())
+}
+
+/// The bodies moved so that their bounds are centred on the origin (bodies far from it render as near
+/// it), with the bounds' larger extent across x and y and how far their front (+z) reaches.
+type Centred = (Vec<Vec<[f32; 3]>>, f64, f64);
+fn centred(verts: &[Vec<[f32; 3]>], what: &str) -> Result<Centred> {
+    let (mut lo, mut hi) = ([f32::MAX; 3], [f32::MIN; 3]);
+    for v in verts.iter().flatten() {
+        for a in 0..3 {
+            lo[a] = lo[a].min(v[a]);
+            hi[a] = hi[a].max(v[a]);
+        }
+    }
+    let c: [f64; 3] = std::array::from_fn(|a| 0.5 * (lo[a] + hi[a]) as f64);
+    let extent = ((hi[0] - lo[0]).max(hi[1] - lo[1]) as f64).max(0.1);
+    // One picture frames every body: people kilometres apart would be specks, and a camera that far
+    // out is past what the projection takes.
+    const MAX_EXTENT: f64 = 1.0e3;
+    if extent > MAX_EXTENT || !extent.is_finite() {
+        bail!(
+            "{what}: the bodies span {extent:.0} m, more than a preview frames ({MAX_EXTENT} m); render people far apart in files of their own"
+        );
+    }
+    let moved = verts
+        .iter()
+        .map(|v| {
+            v.iter()
+                .map(|p| std::array::from_fn(|a| (p[a] as f64 - c[a]) as f32))
+                .collect()
+        })
+        .collect();
+    Ok((moved, extent, hi[2] as f64 - c[2]))
+}
+
+/// A camera on +z (the model faces +z, y up), turned 20 degrees about the vertical for a slight
+/// three-quarter view, looking at the origin from where bounds of `extent` fill the picture.
+fn preview_camera(size: u32, extent: f64, front: f64) -> Result<Camera> {
+    let f = size as f64 * 2.0;
+    let dist = f * extent * 1.15 / size as f64 + front;
+    let yaw = 20f64.to_radians();
+    let eye = Vector3::new(dist * yaw.sin(), 0.1 * dist, dist * yaw.cos());
+    let z = (-eye).normalize();
+    let x = z.cross(&Vector3::y()).normalize();
+    let y = z.cross(&x);
+    let r = Matrix3::from_rows(&[x.transpose(), y.transpose(), z.transpose()]);
+    let half = size as f64 / 2.0;
+    let k = Matrix3::new(f, 0.0, half, 0.0, f, half, 0.0, 0.0, 1.0);
+    Ok(Camera::new(
+        "preview",
+        k,
+        r,
+        -(r * eye),
+        [0.0; 5],
+        size,
+        size,
+    )?)
 }
 
 pub fn bench(model: Option<&Path>, batch: usize, iters: usize, device: &Device) -> Result<()> {

@@ -8,6 +8,7 @@ use std::time::Instant;
 use burn::data::dataloader::batcher::Batcher;
 use burn::module::{Module, ModuleVisitor, Param};
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
+use burn::tensor::Gradients;
 use burn::tensor::{Device, Tensor};
 use rand::SeedableRng;
 use rand::seq::SliceRandom;
@@ -45,6 +46,9 @@ pub struct StepRecord {
     /// The decoder's rate when it has its own (`decoder_lr` in the stage).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub decoder_lr: Option<f64>,
+    /// HRNet's, the RootNet's and the facing head's rate when they have their own (`detection_lr`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub detection_lr: Option<f64>,
     pub seconds: f64,
     /// Where those seconds went: `load` (images and batch), `forward` (the loss), `backward`, `grad_norm`
     /// (the per-module norms) and `optimizer`, in that order.
@@ -710,19 +714,29 @@ impl<'a> Trainer<'a> {
         let spe = self.steps_per_epoch();
         let (at, total) = (epoch * spe + bi, sc.epochs * spe);
         let (lr, decoder_lr) = (sc.lr_at(at, total), sc.decoder_lr_at(at, total));
-        // The decoder's gradients stepped apart at its own rate; Adam's state is per parameter.
-        let mut decoder_grads =
-            decoder_lr.map(|_| GradientsParams::from_module(&mut grads, &model.decoder));
+        let detection_lr = sc.detection_lr_at(at, total);
+        // Modules with rates of their own are stepped apart; Adam's state is per parameter.
+        let mut groups = Vec::new();
+        if let Some(r) = decoder_lr {
+            groups.push((r, GradientsParams::from_module(&mut grads, &model.decoder)));
+        }
+        if let Some(r) = detection_lr {
+            groups.extend(
+                detection_grads(&mut grads, &model)
+                    .into_iter()
+                    .map(|g| (r, g)),
+            );
+        }
         let mut grads = GradientsParams::from_grads(grads, &model);
         if let Some(factor) = clip_factor(&grad_norm, sc.grad_clip) {
             scale_gradients(&model, &mut grads, factor);
-            if let Some(g) = decoder_grads.as_mut() {
-                scale_gradients(&model.decoder, g, factor);
+            for (_, g) in groups.iter_mut() {
+                scale_gradients(&model, g, factor);
             }
         }
         let mut model = optim.step(lr, model, grads);
-        if let (Some(dlr), Some(g)) = (decoder_lr, decoder_grads) {
-            model = optim.step(dlr, model, g);
+        for (r, g) in groups {
+            model = optim.step(r, model, g);
         }
         clock.lap("optimizer");
         self.cursor.global += 1;
@@ -735,6 +749,7 @@ impl<'a> Trainer<'a> {
             global_step: self.cursor.global,
             lr,
             decoder_lr,
+            detection_lr,
             seconds: t0.elapsed().as_secs_f64(),
             phases: clock.laps,
             total: terms.iter().map(|t| t.1).sum(),
@@ -889,6 +904,18 @@ fn clip_factor(norms: &[(&'static str, f32)], clip: f32) -> Option<f32> {
 }
 
 /// Multiplies every gradient of `module`'s parameters in `grads` by `factor`.
+/// The gradients of what stage 1 trains (HRNet, the RootNet, the facing head), taken out of `grads`.
+fn detection_grads(grads: &mut Gradients, model: &MvmpHmr) -> Vec<GradientsParams> {
+    let mut out = vec![
+        GradientsParams::from_module(grads, &model.hrnet),
+        GradientsParams::from_module(grads, &model.rootnet),
+    ];
+    if let Some(f) = &model.facing {
+        out.push(GradientsParams::from_module(grads, f));
+    }
+    out
+}
+
 fn scale_gradients<M: Module>(module: &M, grads: &mut GradientsParams, factor: f32) {
     struct Scale<'a> {
         grads: &'a mut GradientsParams,

@@ -163,6 +163,22 @@ fn weights<M: Module>(m: &M) -> Vec<f32> {
     a.0
 }
 
+/// The weights of a module's convolution and linear kernels (parameters of two or more axes).
+fn kernels<M: Module>(m: &M) -> Vec<f32> {
+    struct Kernels(Vec<f32>);
+    impl ModuleVisitor for Kernels {
+        fn visit_float<const D: usize>(&mut self, p: &Param<Tensor<D>>) {
+            if D >= 2 {
+                self.0
+                    .extend(p.val().into_data().convert::<f32>().iter::<f32>());
+            }
+        }
+    }
+    let mut k = Kernels(Vec::new());
+    m.visit(&mut k);
+    k.0
+}
+
 fn load(run: &Path, cfg: &ModelConfig) -> Vec<f32> {
     let mut m = mvmp_train::seeded_init(cfg, &Device::flex(), 0);
     load_weights(&mut m, &run.join("model.bpk")).unwrap();
@@ -488,6 +504,21 @@ fn bad_configs_name_the_key() {
         (
             ("lr = 1e-3", "lr = 1e-3\nfreeze_detection = true"),
             "stage1.freeze_detection",
+        ),
+        (
+            ("lr = 1e-3", "lr = 1e-3\ndetection_lr = 1e-4"),
+            "stage1.detection_lr",
+        ),
+        (
+            ("[stage2]\n", "[stage2]\ndetection_lr = -1.0\n"),
+            "stage2.detection_lr",
+        ),
+        (
+            (
+                "[stage2]\n",
+                "[stage2]\ndetection_lr = 1e-4\nfreeze_detection = true\n",
+            ),
+            "stage2.detection_lr",
         ),
         (("test_views = 3", "test_views = 1000000"), "test_views"),
         (("train_views = 2", "train_views = 0"), "train_views"),
@@ -1663,6 +1694,70 @@ fn stage_two_can_keep_detection_fixed() {
         assert!(s.get("facing").is_none(), "{s}");
         assert!(s.get("mesh").is_some(), "{s}");
     }
+}
+
+/// A stage 2 with a rate of its own for detection steps HRNet, the RootNet and the facing head at that
+/// rate and the rest at the stage's: at a vanishing rate they stay where they were, while the same
+/// stage without it moves them; the log carries the rate.
+#[test]
+fn stage_two_can_train_detection_at_its_own_rate() {
+    let dir = tempfile::tempdir().unwrap();
+    let run_with = |name: &str, stage2: &str| {
+        let stage2 = stage2.to_string();
+        let (run, cfg, model_cfg) = new_run(dir.path(), name, &move |t| {
+            t.replace("[stage1]\nepochs = 1", "[stage1]\nepochs = 0")
+                .replace("[stage2]\n", &format!("[stage2]\n{stage2}"))
+        });
+        let out = mvmp_train::train(&run, &cfg, &model_cfg, &options(None), &mut Quiet).unwrap();
+        assert_eq!(out, Outcome::Finished);
+        let mut end = mvmp_train::seeded_init(&model_cfg, &Device::flex(), 0);
+        load_weights(&mut end, &run.root.join("model.bpk")).unwrap();
+        let start = mvmp_train::seeded_init(&model_cfg, &Device::flex(), cfg.seed);
+        (
+            start,
+            end,
+            std::fs::read_to_string(run.metrics_path()).unwrap(),
+        )
+    };
+    let moved = |a: Vec<f32>, b: Vec<f32>| {
+        a.iter()
+            .zip(&b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0f32, f32::max)
+    };
+    let (start, slow, log) = run_with("slow", "detection_lr = 1e-12\n");
+    let (_, plain, _) = run_with("plain", "");
+    // Kernels only: HRNet's batch norms update their running statistics in every forward.
+    for (name, s, a, b) in [
+        (
+            "hrnet",
+            kernels(&start.hrnet),
+            kernels(&slow.hrnet),
+            kernels(&plain.hrnet),
+        ),
+        (
+            "rootnet",
+            kernels(&start.rootnet),
+            kernels(&slow.rootnet),
+            kernels(&plain.rootnet),
+        ),
+        (
+            "facing",
+            kernels(&start.facing),
+            kernels(&slow.facing),
+            kernels(&plain.facing),
+        ),
+    ] {
+        let (kept, trained) = (moved(s.clone(), a), moved(s, b));
+        assert!(kept < 1e-7 && trained > 1e-5, "{name}: {kept} {trained}");
+    }
+    assert!(moved(weights(&start.decoder), weights(&slow.decoder)) > 1e-5);
+    let step = log
+        .lines()
+        .find(|l| l.contains("\"kind\":\"step\""))
+        .unwrap();
+    let v: serde_json::Value = serde_json::from_str(step).unwrap();
+    assert!(v["detection_lr"].as_f64().unwrap() < 1e-11, "{step}");
 }
 
 /// With `mesh_pose = false` the mesh and density terms train the global rotation (and the rest) but
