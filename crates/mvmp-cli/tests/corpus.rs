@@ -276,7 +276,7 @@ fn small_model() -> String {
     )
     .unwrap()
     .replace("image_size = 224", "image_size = 56")
-    .replace("size = [8.0, 8.0, 2.0]", "size = [4.0, 4.0, 2.0]")
+    .replace("size = [4.5, 4.5, 2.0]", "size = [4.0, 4.0, 2.0]")
     .replace("shape = [32, 32, 8]", "shape = [8, 8, 4]")
     .replace("dim = 128", "dim = 16\nffn_ratio = 4")
 }
@@ -437,6 +437,7 @@ fn no_malformed_input_gets_through() {
                 ("decoder.dim", "1073741824"),
                 ("decoder.depth", "100000000"),
                 ("decoder.ffn_ratio", "100000000"),
+                ("decoder.height_features", "1000000000"),
             ],
             &model_cmd,
         ),
