@@ -707,37 +707,19 @@ impl<'a> Trainer<'a> {
         // The terms are read back here, so the forward has run when the clock reads.
         let terms = self.finite_terms(&loss)?;
         clock.lap("forward");
-        let mut grads = loss.total.backward();
+        let grads = loss.total.backward();
         clock.lap("backward");
         let grad_norm = crate::diagnostics::module_grad_norms(&model, &grads);
         clock.lap("grad_norm");
         let spe = self.steps_per_epoch();
         let (at, total) = (epoch * spe + bi, sc.epochs * spe);
-        let (lr, decoder_lr) = (sc.lr_at(at, total), sc.decoder_lr_at(at, total));
-        let detection_lr = sc.detection_lr_at(at, total);
-        // Modules with rates of their own are stepped apart; Adam's state is per parameter.
-        let mut groups = Vec::new();
-        if let Some(r) = decoder_lr {
-            groups.push((r, GradientsParams::from_module(&mut grads, &model.decoder)));
-        }
-        if let Some(r) = detection_lr {
-            groups.extend(
-                detection_grads(&mut grads, &model)
-                    .into_iter()
-                    .map(|g| (r, g)),
-            );
-        }
-        let mut grads = GradientsParams::from_grads(grads, &model);
-        if let Some(factor) = clip_factor(&grad_norm, sc.grad_clip) {
-            scale_gradients(&model, &mut grads, factor);
-            for (_, g) in groups.iter_mut() {
-                scale_gradients(&model, g, factor);
-            }
-        }
-        let mut model = optim.step(lr, model, grads);
-        for (r, g) in groups {
-            model = optim.step(r, model, g);
-        }
+        let rates = Rates {
+            lr: sc.lr_at(at, total),
+            decoder: sc.decoder_lr_at(at, total),
+            detection: sc.detection_lr_at(at, total),
+        };
+        let clip = clip_factor(&grad_norm, sc.grad_clip);
+        let model = apply_gradients(model, optim, grads, &rates, clip);
         clock.lap("optimizer");
         self.cursor.global += 1;
         self.cursor.step_in_epoch = bi + 1;
@@ -747,9 +729,9 @@ impl<'a> Trainer<'a> {
             step: bi + 1,
             steps_per_epoch: spe,
             global_step: self.cursor.global,
-            lr,
-            decoder_lr,
-            detection_lr,
+            lr: rates.lr,
+            decoder_lr: rates.decoder,
+            detection_lr: rates.detection,
             seconds: t0.elapsed().as_secs_f64(),
             phases: clock.laps,
             total: terms.iter().map(|t| t.1).sum(),
@@ -904,6 +886,44 @@ fn clip_factor(norms: &[(&'static str, f32)], clip: f32) -> Option<f32> {
 }
 
 /// Multiplies every gradient of `module`'s parameters in `grads` by `factor`.
+/// A step's learning rates: the stage's, and the decoder's and detection's when they have their own.
+struct Rates {
+    lr: f64,
+    decoder: Option<f64>,
+    detection: Option<f64>,
+}
+
+/// One optimizer step: every gradient scaled by the clipping factor, the modules with rates of their own
+/// stepped apart (Adam's state is per parameter).
+fn apply_gradients(
+    model: MvmpHmr,
+    optim: &mut ModuleOptimizer,
+    mut grads: Gradients,
+    rates: &Rates,
+    clip: Option<f32>,
+) -> MvmpHmr {
+    let mut groups = Vec::new();
+    if let Some(r) = rates.decoder {
+        groups.push((r, GradientsParams::from_module(&mut grads, &model.decoder)));
+    }
+    if let Some(r) = rates.detection {
+        let detection = detection_grads(&mut grads, &model);
+        groups.extend(detection.into_iter().map(|g| (r, g)));
+    }
+    let mut grads = GradientsParams::from_grads(grads, &model);
+    if let Some(factor) = clip {
+        scale_gradients(&model, &mut grads, factor);
+        for (_, g) in groups.iter_mut() {
+            scale_gradients(&model, g, factor);
+        }
+    }
+    let mut model = optim.step(rates.lr, model, grads);
+    for (r, g) in groups {
+        model = optim.step(r, model, g);
+    }
+    model
+}
+
 /// The gradients of what stage 1 trains (HRNet, the RootNet, the facing head), taken out of `grads`.
 fn detection_grads(grads: &mut Gradients, model: &MvmpHmr) -> Vec<GradientsParams> {
     let mut out = vec![

@@ -131,7 +131,9 @@ fn u(rng: &mut ChaCha8Rng, lo: f64, hi: f64) -> f64 {
     rng.random_range(lo..hi)
 }
 
-/// The full pose for an activity and phase (global orientation from the heading).
+/// The full pose for an activity and phase (global orientation from the heading). The draws from
+/// `rng` follow one fixed order (arms and head at rest, the activity's, then hands and jaw), so that a
+/// seed makes the same people.
 pub fn sample_pose(activity: Activity, heading: f64, phase: f64, rng: &mut ChaCha8Rng) -> Vec<f64> {
     let mut p = vec![0.0; mvmp_smplx::names::NUM_JOINTS * 3];
     // Global: y-up rest frame to z-up world, then the heading about world z.
@@ -148,95 +150,108 @@ pub fn sample_pose(activity: Activity, heading: f64, phase: f64, rng: &mut ChaCh
     set(&mut p, 15, [u(rng, -0.2, 0.25), u(rng, -0.5, 0.5), 0.0]);
     set(&mut p, 12, [u(rng, -0.1, 0.15), 0.0, 0.0]);
     match activity {
-        Activity::Standing => {
-            let splay = u(rng, 0.0, 0.15);
-            set(&mut p, 1, [u(rng, -0.1, 0.05), 0.0, splay]);
-            set(&mut p, 2, [u(rng, -0.1, 0.05), 0.0, -splay]);
-            set(&mut p, 4, [u(rng, 0.0, 0.15), 0.0, 0.0]);
-            set(&mut p, 5, [u(rng, 0.0, 0.15), 0.0, 0.0]);
-            set(&mut p, 3, [u(rng, -0.05, 0.1), u(rng, -0.2, 0.2), 0.0]);
-        }
-        Activity::Walking | Activity::Running => {
-            let amp = if activity == Activity::Running {
-                0.75
-            } else {
-                0.4
-            };
-            let s = phase.sin();
-            set(&mut p, 1, [-amp * s, 0.0, 0.03]);
-            set(&mut p, 2, [amp * s, 0.0, -0.03]);
-            let knee = if activity == Activity::Running {
-                1.3
-            } else {
-                0.5
-            };
-            set(
-                &mut p,
-                4,
-                [knee * (0.5 + 0.5 * (phase + 1.2).sin()).max(0.05), 0.0, 0.0],
-            );
-            set(
-                &mut p,
-                5,
-                [knee * (0.5 - 0.5 * (phase + 1.2).sin()).max(0.05), 0.0, 0.0],
-            );
-            // Arms swing opposite to the legs (about the body's side axis, in the shoulder frame).
-            set(&mut p, 16, [0.0, amp * 0.8 * s, -arm_down]);
-            set(&mut p, 17, [0.0, amp * 0.8 * s, arm_down]);
-            if activity == Activity::Running {
-                set(&mut p, 18, [0.0, -1.4, 0.0]);
-                set(&mut p, 19, [0.0, 1.4, 0.0]);
-                set(&mut p, 3, [0.25, 0.0, 0.0]);
-            }
-        }
-        Activity::Gesturing => {
-            set(&mut p, 1, [u(rng, -0.1, 0.0), 0.0, 0.05]);
-            set(&mut p, 2, [u(rng, -0.1, 0.0), 0.0, -0.05]);
-            // One or both arms raised: the upper arm anywhere from sideways to up, forearm bent.
-            let both = rng.random_bool(0.3);
-            let left = rng.random_bool(0.5);
-            for (is_left, raise) in [(true, left || both), (false, !left || both)] {
-                if !raise {
-                    continue;
-                }
-                let sgn = if is_left { 1.0 } else { -1.0 };
-                let (sh, el) = if is_left { (16, 18) } else { (17, 19) };
-                set(
-                    &mut p,
-                    sh,
-                    [0.0, sgn * u(rng, -0.9, 0.2), sgn * u(rng, -0.6, 0.9)],
-                );
-                set(&mut p, el, [0.0, 0.0, sgn * u(rng, 0.3, 1.8)]);
-            }
-            set(&mut p, 3, [0.0, u(rng, -0.3, 0.3), 0.0]);
-        }
-        Activity::Crouching => {
-            let hip = u(rng, 1.2, 1.7);
-            let knee = u(rng, 1.8, 2.3);
-            set(&mut p, 1, [-hip, 0.0, 0.15]);
-            set(&mut p, 2, [-hip, 0.0, -0.15]);
-            set(&mut p, 4, [knee, 0.0, 0.0]);
-            set(&mut p, 5, [knee, 0.0, 0.0]);
-            set(&mut p, 7, [-(knee - hip) * 0.6, 0.0, 0.0]);
-            set(&mut p, 8, [-(knee - hip) * 0.6, 0.0, 0.0]);
-            set(&mut p, 3, [u(rng, 0.2, 0.5), 0.0, 0.0]);
-            set(&mut p, 6, [u(rng, 0.0, 0.2), 0.0, 0.0]);
-            set(&mut p, 16, [0.0, -0.6, -0.8]);
-            set(&mut p, 17, [0.0, 0.6, 0.8]);
-        }
+        Activity::Standing => standing(&mut p, rng),
+        Activity::Walking | Activity::Running => gait(&mut p, activity, phase, arm_down),
+        Activity::Gesturing => gesturing(&mut p, rng),
+        Activity::Crouching => crouching(&mut p, rng),
     }
-    // Hands: a relaxed curl of every finger joint, thumbs slightly in.
+    hands_and_jaw(&mut p, rng);
+    p
+}
+
+fn standing(p: &mut [f64], rng: &mut ChaCha8Rng) {
+    let splay = u(rng, 0.0, 0.15);
+    set(p, 1, [u(rng, -0.1, 0.05), 0.0, splay]);
+    set(p, 2, [u(rng, -0.1, 0.05), 0.0, -splay]);
+    set(p, 4, [u(rng, 0.0, 0.15), 0.0, 0.0]);
+    set(p, 5, [u(rng, 0.0, 0.15), 0.0, 0.0]);
+    set(p, 3, [u(rng, -0.05, 0.1), u(rng, -0.2, 0.2), 0.0]);
+}
+
+/// Walking or running at `phase` of the stride: legs and arms swing opposite.
+fn gait(p: &mut [f64], activity: Activity, phase: f64, arm_down: f64) {
+    let amp = if activity == Activity::Running {
+        0.75
+    } else {
+        0.4
+    };
+    let s = phase.sin();
+    set(p, 1, [-amp * s, 0.0, 0.03]);
+    set(p, 2, [amp * s, 0.0, -0.03]);
+    let knee = if activity == Activity::Running {
+        1.3
+    } else {
+        0.5
+    };
+    set(
+        p,
+        4,
+        [knee * (0.5 + 0.5 * (phase + 1.2).sin()).max(0.05), 0.0, 0.0],
+    );
+    set(
+        p,
+        5,
+        [knee * (0.5 - 0.5 * (phase + 1.2).sin()).max(0.05), 0.0, 0.0],
+    );
+    // Arms swing opposite to the legs (about the body's side axis, in the shoulder frame).
+    set(p, 16, [0.0, amp * 0.8 * s, -arm_down]);
+    set(p, 17, [0.0, amp * 0.8 * s, arm_down]);
+    if activity == Activity::Running {
+        set(p, 18, [0.0, -1.4, 0.0]);
+        set(p, 19, [0.0, 1.4, 0.0]);
+        set(p, 3, [0.25, 0.0, 0.0]);
+    }
+}
+
+fn gesturing(p: &mut [f64], rng: &mut ChaCha8Rng) {
+    set(p, 1, [u(rng, -0.1, 0.0), 0.0, 0.05]);
+    set(p, 2, [u(rng, -0.1, 0.0), 0.0, -0.05]);
+    // One or both arms raised: the upper arm anywhere from sideways to up, forearm bent.
+    let both = rng.random_bool(0.3);
+    let left = rng.random_bool(0.5);
+    for (is_left, raise) in [(true, left || both), (false, !left || both)] {
+        if !raise {
+            continue;
+        }
+        let sgn = if is_left { 1.0 } else { -1.0 };
+        let (sh, el) = if is_left { (16, 18) } else { (17, 19) };
+        set(
+            p,
+            sh,
+            [0.0, sgn * u(rng, -0.9, 0.2), sgn * u(rng, -0.6, 0.9)],
+        );
+        set(p, el, [0.0, 0.0, sgn * u(rng, 0.3, 1.8)]);
+    }
+    set(p, 3, [0.0, u(rng, -0.3, 0.3), 0.0]);
+}
+
+fn crouching(p: &mut [f64], rng: &mut ChaCha8Rng) {
+    let hip = u(rng, 1.2, 1.7);
+    let knee = u(rng, 1.8, 2.3);
+    set(p, 1, [-hip, 0.0, 0.15]);
+    set(p, 2, [-hip, 0.0, -0.15]);
+    set(p, 4, [knee, 0.0, 0.0]);
+    set(p, 5, [knee, 0.0, 0.0]);
+    set(p, 7, [-(knee - hip) * 0.6, 0.0, 0.0]);
+    set(p, 8, [-(knee - hip) * 0.6, 0.0, 0.0]);
+    set(p, 3, [u(rng, 0.2, 0.5), 0.0, 0.0]);
+    set(p, 6, [u(rng, 0.0, 0.2), 0.0, 0.0]);
+    set(p, 16, [0.0, -0.6, -0.8]);
+    set(p, 17, [0.0, 0.6, 0.8]);
+}
+
+/// Hands: a relaxed curl of every finger joint, thumbs slightly in; the jaw a little open.
+fn hands_and_jaw(p: &mut [f64], rng: &mut ChaCha8Rng) {
     let curl = u(rng, 0.1, 0.7);
     for j in 25..37 {
-        set(&mut p, j, [0.0, 0.0, -curl * u(rng, 0.7, 1.0)]);
-        set(&mut p, j + 15, [0.0, 0.0, curl * u(rng, 0.7, 1.0)]);
+        set(p, j, [0.0, 0.0, -curl * u(rng, 0.7, 1.0)]);
+        set(p, j + 15, [0.0, 0.0, curl * u(rng, 0.7, 1.0)]);
     }
     for j in 37..40 {
-        set(&mut p, j, [u(rng, 0.0, 0.3), 0.0, 0.0]);
-        set(&mut p, j + 15, [u(rng, 0.0, 0.3), 0.0, 0.0]);
+        set(p, j, [u(rng, 0.0, 0.3), 0.0, 0.0]);
+        set(p, j + 15, [u(rng, 0.0, 0.3), 0.0, 0.0]);
     }
-    set(&mut p, 22, [u(rng, 0.0, 0.25), 0.0, 0.0]);
-    p
+    set(p, 22, [u(rng, 0.0, 0.25), 0.0, 0.0]);
 }
 
 /// A new person at a position.
