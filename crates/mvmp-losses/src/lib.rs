@@ -6,6 +6,7 @@
 //! with a mask that is 1 where a pair exists. Every L1/MSE term is the mean over the elements of the valid
 //! pairs (a person with many vertices does not outweigh one with few joints). Units: metres for 3D terms,
 //! network pixels for 2D terms, voxel units for the root offset.
+use burn::tensor::activation::log_softmax;
 use burn::tensor::{Device, Int, Tensor, TensorData};
 
 use mvmp_geom::CameraTensors;
@@ -352,6 +353,18 @@ pub fn facing_loss(pred: Tensor<5>, target: Tensor<5>, weight: Tensor<4>) -> Ten
         .sum_dim(2)
         .reshape([b, v, h, w]);
     sum_all(err * weight.clone()) / sum_all(weight).clamp_min(1e-6)
+}
+
+/// Loss of a facing head whose maps are the logits of heading bins `[B, V, N, H, W]`: the cross-entropy
+/// to the label distributions `labels` (same shape, summing to 1 over the bins), weighted per pixel by
+/// `weight` `[B, V, H, W]` and divided by the weights' sum, as [`facing_loss`].
+pub fn facing_bin_loss(logits: Tensor<5>, labels: Tensor<5>, weight: Tensor<4>) -> Tensor<1> {
+    let [b, v, _, h, w] = logits.dims();
+    let ce = (labels * log_softmax(logits, 2))
+        .sum_dim(2)
+        .neg()
+        .reshape([b, v, h, w]);
+    sum_all(ce * weight.clone()) / sum_all(weight).clamp_min(1e-6)
 }
 
 /// Gaussian heatmap targets `[J, H, W]` (flat) of one view for joints at network pixels `(u, v)`, on maps of

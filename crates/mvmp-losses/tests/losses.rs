@@ -374,6 +374,31 @@ fn facing_loss_by_hand() {
 }
 
 #[test]
+fn facing_bin_loss_by_hand() {
+    let d = Device::flex();
+    // One view of 1 x 2 pixels, 4 bins (channel-major). Pixel 0: equal logits, so log-softmax is
+    // -ln 4 in every bin and the cross-entropy is ln 4 whatever the label. Pixel 1: logits (ln 2, 0, 0,
+    // 0) give probabilities (2/5, 1/5, 1/5, 1/5); its label (1/2, 1/2, 0, 0) costs
+    // -(ln(2/5) + ln(1/5)) / 2. Weights 1 and 3.
+    let logits = t(
+        vec![0.0, 2f32.ln(), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        [1, 1, 4, 1, 2],
+        &d,
+    );
+    let labels = t(
+        vec![0.1, 0.5, 0.2, 0.5, 0.3, 0.0, 0.4, 0.0],
+        [1, 1, 4, 1, 2],
+        &d,
+    );
+    let weight = t(vec![1.0, 3.0], [1, 1, 1, 2], &d);
+    let e0 = 4f32.ln();
+    let e1 = -((0.4f32).ln() + (0.2f32).ln()) / 2.0;
+    let want = (e0 + 3.0 * e1) / 4.0;
+    let got = scalar(facing_bin_loss(logits, labels, weight));
+    assert!((got - want).abs() < 1e-5, "{got} {want}");
+}
+
+#[test]
 fn body_frame_by_hand() {
     let d = Device::flex();
     // A quarter turn about z (body x -> world y) at pelvis (2, 3, 4): the body point (1, 0, 0) is the

@@ -112,6 +112,11 @@ pub struct ModelConfig {
     /// turned into the world by the cameras' directions, the decoder adds to its query. false (the paper)
     /// has none; a backbone trained from scratch needs it (docs/architecture.md, Facing).
     pub facing: bool,
+    /// What the facing head's maps hold: 0, the cosine and sine of the relative heading (regressed by
+    /// squared error); N (4 to 64), the logits of N heading bins (trained by cross-entropy to a von Mises
+    /// label one bin wide), read as the mean of the bins' directions under their softmax.
+    #[serde(skip_serializing_if = "is_zero")]
+    pub facing_bins: usize,
     /// Body model: `standin:SEED` or a path to an SMPLX_*.npz.
     pub body_model: String,
     /// Side of the score tiles of the ViT's and the decoder's attention: autodiff keeps each row's
@@ -123,6 +128,13 @@ pub struct ModelConfig {
     /// of the ViT per step. Inference is unchanged.
     pub block_recompute: bool,
 }
+
+fn is_zero(n: &usize) -> bool {
+    *n == 0
+}
+
+/// Most heading bins of a facing head (`facing_bins`).
+pub const MAX_FACING_BINS: usize = 64;
 
 /// Largest network input side (the paper's is 1288).
 pub const MAX_IMAGE_SIZE: u32 = 4096;
@@ -168,6 +180,7 @@ impl Default for ModelConfig {
                 ..Default::default()
             },
             facing: false,
+            facing_bins: 0,
             body_model: "standin:0".into(),
             attention_tile: mvmp_kernels::DEFAULT_BLOCK,
             block_recompute: false,
@@ -276,6 +289,24 @@ impl ModelConfig {
                 format!(
                     "{:?}: a non-empty list of SMPL-X joint indices below {NUM_JOINTS_WITH_LANDMARKS}",
                     self.heatmap_joints
+                ),
+            ));
+        }
+        if self.facing_bins != 0 && !(4..=MAX_FACING_BINS).contains(&self.facing_bins) {
+            return Err((
+                "facing_bins",
+                format!(
+                    "{}: expected 0 (cosine and sine) or 4 to {MAX_FACING_BINS} bins",
+                    self.facing_bins
+                ),
+            ));
+        }
+        if self.facing_bins != 0 && !self.facing {
+            return Err((
+                "facing_bins",
+                format!(
+                    "{}: set without a facing head (facing = false)",
+                    self.facing_bins
                 ),
             ));
         }

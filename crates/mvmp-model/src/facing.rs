@@ -9,7 +9,7 @@
 use burn::module::Module;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::{GroupNorm, GroupNormConfig, PaddingConfig2d};
-use burn::tensor::activation::gelu;
+use burn::tensor::activation::{gelu, softmax};
 use burn::tensor::ops::{GridSampleOptions, GridSamplePaddingMode, InterpolateMode};
 use burn::tensor::{Bool, Device, Tensor, TensorData};
 use mvmp_kernels::conv::conv2d;
@@ -47,7 +47,9 @@ pub struct FacingHead {
 }
 
 impl FacingHead {
-    pub fn new(width: usize, device: &Device) -> Self {
+    /// A head on HRNet features of `width` channels whose maps hold the relative heading's cosine and
+    /// sine (`bins` 0) or the logits of `bins` heading bins.
+    pub fn new(width: usize, bins: usize, device: &Device) -> Self {
         let conv3 = |i, o, stride| {
             Conv2dConfig::new([i, o], [3, 3])
                 .with_stride([stride, stride])
@@ -64,7 +66,7 @@ impl FacingHead {
             norm3: norm(HIDDEN),
             conv2: conv3(HIDDEN, HIDDEN, 1),
             norm4: norm(HIDDEN),
-            out: Conv2dConfig::new([HIDDEN, 2], [1, 1]).init(device),
+            out: Conv2dConfig::new([HIDDEN, if bins == 0 { 2 } else { bins }], [1, 1]).init(device),
         }
     }
 
@@ -115,6 +117,7 @@ fn readout_item(
     roots: Tensor<3>,
     present: Tensor<2, Bool>,
 ) -> Tensor<3> {
+    let facing = heading_vectors(facing);
     let [_, v, c, h, w] = facing.dims();
     let k = roots.dims()[1];
     let device = facing.device();
@@ -210,6 +213,50 @@ fn cover(camera: [f64; 3], chest: [f64; 3], q: [f64; 3]) -> f64 {
     }
     let dist = (at[0] - q[0]).hypot(at[1] - q[1]);
     ((OCCLUDER_OUTER - dist) / (OCCLUDER_OUTER - OCCLUDER_INNER)).clamp(0.0, 1.0)
+}
+
+/// The centre of heading bin `k` of `n` (radians, anticlockwise from the direction to the camera).
+pub fn bin_angle(k: usize, n: usize) -> f64 {
+    std::f64::consts::TAU * k as f64 / n as f64
+}
+
+/// The bins' unit directions `[N, 2]` (cosine, sine).
+fn bin_directions(n: usize, device: &Device) -> Tensor<2> {
+    let d: Vec<f32> = (0..n)
+        .flat_map(|k| {
+            let a = bin_angle(k, n);
+            [a.cos() as f32, a.sin() as f32]
+        })
+        .collect();
+    Tensor::from_data(TensorData::new(d, [n, 2]), device)
+}
+
+/// Facing maps `[B, V, C, h, w]` as relative heading vectors `[B, V, 2, h, w]`: two channels already
+/// are (cosine, sine); more are the logits of that many heading bins, read as the mean of the bins'
+/// directions under their softmax (short where the head is torn between bins, as a regressed vector is).
+pub fn heading_vectors(maps: Tensor<5>) -> Tensor<5> {
+    let [b, v, c, h, w] = maps.dims();
+    if c == 2 {
+        return maps;
+    }
+    let dirs = bin_directions(c, &maps.device());
+    let p = softmax(maps, 2).swap_dims(2, 4).reshape([b * v * w * h, c]);
+    p.matmul(dirs).reshape([b, v, w, h, 2]).swap_dims(2, 4)
+}
+
+/// The von Mises label over `n` heading bins of relative heading vectors `[B, V, 2, h, w]` (unit):
+/// `softmax_k(kappa cos(theta - theta_k))` with `kappa = (n / 2 pi)^2`, one bin's width of spread.
+pub fn bin_labels(target: Tensor<5>, n: usize) -> Tensor<5> {
+    let [b, v, _, h, w] = target.dims();
+    let kappa = (n as f64 / std::f64::consts::TAU).powi(2) as f32;
+    let dirs = bin_directions(n, &target.device()); // [N, 2]
+    let cosines = target
+        .swap_dims(2, 4)
+        .reshape([b * v * w * h, 2])
+        .matmul(dirs.transpose()); // cos(theta - theta_k)
+    softmax(cosines.mul_scalar(kappa), 1)
+        .reshape([b, v, w, h, n])
+        .swap_dims(2, 4)
 }
 
 /// `x` `[.., .., 2]` divided by its length along the last axis (at least `eps`).

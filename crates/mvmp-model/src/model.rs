@@ -160,7 +160,7 @@ impl ModelConfig {
                 .then(|| DeformableFusionConfig::new().init(device)),
             facing: self
                 .facing
-                .then(|| FacingHead::new(self.hrnet_config().width, device)),
+                .then(|| FacingHead::new(self.hrnet_config().width, self.facing_bins, device)),
             config: self.clone(),
         }
     }

@@ -466,3 +466,50 @@ fn chest_view_weights_drop_the_views_another_person_stands_in() {
     let w = chest_view_weights(&cams[..1], &[0.0, 0.0, 1.0, 0.0, -2.0, 1.0], &[true, true]);
     assert_eq!(w, vec![1.0, 1.0]);
 }
+
+#[test]
+fn heading_bins_read_as_directions_and_label_as_von_mises() {
+    use mvmp_model::facing::{bin_angle, bin_labels, heading_vectors};
+    let d = Device::flex();
+    let n = 8;
+    // Logits far above the rest at bin 3 of 8 read as that bin's direction (135 degrees); equal logits
+    // in two opposite bins as nothing (the head torn between front and back).
+    let mut logits = vec![0.0f32; n * 2];
+    logits[3 * 2] = 40.0;
+    logits[2 * 2 + 1] = 40.0;
+    logits[6 * 2 + 1] = 40.0;
+    let maps = Tensor::<5>::from_data(TensorData::new(logits, [1, 1, n, 1, 2]), &d);
+    let v: Vec<f32> = heading_vectors(maps).into_data().try_into_vec().unwrap();
+    let a = bin_angle(3, n);
+    // Channel-major [2, 1, 2]: (cos at pixel 0, cos at pixel 1, sin at pixel 0, sin at pixel 1).
+    assert!(
+        (v[0] as f64 - a.cos()).abs() < 1e-5 && (v[2] as f64 - a.sin()).abs() < 1e-5,
+        "{v:?}"
+    );
+    assert!(v[1].abs() < 1e-5 && v[3].abs() < 1e-5, "{v:?}");
+    // Two channels are already (cosine, sine).
+    let two = Tensor::<5>::from_data(TensorData::new(vec![0.3f32, -0.4], [1, 1, 2, 1, 1]), &d);
+    let same: Vec<f32> = heading_vectors(two).into_data().try_into_vec().unwrap();
+    assert_eq!(same, vec![0.3, -0.4]);
+    // The label of a heading 10 degrees past bin 2: softmax of kappa cos(theta - theta_k), kappa =
+    // (8 / 2 pi)^2, by hand; it sums to 1 and peaks at bin 2.
+    let theta = bin_angle(2, n) + 10f64.to_radians();
+    let target = Tensor::<5>::from_data(
+        TensorData::new(
+            vec![theta.cos() as f32, theta.sin() as f32],
+            [1, 1, 2, 1, 1],
+        ),
+        &d,
+    );
+    let got: Vec<f32> = bin_labels(target, n).into_data().try_into_vec().unwrap();
+    let kappa = (n as f64 / std::f64::consts::TAU).powi(2);
+    let e: Vec<f64> = (0..n)
+        .map(|k| (kappa * (theta - bin_angle(k, n)).cos()).exp())
+        .collect();
+    let z: f64 = e.iter().sum();
+    for k in 0..n {
+        assert!((got[k] as f64 - e[k] / z).abs() < 1e-6, "{k}: {got:?}");
+    }
+    assert!((got.iter().sum::<f32>() - 1.0).abs() < 1e-5);
+    assert!((0..n).all(|k| got[k] <= got[2]));
+}

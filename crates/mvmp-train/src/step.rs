@@ -9,10 +9,11 @@ use mvmp_geom::CameraTensors;
 use mvmp_geom::rotation::axis_angle_to_matrix;
 use mvmp_losses::{
     LossTerms, LossWeights, MeshFrame, density_axis, density_loss, detection_loss_weighted,
-    detection_positive_loss, facing_loss, heatmap_loss, heatmap_target, mesh_2d_loss_weighted,
-    mesh_3d_loss_weighted, orientation_loss, parameter_loss, to_body_frame, translation_loss,
+    detection_positive_loss, facing_bin_loss, facing_loss, heatmap_loss, heatmap_target,
+    mesh_2d_loss_weighted, mesh_3d_loss_weighted, orientation_loss, parameter_loss, to_body_frame,
+    translation_loss,
 };
-use mvmp_model::facing::{facing_readout, relative_heading};
+use mvmp_model::facing::{bin_labels, facing_readout, relative_heading};
 use mvmp_model::{Detection, ModelConfig, MvmpHmr, MvmpOutput, RigGrids, roots_tensor};
 use mvmp_smplx::SmplxLayer;
 use mvmp_smplx::names::{NUM_JOINTS, NUM_REGRESSED, REGRESSED_TO_JOINT};
@@ -314,11 +315,13 @@ pub fn facing_term(
     if !weight.iter().any(|&w| w > 0.0) {
         return None;
     }
-    Some(facing_loss(
-        facing,
-        Tensor::from_data(TensorData::new(target, [b, v, 2, h, w]), device),
-        Tensor::from_data(TensorData::new(weight, [b, v, h, w]), device),
-    ))
+    let target = Tensor::from_data(TensorData::new(target, [b, v, 2, h, w]), device);
+    let weight = Tensor::from_data(TensorData::new(weight, [b, v, h, w]), device);
+    // Two channels are (cosine, sine); more are the logits of that many heading bins.
+    Some(match facing.dims()[2] {
+        2 => facing_loss(facing, target, weight),
+        n => facing_bin_loss(facing, bin_labels(target, n), weight),
+    })
 }
 
 /// Where a person's torso shows in one view `[h * w]` of `stride` network pixels per map pixel: the
