@@ -218,10 +218,11 @@ impl MvmpHmr {
         let hm = mvmp_kernels::conv::conv2d(&self.hrnet.final_layer, x.clone()); // [B*V, J, S/4, S/4]
         let [_, j, hh, hw] = hm.dims();
         let heatmaps = hm.reshape([b, v, j, hh, hw]);
-        let facing = self
-            .facing
-            .as_ref()
-            .map(|f| f.forward(images, x).reshape([b, v, 2, hh, hw]));
+        let facing = self.facing.as_ref().map(|f| {
+            let maps = f.forward(images, x);
+            let c = maps.dims()[1];
+            maps.reshape([b, v, c, hh, hw])
+        });
         let hgrids: Vec<SamplingGrid> = grids.iter().map(|g| g.heatmaps.clone()).collect();
         let hvol = fuse_views(heatmaps.clone(), &hgrids, FusionMode::Mean);
         let (likelihood, offset) = self.rootnet.forward(hvol.clone());
