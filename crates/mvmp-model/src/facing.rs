@@ -128,8 +128,20 @@ fn readout_item(
             .convert::<f32>()
             .try_into_vec()
             .unwrap_or_default();
-        let p: Vec<bool> = present.into_data().try_into_vec().unwrap_or_default();
-        let w = chest_view_weights(&g.centres, &r, &p);
+        // Read as floats: backends store booleans in different element types (wgpu's read back as
+        // `bool` failed), and a float is what every one of them converts to.
+        let p: Vec<bool> = present
+            .float()
+            .into_data()
+            .convert::<f32>()
+            .try_into_vec::<f32>()
+            .unwrap_or_default()
+            .into_iter()
+            .map(|x| x > 0.5)
+            .collect();
+        let mut w = chest_view_weights(&g.centres, &r, &p);
+        // Unreadable roots or mask: every view at weight 1, as before the weighting.
+        w.resize(v * k, 1.0);
         Tensor::<2>::from_data(TensorData::new(w, [v, k]), &device)
     };
     let lift = Tensor::<1>::from_data(TensorData::new(vec![0.0, 0.0, FACING_HEIGHT], [3]), &device);
