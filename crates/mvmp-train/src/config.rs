@@ -149,15 +149,18 @@ impl StageConfig {
     /// The decoder's rate at that step, when it has its own ([`StageConfig::decoder_lr`]): the same
     /// curve scaled to its peak.
     pub fn decoder_lr_at(&self, step: usize, total: usize) -> Option<f64> {
-        self.decoder_lr
-            .map(|d| self.lr_at(step, total) * d / self.lr)
+        self.rescaled(self.decoder_lr, step, total)
     }
 
     /// The detection modules' rate at that step, when they have their own
     /// ([`StageConfig::detection_lr`]).
     pub fn detection_lr_at(&self, step: usize, total: usize) -> Option<f64> {
-        self.detection_lr
-            .map(|d| self.lr_at(step, total) * d / self.lr)
+        self.rescaled(self.detection_lr, step, total)
+    }
+
+    /// The stage's curve at that step scaled from its peak `lr` to `peak`.
+    fn rescaled(&self, peak: Option<f64>, step: usize, total: usize) -> Option<f64> {
+        peak.map(|p| self.lr_at(step, total) * p / self.lr)
     }
 }
 
