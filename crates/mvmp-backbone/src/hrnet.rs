@@ -14,6 +14,7 @@ use burn::tensor::module::interpolate;
 use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
 use burn::tensor::{Device, Tensor};
 use mvmp_kernels::conv::conv2d;
+use mvmp_kernels::norm::batch_norm;
 
 #[derive(Config, Debug, PartialEq)]
 pub struct HRNetConfig {
@@ -85,7 +86,7 @@ impl ConvBn {
         }
     }
     fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        self.bn.forward(conv2d(&self.conv, x))
+        batch_norm(&self.bn, conv2d(&self.conv, x))
     }
 }
 
@@ -113,9 +114,9 @@ impl Bottleneck {
         }
     }
     fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        let r = relu(self.bn1.forward(conv2d(&self.conv1, x.clone())));
-        let r = relu(self.bn2.forward(conv2d(&self.conv2, r)));
-        let r = self.bn3.forward(conv2d(&self.conv3, r));
+        let r = relu(batch_norm(&self.bn1, conv2d(&self.conv1, x.clone())));
+        let r = relu(batch_norm(&self.bn2, conv2d(&self.conv2, r)));
+        let r = batch_norm(&self.bn3, conv2d(&self.conv3, r));
         let s = match &self.downsample {
             Some(d) => d.forward(x),
             None => x,
@@ -142,8 +143,8 @@ impl BasicBlock {
         }
     }
     fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        let r = relu(self.bn1.forward(conv2d(&self.conv1, x.clone())));
-        relu(self.bn2.forward(conv2d(&self.conv2, r)) + x)
+        let r = relu(batch_norm(&self.bn1, conv2d(&self.conv1, x.clone())));
+        relu(batch_norm(&self.bn2, conv2d(&self.conv2, r)) + x)
     }
 }
 
@@ -366,8 +367,8 @@ impl HRNet {
     /// The highest-resolution branch's output, what the final layer reads: `[B, 3, H, W]` ->
     /// `[B, width, H/4, W/4]`.
     pub fn features(&self, x: Tensor<4>) -> Tensor<4> {
-        let x = relu(self.bn1.forward(conv2d(&self.conv1, x)));
-        let x = relu(self.bn2.forward(conv2d(&self.conv2, x)));
+        let x = relu(batch_norm(&self.bn1, conv2d(&self.conv1, x)));
+        let x = relu(batch_norm(&self.bn2, conv2d(&self.conv2, x)));
         let x = self.layer1.iter().fold(x, |x, b| b.forward(x));
         let mut xs = self.transition1.forward(&[x]);
         for m in &self.stage2 {

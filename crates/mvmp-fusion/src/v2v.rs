@@ -59,7 +59,7 @@ fn norm(c: usize, kind: VolumeNorm, device: &Device) -> (Option<BatchNorm>, Opti
 
 fn apply(bn: &Option<BatchNorm>, gn: &Option<GroupNorm>, x: Tensor<5>) -> Tensor<5> {
     match (bn, gn) {
-        (Some(b), _) => b.forward(x),
+        (Some(b), _) => mvmp_kernels::norm::batch_norm(b, x),
         (None, Some(g)) => g.forward(x),
         (None, None) => x,
     }

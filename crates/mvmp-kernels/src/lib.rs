@@ -10,6 +10,7 @@ pub mod conv;
 pub mod cpu;
 pub mod host;
 pub mod im2col;
+pub mod norm;
 pub mod panel;
 pub mod recompute;
 

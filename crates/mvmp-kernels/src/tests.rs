@@ -432,3 +432,128 @@ fn convolutions_without_autodiff_or_too_large_are_burns() {
         .max();
     assert_eq!(diff.into_scalar::<f32>(), 0.0);
 }
+
+/// The fused batch norm against burn's: output, running statistics and the gradients of input, gamma
+/// and beta under a random weighting of the output; 4D (HRNet) and 5D (the RootNet's volumes) inputs,
+/// a permuted input as the convolutions hand over, and channels whose values sit far from zero.
+mod batch_norm {
+    use super::{normal, seed};
+    use crate::norm::batch_norm;
+    use burn::module::Param;
+    use burn::nn::{BatchNorm, BatchNormConfig};
+    use burn::tensor::{Device, Tensor};
+
+    fn layer(c: usize, d: &Device) -> BatchNorm {
+        let mut bn = BatchNormConfig::new(c).init(d);
+        bn.gamma = Param::from_tensor(normal([c], 1.0, d) + 1.0);
+        bn.beta = Param::from_tensor(normal([c], 1.0, d));
+        bn
+    }
+
+    /// Largest difference relative to the reference's largest magnitude.
+    fn rel<const D: usize>(a: Tensor<D>, b: Tensor<D>) -> f32 {
+        let scale = b.clone().abs().max().into_scalar::<f32>().max(1e-6);
+        (a - b).abs().max().into_scalar::<f32>() / scale
+    }
+
+    fn compare<const D: usize>(x0: Tensor<D>, w: Tensor<D>) {
+        let d = x0.device();
+        let c = x0.dims()[1];
+        let (fused, plain) = (layer(c, &d), layer(c, &d));
+        let run = |bn: &BatchNorm, fused: bool| {
+            let x = x0.clone().require_grad();
+            let y = if fused {
+                batch_norm(bn, x.clone())
+            } else {
+                bn.forward(x.clone())
+            };
+            let g = (y.clone() * w.clone()).sum().backward();
+            let grad = |t: Tensor<1>| t.grad(&g).expect("a gradient");
+            let dx = x.grad(&g).expect("an input gradient");
+            (y.inner(), dx, grad(bn.gamma.val()), grad(bn.beta.val()))
+        };
+        // Same parameters on both paths.
+        let plain = BatchNorm {
+            gamma: Param::from_tensor(fused.gamma.val()),
+            beta: Param::from_tensor(fused.beta.val()),
+            ..plain
+        };
+        let (ya, dxa, dga, dba) = run(&fused, true);
+        let (yb, dxb, dgb, dbb) = run(&plain, false);
+        for (what, diff) in [
+            ("output", rel(ya, yb)),
+            ("d input", rel(dxa, dxb)),
+            ("d gamma", rel(dga, dgb)),
+            ("d beta", rel(dba, dbb)),
+            (
+                "running mean",
+                rel(fused.running_mean.value(), plain.running_mean.value()),
+            ),
+            (
+                "running var",
+                rel(fused.running_var.value(), plain.running_var.value()),
+            ),
+        ] {
+            assert!(
+                diff < 1e-5,
+                "{what} differs by {diff} (shape {:?})",
+                x0.dims()
+            );
+        }
+    }
+
+    #[test]
+    fn fused_batch_norm_is_burns() {
+        let d = Device::flex().autodiff();
+        seed(21);
+        compare(
+            normal([3, 4, 5, 6], 2.0, &d) + 3.0,
+            normal([3, 4, 5, 6], 1.0, &d),
+        );
+        compare(
+            normal([2, 3, 4, 3, 5], 1.0, &d),
+            normal([2, 3, 4, 3, 5], 1.0, &d),
+        );
+        // Channels last, permuted to channels first: a strided view, as a product convolution returns.
+        let x = normal([2, 5, 7, 3], 1.0, &d).permute([0, 3, 1, 2]);
+        compare(x, normal([2, 3, 5, 7], 1.0, &d));
+        // One value per channel and item: the variance is over the batch alone.
+        compare(normal([4, 3, 1, 1], 1.0, &d), normal([4, 3, 1, 1], 1.0, &d));
+    }
+
+    /// The sum of the output is `N * beta` whatever the input: its gradient is zero in the input and in
+    /// gamma (the normalised values sum to zero) and `N` in beta.
+    #[test]
+    fn the_sum_of_a_batch_norm_moves_with_beta_alone() {
+        let d = Device::flex().autodiff();
+        seed(5);
+        let bn = layer(3, &d);
+        let x = (normal([2, 3, 4, 5], 3.0, &d) + 1.0).require_grad();
+        let g = batch_norm(&bn, x.clone()).sum().backward();
+        let dx = x.grad(&g).unwrap().abs().max().into_scalar::<f32>();
+        let dgamma = bn
+            .gamma
+            .val()
+            .grad(&g)
+            .unwrap()
+            .abs()
+            .max()
+            .into_scalar::<f32>();
+        let dbeta = bn.beta.val().grad(&g).unwrap();
+        assert!(dx < 1e-5, "d input {dx}");
+        assert!(dgamma < 1e-4, "d gamma {dgamma}");
+        let err = (dbeta - 40.0).abs().max().into_scalar::<f32>();
+        assert!(err < 1e-4, "d beta off 40 by {err}");
+    }
+
+    /// Without autodiff the layer normalises with its running statistics: burn's path, bit for bit.
+    #[test]
+    fn inference_batch_norm_is_burns() {
+        let d = Device::flex();
+        seed(9);
+        let bn = layer(3, &d);
+        let x = normal([2, 3, 4, 4], 1.0, &d);
+        let diff = (batch_norm(&bn, x.clone()) - bn.forward(x)).abs().max();
+        assert_eq!(diff.into_scalar::<f32>(), 0.0);
+    }
+}
