@@ -8,6 +8,7 @@
 pub mod attention;
 pub mod conv;
 pub mod cpu;
+pub mod gelu;
 pub mod host;
 pub mod im2col;
 pub mod norm;

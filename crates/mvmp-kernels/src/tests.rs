@@ -557,3 +557,49 @@ mod batch_norm {
         assert_eq!(diff.into_scalar::<f32>(), 0.0);
     }
 }
+
+/// The parallel GELU against burn's: values and input gradients under a random weighting, on a
+/// contiguous input larger than one chunk and on a permuted one; without autodiff it is burn's.
+mod gelu {
+    use super::{normal, seed};
+    use crate::gelu::gelu;
+    use burn::tensor::{Device, Tensor};
+
+    fn compare<const D: usize>(x0: Tensor<D>, w: Tensor<D>) {
+        let run = |parallel: bool| {
+            let x = x0.clone().require_grad();
+            let y = if parallel {
+                gelu(x.clone())
+            } else {
+                burn::tensor::activation::gelu(x.clone())
+            };
+            let g = (y.clone() * w.clone()).sum().backward();
+            (y.inner(), x.grad(&g).expect("an input gradient"))
+        };
+        let ((ya, ga), (yb, gb)) = (run(true), run(false));
+        let dy = (ya - yb).abs().max().into_scalar::<f32>();
+        let dg = (ga - gb).abs().max().into_scalar::<f32>();
+        assert!(
+            dy < 1e-6 && dg < 1e-6,
+            "values differ by {dy}, gradients by {dg}"
+        );
+    }
+
+    #[test]
+    fn parallel_gelu_is_burns() {
+        let d = Device::flex().autodiff();
+        seed(3);
+        compare(
+            normal([3, 130, 257], 3.0, &d),
+            normal([3, 130, 257], 1.0, &d),
+        );
+        let x = normal([4, 6, 5], 2.0, &d).permute([2, 0, 1]);
+        compare(x, normal([5, 4, 6], 1.0, &d));
+        let plain = Device::flex();
+        let x = normal([2, 9], 2.0, &plain);
+        let diff = (gelu(x.clone()) - burn::tensor::activation::gelu(x))
+            .abs()
+            .max();
+        assert_eq!(diff.into_scalar::<f32>(), 0.0);
+    }
+}

@@ -9,10 +9,11 @@
 use burn::module::Module;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::{GroupNorm, GroupNormConfig, PaddingConfig2d};
-use burn::tensor::activation::{gelu, softmax};
+use burn::tensor::activation::softmax;
 use burn::tensor::ops::{GridSampleOptions, GridSamplePaddingMode, InterpolateMode};
 use burn::tensor::{Bool, Device, Tensor, TensorData};
 use mvmp_kernels::conv::conv2d;
+use mvmp_kernels::gelu::gelu;
 
 use mvmp_decoder::trilinear_sample;
 use mvmp_geom::VoxelGrid;
