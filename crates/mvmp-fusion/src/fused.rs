@@ -18,7 +18,7 @@ use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, Dispatch, Flex, TensorMetadata, backend_extension};
 use burn::tensor::{Device, Tensor, TensorData};
 
-use mvmp_kernels::host::{dims, read_f32};
+use mvmp_kernels::host::{HostF32, dims};
 
 use crate::FusionMode;
 use crate::cpu::HostGrid;
@@ -114,7 +114,7 @@ fn forward<B: Backend>(maps: FloatTensor<B>, plan: &FusePlan) -> FloatTensor<B> 
     let device = maps.device();
     let [b, v, c, h, w] = dims(&maps);
     assert_eq!(plan.grids.len(), b, "one sampling grid per batch item");
-    let values = read_f32::<B>(maps);
+    let values = HostF32::read::<B>(maps);
     let p: usize = plan.shape.iter().product();
     let mode = if plan.max {
         FusionMode::Max
@@ -157,8 +157,8 @@ impl<B: Backend> Backward<B, 1> for FusedBackward {
         let Some(node) = parent else { return };
         let Saved { plan, maps, dims } = ops.state;
         let device = grad.device();
-        let grad = read_f32::<B>(grad);
-        let maps = maps.map(read_f32::<B>);
+        let grad = HostF32::read::<B>(grad);
+        let maps = maps.map(HostF32::read::<B>);
         let [b, v, c, h, w] = dims;
         let p: usize = plan.shape.iter().product();
         let per_item = v * c * h * w;

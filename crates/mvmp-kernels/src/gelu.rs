@@ -15,7 +15,7 @@ use burn::backend::{Autodiff, Backend, Dispatch, Flex, TensorMetadata, backend_e
 use burn::tensor::{Device, Tensor, TensorData};
 use rayon::prelude::*;
 
-use crate::host::read_f32;
+use crate::host::HostF32;
 
 /// Elements per parallel chunk.
 const CHUNK: usize = 1 << 14;
@@ -45,9 +45,12 @@ pub trait GeluBackend: Backend {
     fn parallel_gelu(x: FloatTensor<Self>) -> FloatTensor<Self> {
         let device = x.device();
         let shape = x.shape().to_vec();
-        let mut v = read_f32::<Self>(x);
-        v.par_chunks_mut(CHUNK)
-            .for_each(|c| c.iter_mut().for_each(|x| *x = value(*x)));
+        let x = HostF32::read::<Self>(x);
+        let v: Vec<f32> = x
+            .par_iter()
+            .with_min_len(CHUNK)
+            .map(|&x| value(x))
+            .collect();
         Self::float_from_data(TensorData::new(v, shape), &device)
     }
 }
@@ -90,11 +93,12 @@ impl<B: Backend> Backward<B, 1> for GeluBackward {
         let Some(node) = parent else { return };
         let device = grad.device();
         let shape = ops.state.shape().to_vec();
-        let x = read_f32::<B>(ops.state);
-        let mut g = read_f32::<B>(grad);
-        g.par_chunks_mut(CHUNK)
-            .zip(x.par_chunks(CHUNK))
-            .for_each(|(g, x)| g.iter_mut().zip(x).for_each(|(g, &x)| *g *= slope(x)));
+        let x = HostF32::read::<B>(ops.state);
+        let g = HostF32::read::<B>(grad);
+        let g: Vec<f32> = (g.par_iter().zip(x.par_iter()))
+            .with_min_len(CHUNK)
+            .map(|(&g, &x)| g * slope(x))
+            .collect();
         grads.register::<B>(
             node.id,
             B::float_from_data(TensorData::new(g, shape), &device),

@@ -1,17 +1,54 @@
 //! What the operations that compute on the host share (fusion's fused pass in mvmp-fusion, the
 //! convolution columns here): reading a backend tensor's values, its dimensions, and transposing planes.
 use burn::backend::tensor::FloatTensor;
-use burn::backend::{Backend, TensorMetadata};
+use burn::backend::{Backend, Flex, TensorMetadata};
+use burn::tensor::TensorData;
 use rayon::prelude::*;
+use std::any::Any;
 
-/// A float tensor's values on the host, as float32.
+/// A float tensor's values on the host, as float32, in a `Vec` of their own (a copy on flex, whose
+/// buffers are aligned for any element type and so cannot become a `Vec<f32>`).
 pub fn read_f32<B: Backend>(t: FloatTensor<B>) -> Vec<f32> {
-    burn::tensor::try_read_sync(B::float_into_data(t))
-        .expect("flex reads synchronously")
-        .expect("a readable tensor")
-        .convert::<f32>()
-        .try_into_vec::<f32>()
-        .expect("float32 after conversion")
+    HostF32::read::<B>(t).to_vec()
+}
+
+/// A float tensor's values on the host, as float32, read in place: a contiguous float32 flex tensor is
+/// borrowed as it is, shared or not. Reading a tensor only to compute from it, this saves one to three
+/// passes over memory on one core: flex's `into_data` copies a shared buffer twice, and its buffers,
+/// aligned for any element type, cannot become a `Vec<f32>` without a third copy ([`read_f32`] copied
+/// every column gradient of a convolution).
+pub enum HostF32 {
+    Flex(FloatTensor<Flex>),
+    Data(TensorData),
+}
+
+impl HostF32 {
+    pub fn read<B: Backend>(t: FloatTensor<B>) -> Self {
+        let any: Box<dyn Any> = Box::new(t);
+        match any.downcast::<FloatTensor<Flex>>() {
+            Ok(f) if f.as_slice::<f32>().is_some() => HostF32::Flex(*f),
+            Ok(f) => HostF32::data::<Flex>(*f),
+            Err(any) => HostF32::data::<B>(*any.downcast().expect("the tensor boxed above")),
+        }
+    }
+
+    fn data<B: Backend>(t: FloatTensor<B>) -> Self {
+        let data = burn::tensor::try_read_sync(B::float_into_data(t))
+            .expect("flex reads synchronously")
+            .expect("a readable tensor");
+        HostF32::Data(data.convert::<f32>())
+    }
+}
+
+impl std::ops::Deref for HostF32 {
+    type Target = [f32];
+
+    fn deref(&self) -> &[f32] {
+        match self {
+            HostF32::Flex(t) => t.as_slice::<f32>().expect("checked when read"),
+            HostF32::Data(d) => d.as_slice::<f32>().expect("float32 after conversion"),
+        }
+    }
 }
 
 /// A tensor's dimensions, `D` of them.

@@ -17,7 +17,7 @@ use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, Dispatch, Flex, TensorMetadata, backend_extension};
 use burn::tensor::{Tensor, TensorData};
 
-use crate::host::{dims, read_f32, transpose_planes};
+use crate::host::{HostF32, dims, transpose_planes};
 
 static FUSED_IM2COL: AtomicBool = AtomicBool::new(true);
 
@@ -71,6 +71,28 @@ impl Columns {
         }
         Some(flat)
     }
+
+    /// The output position (flat) whose tap `t` (flat) reads input position `p` (flat over `size`), if
+    /// any: the inverse of [`Self::source`].
+    #[inline(always)]
+    fn target(&self, size: [usize; 3], p: usize, t: usize) -> Option<usize> {
+        let [_, h, w] = size;
+        let [_, kh, kw] = self.kernel;
+        let (p, k) = (
+            [p / (h * w), p / w % h, p % w],
+            [t / (kh * kw), t / kw % kh, t % kw],
+        );
+        let mut flat = 0;
+        for a in 0..3 {
+            let at = (p[a] + self.pad[a]).checked_sub(k[a])?;
+            let o = at / self.stride[a];
+            if at % self.stride[a] != 0 || o >= self.out[a] {
+                return None;
+            }
+            flat = flat * self.out[a] + o;
+        }
+        Some(flat)
+    }
 }
 
 /// `x [B, C, D, H, W]` -> `[B * Do * Ho * Wo, kd * kh * kw * C]`: row `(b, od, oy, ox)` holds the
@@ -89,7 +111,7 @@ pub trait Im2colBackend: Backend {
     fn im2col(x: FloatTensor<Self>, geometry: Columns) -> FloatTensor<Self> {
         let device = x.device();
         let dims = dims(&x);
-        let cols = forward_host(&read_f32::<Self>(x), dims, &geometry);
+        let cols = forward_host(&HostF32::read::<Self>(x), dims, &geometry);
         let shape = [dims[0] * geometry.outputs(), geometry.taps() * dims[1]];
         Self::float_from_data(TensorData::new(cols, shape), &device)
     }
@@ -123,7 +145,7 @@ impl<B: Backend> Backward<B, 1> for Col2im {
         let Some(node) = parent else { return };
         let (dims, geometry) = ops.state;
         let device = grad.device();
-        let dx = backward_host(&read_f32::<B>(grad), dims, &geometry);
+        let dx = backward_host(&HostF32::read::<B>(grad), dims, &geometry);
         grads.register::<B>(
             node.id,
             B::float_from_data(TensorData::new(dx, dims), &device),
@@ -157,24 +179,92 @@ fn forward_host(x: &[f32], [b, c, d, h, w]: [usize; 5], g: &Columns) -> Vec<f32>
     cols
 }
 
+/// The columns' gradient added back onto the input: gathered per input position (the taps that read
+/// it, in the order of their output positions), so that positions run in parallel whatever the batch
+/// size and every sum is taken in one order.
 fn backward_host(grad: &[f32], [b, c, d, h, w]: [usize; 5], g: &Columns) -> Vec<f32> {
     use rayon::prelude::*;
     let size = d * h * w;
-    let width = g.taps() * c;
-    let outputs = g.outputs();
+    let (taps, outputs) = (g.taps(), g.outputs());
+    let width = taps * c;
     let mut acc = vec![0f32; b * size * c]; // [B][P][C]
-    acc.par_chunks_mut(size * c)
+    // Chunks of one row of positions of one batch item.
+    let rows = w.max(1);
+    acc.par_chunks_mut(rows * c)
         .enumerate()
-        .for_each(|(bi, acc)| {
-            let rows = &grad[bi * outputs * width..(bi + 1) * outputs * width];
-            for (o, row) in rows.chunks_exact(width).enumerate() {
-                for (t, tap) in row.chunks_exact(c).enumerate() {
-                    if let Some(p) = g.source([d, h, w], o, t) {
-                        let a = &mut acc[p * c..(p + 1) * c];
-                        a.iter_mut().zip(tap).for_each(|(a, t)| *a += t);
+        .for_each(|(chunk, dst)| {
+            let bi = chunk * rows / size;
+            let grad = &grad[bi * outputs * width..(bi + 1) * outputs * width];
+            for (r, acc) in dst.chunks_exact_mut(c).enumerate() {
+                let p = (chunk * rows + r) % size;
+                // Taps from the last: their output positions ascend.
+                for t in (0..taps).rev() {
+                    if let Some(o) = g.target([d, h, w], p, t) {
+                        let tap = &grad[o * width + t * c..o * width + (t + 1) * c];
+                        acc.iter_mut().zip(tap).for_each(|(a, t)| *a += t);
                     }
                 }
             }
         });
     transpose_planes(&acc, b, size, c)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The backward as the plain scatter it inverts: every column's tap added onto the input position
+    /// it read, output positions in order.
+    fn scatter(grad: &[f32], [b, c, d, h, w]: [usize; 5], g: &Columns) -> Vec<f32> {
+        let (size, width) = (d * h * w, g.taps() * c);
+        let mut acc = vec![0f32; b * size * c];
+        for bi in 0..b {
+            for o in 0..g.outputs() {
+                for t in 0..g.taps() {
+                    if let Some(p) = g.source([d, h, w], o, t) {
+                        for ch in 0..c {
+                            acc[(bi * size + p) * c + ch] +=
+                                grad[(bi * g.outputs() + o) * width + t * c + ch];
+                        }
+                    }
+                }
+            }
+        }
+        transpose_planes(&acc, b, size, c)
+    }
+
+    /// The gathered backward is the scatter bit for bit (the same sums in the same order), for strides
+    /// 1 and 2, padding, and kernels of one and three taps per axis.
+    #[test]
+    fn the_gathered_backward_is_the_scatter_bit_for_bit() {
+        let cases = [
+            ([2, 3, 4, 5, 6], [3, 3, 3], [1, 1, 1], [1, 1, 1]),
+            ([1, 4, 5, 7, 6], [3, 3, 3], [2, 2, 2], [1, 1, 1]),
+            ([3, 2, 1, 9, 8], [1, 3, 3], [1, 2, 1], [0, 1, 1]),
+            ([1, 5, 2, 4, 4], [1, 1, 1], [1, 1, 1], [0, 0, 0]),
+        ];
+        for (dims, kernel, stride, pad) in cases {
+            let [b, c, d, h, w] = dims;
+            let mut out = [0; 3];
+            for (a, n) in [d, h, w].into_iter().enumerate() {
+                out[a] = (n + 2 * pad[a] - kernel[a]) / stride[a] + 1;
+            }
+            let g = Columns {
+                kernel,
+                stride,
+                pad,
+                out,
+            };
+            let n = b * g.outputs() * g.taps() * c;
+            // Values of many magnitudes, so that a different order of the sums would show.
+            let grad: Vec<f32> = (0..n)
+                .map(|i| ((i * 7919 % 1013) as f32 - 506.0) * 10f32.powi((i % 7) as i32 - 3))
+                .collect();
+            assert_eq!(
+                backward_host(&grad, dims, &g),
+                scatter(&grad, dims, &g),
+                "{dims:?} {g:?}"
+            );
+        }
+    }
 }

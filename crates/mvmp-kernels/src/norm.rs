@@ -22,7 +22,7 @@ use burn::nn::BatchNorm;
 use burn::tensor::{Device, Tensor, TensorData};
 use rayon::prelude::*;
 
-use crate::host::read_f32;
+use crate::host::{HostF32, read_f32};
 
 static FUSED_NORM: AtomicBool = AtomicBool::new(true);
 
@@ -76,7 +76,7 @@ pub trait BatchNormBackend: Backend {
     fn channel_moments(x: FloatTensor<Self>) -> FloatTensor<Self> {
         let device = x.device();
         let layout = Layout::of(&x);
-        let (mean, var) = moments(&read_f32::<Self>(x), layout);
+        let (mean, var) = moments(&HostF32::read::<Self>(x), layout);
         let values = mean.into_iter().chain(var).collect::<Vec<_>>();
         Self::float_from_data(TensorData::new(values, [2, layout.c]), &device)
     }
@@ -188,21 +188,25 @@ fn forward<B: Backend>(
     let device = x.device();
     let layout = Layout::of(&x);
     let shape = x.shape().to_vec();
-    let moments = read_f32::<B>(moments);
+    let moments = HostF32::read::<B>(moments);
     let (mean, var) = moments.split_at(layout.c);
     let inv_std: Vec<f32> = var
         .iter()
         .map(|&v| (1.0 / (v as f64 + epsilon).sqrt()) as f32)
         .collect();
     let (gamma, beta) = (read_f32::<B>(gamma), read_f32::<B>(beta));
-    let mut out = read_f32::<B>(x.clone());
-    out.par_chunks_mut(layout.s.max(1))
+    let input = HostF32::read::<B>(x.clone());
+    let mut out = vec![0f32; input.len()];
+    let plane = layout.s.max(1);
+    (out.par_chunks_mut(plane).zip(input.par_chunks(plane)))
         .enumerate()
-        .for_each(|(i, chunk)| {
+        .for_each(|(i, (dst, src))| {
             let ch = i % layout.c;
             let scale = inv_std[ch] * gamma[ch];
             let shift = beta[ch] - mean[ch] * scale;
-            chunk.iter_mut().for_each(|v| *v = *v * scale + shift);
+            dst.iter_mut()
+                .zip(src)
+                .for_each(|(d, &v)| *d = v * scale + shift);
         });
     let y = B::float_from_data(TensorData::new(out, shape.clone()), &device);
     let saved = Saved {
@@ -227,7 +231,7 @@ impl<B: Backend> Backward<B, 3> for NormBackward {
         let dy = grads.consume::<B>(&ops.node);
         let device = dy.device();
         let s = ops.state;
-        let (dy, x) = (read_f32::<B>(dy), read_f32::<B>(s.x));
+        let (dy, x) = (HostF32::read::<B>(dy), HostF32::read::<B>(s.x));
         let l = s.layout;
         // Per channel: sum(dy) and sum(dy * x_hat).
         let (dbeta, dgamma): (Vec<f32>, Vec<f32>) = (0..l.c)
@@ -245,17 +249,18 @@ impl<B: Backend> Backward<B, 3> for NormBackward {
             })
             .unzip();
         let n = l.count() as f32;
-        let mut dx = dy;
-        dx.par_chunks_mut(l.s.max(1))
-            .zip(x.par_chunks(l.s.max(1)))
+        let plane = l.s.max(1);
+        let mut dx = vec![0f32; dy.len()];
+        (dx.par_chunks_mut(plane).zip(dy.par_chunks(plane)))
+            .zip(x.par_chunks(plane))
             .enumerate()
-            .for_each(|(i, (g, v))| {
+            .for_each(|(i, ((dx, g), v))| {
                 let ch = i % l.c;
                 let (m, r) = (s.mean[ch], s.inv_std[ch]);
                 let (mean_g, mean_gx) = (dbeta[ch] / n, dgamma[ch] / n);
                 let k = s.gamma[ch] * r;
-                for (g, &v) in g.iter_mut().zip(v) {
-                    *g = k * (*g - mean_g - (v - m) * r * mean_gx);
+                for ((dx, &g), &v) in dx.iter_mut().zip(g).zip(v) {
+                    *dx = k * (g - mean_g - (v - m) * r * mean_gx);
                 }
             });
         let tensor = |values: Vec<f32>, shape: Vec<usize>| {
