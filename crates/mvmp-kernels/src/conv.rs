@@ -86,14 +86,13 @@ fn product3d(conv: &Conv3d, x: Tensor<5>, pad: [usize; 3]) -> Option<Tensor<5>> 
         pad,
         out,
     };
-    let cols = crate::im2col::columns(x, geometry);
     // The weight's taps in the columns' order: [Co, kd, kh, kw, Ci].
     let weight = conv
         .weight
         .val()
         .permute([0, 2, 3, 4, 1])
         .reshape([co, taps * ci]);
-    let mut y = cols.matmul(weight.transpose());
+    let mut y = crate::product::columns_product(x, weight, geometry);
     if let Some(bias) = &conv.bias {
         y = y + bias.val().reshape([1, co]);
     }
@@ -113,24 +112,23 @@ fn product(conv: &Conv2d, x: Tensor<4>, pad: [usize; 4]) -> Option<Tensor<4>> {
     if b * ho * wo * kh * kw * ci > PRODUCT_CAP.load(Ordering::Relaxed) {
         return None;
     }
-    let cols = if x.device() == Device::flex() && crate::im2col::fused_im2col() {
-        let geometry = Columns {
-            kernel: [1, kh, kw],
-            stride: [1, sh, sw],
-            pad: [0, top, left],
-            out: [1, ho, wo],
-        };
-        crate::im2col::columns(x.unsqueeze_dim(2), geometry)
-    } else {
-        tensor_columns(x, [kh, kw], [sh, sw], pad, [ho, wo])
-    };
     // The weight's taps in the columns' order: [Co, kh, kw, Ci].
     let weight = conv
         .weight
         .val()
         .permute([0, 2, 3, 1])
         .reshape([co, kh * kw * ci]);
-    let mut y = cols.matmul(weight.transpose());
+    let mut y = if x.device() == Device::flex() && crate::im2col::fused_im2col() {
+        let geometry = Columns {
+            kernel: [1, kh, kw],
+            stride: [1, sh, sw],
+            pad: [0, top, left],
+            out: [1, ho, wo],
+        };
+        crate::product::columns_product(x.unsqueeze_dim(2), weight, geometry)
+    } else {
+        tensor_columns(x, [kh, kw], [sh, sw], pad, [ho, wo]).matmul(weight.transpose())
+    };
     if let Some(bias) = &conv.bias {
         y = y + bias.val().reshape([1, co]);
     }

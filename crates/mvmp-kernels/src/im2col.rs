@@ -1,12 +1,14 @@
 //! The columns of a 2D or 3D convolution as a product (im2col) on flex, with a backward that adds each
 //! column back into the input it was copied from (col2im) in one pass. A 2D input is a 3D one of depth 1.
+//! Training multiplies them by the weight in the same operation ([`crate::product`]); [`columns`] is the
+//! columns alone.
 //!
 //! As tensor ops (`conv::product` on other backends) the columns are a pad, one strided slice per
 //! kernel tap and a concatenation, and autodiff's backward of them makes a zero tensor the size of the
 //! padded input for every tap, assigns the tap's gradient into it and adds them all. Here the forward
-//! copies every output position's taps from the channels-last input, and the backward scatters them
-//! back: each batch item into its own gradient, in parallel, so the sums run in one order whatever the
-//! number of threads.
+//! copies every output position's taps from the channels-last input, and the backward gathers them
+//! back: every input position sums the taps that read it, positions in parallel, so the sums run in one
+//! order whatever the number of threads or the batch size.
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
@@ -44,11 +46,11 @@ pub struct Columns {
 }
 
 impl Columns {
-    fn taps(&self) -> usize {
+    pub(crate) fn taps(&self) -> usize {
         self.kernel.iter().product()
     }
 
-    fn outputs(&self) -> usize {
+    pub(crate) fn outputs(&self) -> usize {
         self.out.iter().product()
     }
 
@@ -153,7 +155,7 @@ impl<B: Backend> Backward<B, 1> for Col2im {
     }
 }
 
-fn forward_host(x: &[f32], [b, c, d, h, w]: [usize; 5], g: &Columns) -> Vec<f32> {
+pub(crate) fn forward_host(x: &[f32], [b, c, d, h, w]: [usize; 5], g: &Columns) -> Vec<f32> {
     use rayon::prelude::*;
     let size = d * h * w;
     let last = transpose_planes(x, b, c, size); // [B][P][C]
@@ -182,7 +184,7 @@ fn forward_host(x: &[f32], [b, c, d, h, w]: [usize; 5], g: &Columns) -> Vec<f32>
 /// The columns' gradient added back onto the input: gathered per input position (the taps that read
 /// it, in the order of their output positions), so that positions run in parallel whatever the batch
 /// size and every sum is taken in one order.
-fn backward_host(grad: &[f32], [b, c, d, h, w]: [usize; 5], g: &Columns) -> Vec<f32> {
+pub(crate) fn backward_host(grad: &[f32], [b, c, d, h, w]: [usize; 5], g: &Columns) -> Vec<f32> {
     use rayon::prelude::*;
     let size = d * h * w;
     let (taps, outputs) = (g.taps(), g.outputs());
