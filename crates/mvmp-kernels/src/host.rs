@@ -58,17 +58,41 @@ pub fn dims<const D: usize>(t: &impl TensorMetadata) -> [usize; D] {
 }
 
 /// `[N][A][B]` -> `[N][B][A]`: each of `n` planes transposed (channels-first to channels-last and back),
-/// planes in parallel.
+/// rows of the result in parallel (so one plane, a batch of one, runs on every thread too).
 pub fn transpose_planes(src: &[f32], n: usize, a: usize, b: usize) -> Vec<f32> {
     let mut dst = vec![0f32; n * a * b];
-    dst.par_chunks_mut(a * b)
-        .zip(src.par_chunks(a * b))
-        .for_each(|(dst, src)| {
-            for (i, row) in src.chunks_exact(b).enumerate() {
-                for (j, &x) in row.iter().enumerate() {
-                    dst[j * a + i] = x;
-                }
+    if a == 0 || b == 0 {
+        return dst;
+    }
+    // Neighbouring rows read neighbouring values of each source row: a run of them shares cache lines.
+    dst.par_chunks_mut(a)
+        .with_min_len(16)
+        .enumerate()
+        .for_each(|(r, row)| {
+            let (plane, j) = (r / b, r % b);
+            let src = &src[plane * a * b..(plane + 1) * a * b];
+            for (i, x) in row.iter_mut().enumerate() {
+                *x = src[i * b + j];
             }
         });
     dst
+}
+
+#[cfg(test)]
+mod tests {
+    /// Every value lands at its transposed place, for one plane and several, and empty axes.
+    #[test]
+    fn planes_are_transposed() {
+        for (n, a, b) in [(1, 3, 5), (3, 7, 2), (2, 0, 4), (1, 40, 33)] {
+            let src: Vec<f32> = (0..n * a * b).map(|i| i as f32).collect();
+            let dst = super::transpose_planes(&src, n, a, b);
+            for p in 0..n {
+                for i in 0..a {
+                    for j in 0..b {
+                        assert_eq!(dst[(p * b + j) * a + i], src[(p * a + i) * b + j]);
+                    }
+                }
+            }
+        }
+    }
 }
