@@ -33,11 +33,16 @@ impl HostF32 {
     }
 
     fn data<B: Backend>(t: FloatTensor<B>) -> Self {
-        let data = burn::tensor::try_read_sync(B::float_into_data(t))
-            .expect("flex reads synchronously")
-            .expect("a readable tensor");
-        HostF32::Data(data.convert::<f32>())
+        HostF32::Data(read_data::<B>(t))
     }
+}
+
+/// A float tensor's values on the host as float32 data (through the backend's `into_data`).
+pub fn read_data<B: Backend>(t: FloatTensor<B>) -> TensorData {
+    burn::tensor::try_read_sync(B::float_into_data(t))
+        .expect("flex reads synchronously")
+        .expect("a readable tensor")
+        .convert::<f32>()
 }
 
 impl std::ops::Deref for HostF32 {

@@ -111,12 +111,17 @@ pub fn columns(x: Tensor<5>, geometry: Columns) -> Tensor<2> {
 #[backend_extension(Flex, Autodiff)]
 pub trait Im2colBackend: Backend {
     fn im2col(x: FloatTensor<Self>, geometry: Columns) -> FloatTensor<Self> {
-        let device = x.device();
-        let dims = dims(&x);
-        let cols = forward_host(&HostF32::read::<Self>(x), dims, &geometry);
-        let shape = [dims[0] * geometry.outputs(), geometry.taps() * dims[1]];
-        Self::float_from_data(TensorData::new(cols, shape), &device)
+        host_columns::<Self>(x, &geometry)
     }
+}
+
+/// The columns as a tensor of `x`'s backend, `[B * Do * Ho * Wo, taps * C]`, built on the host.
+pub(crate) fn host_columns<B: Backend>(x: FloatTensor<B>, g: &Columns) -> FloatTensor<B> {
+    let device = x.device();
+    let dims = dims(&x);
+    let cols = forward_host(&HostF32::read::<B>(x), dims, g);
+    let shape = [dims[0] * g.outputs(), g.taps() * dims[1]];
+    B::float_from_data(TensorData::new(cols, shape), &device)
 }
 
 impl Im2colBackend for Flex {}

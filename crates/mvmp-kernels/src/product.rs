@@ -16,8 +16,8 @@ use burn::backend::{Autodiff, Backend, Dispatch, Flex, TensorMetadata, backend_e
 use burn::tensor::{Tensor, TensorData};
 use std::any::Any;
 
-use crate::host::{HostF32, dims};
-use crate::im2col::{Columns, backward_host, forward_host};
+use crate::host::{dims, read_data};
+use crate::im2col::{Columns, backward_host, host_columns};
 
 /// `columns(x) . weight^T`: `x [B, C, D, H, W]`, `weight [Co, kd * kh * kw * C]` (taps in the columns'
 /// order) -> `[B * Do * Ho * Wo, Co]`.
@@ -37,7 +37,7 @@ pub trait ColumnsProductBackend: Backend {
         weight: FloatTensor<Self>,
         geometry: Columns,
     ) -> FloatTensor<Self> {
-        let cols = columns::<Self>(x, &geometry);
+        let cols = host_columns::<Self>(x, &geometry);
         let device = cols.device();
         let y = product::<Self>(&cols, &Self::float_transpose(weight));
         Self::float_from_data(y, &device)
@@ -57,7 +57,7 @@ impl<B: Backend + ColumnsProductBackend, C: CheckpointStrategy> ColumnsProductBa
         let guards = [x.node(), weight.node()];
         let (x, weight) = (x.into_primitive(), weight.into_primitive());
         let dims = dims(&x);
-        let cols = columns::<B>(x, &geometry);
+        let cols = host_columns::<B>(x, &geometry);
         let device = cols.device();
         let y = product::<B>(&cols, &B::float_transpose(weight.clone()));
         let y = B::float_from_data(y, &device);
@@ -78,15 +78,6 @@ impl<B: Backend + ColumnsProductBackend, C: CheckpointStrategy> ColumnsProductBa
             OpsKind::UnTracked(prep) => prep.finish(y),
         }
     }
-}
-
-/// The columns as a backend tensor `[B * Do * Ho * Wo, taps * C]`.
-fn columns<B: Backend>(x: FloatTensor<B>, g: &Columns) -> FloatTensor<B> {
-    let device = x.device();
-    let dims = dims(&x);
-    let cols = forward_host(&HostF32::read::<B>(x), dims, g);
-    let shape = [dims[0] * g.outputs(), g.taps() * dims[1]];
-    B::float_from_data(TensorData::new(cols, shape), &device)
 }
 
 /// The backward's state: the columns and the weight (each kept for the other's gradient), the input's
@@ -139,11 +130,7 @@ fn product<B: Backend>(lhs: &FloatTensor<B>, rhs: &FloatTensor<B>) -> TensorData
     {
         return flex_gemm(l, r);
     }
-    let y = B::float_matmul(lhs.clone(), rhs.clone());
-    burn::tensor::try_read_sync(B::float_into_data(y))
-        .expect("flex reads synchronously")
-        .expect("a readable tensor")
-        .convert::<f32>()
+    read_data::<B>(B::float_matmul(lhs.clone(), rhs.clone()))
 }
 
 /// Flex's own 2D product (its `matmul_2d_strided`): the same GEMM, strides and parallelism.
