@@ -478,16 +478,16 @@ fn model_and_training_step(other: &Device, r: &mut Report) {
     let body = ds.layout().body_model().unwrap();
     let sample = ds.load(0).unwrap();
     let flex = Device::flex();
-    let model = mvmp::train::seeded_init(&cfg, &flex.clone().autodiff(), 4);
+    let model = mvmp::train::seeded_init(&cfg, &flex.clone().autodiff(), 4)
+        .with_body(std::sync::Arc::new(body.clone()));
 
     // Inference: decoded at fixed roots, so no thresholded decision sits between the two backends.
     let infer = |m: &MvmpHmr, d: &Device| {
-        let layer = SmplxLayer::new(&body, d);
         let batch = FrameBatcher::with_vertices(body.clone()).batch(vec![sample.clone()], d);
         let grids: Vec<RigGrids> = mvmp::train::step::batch_grids(&cfg, &batch, d);
         let roots = t(vec![0.3, -0.2, 0.9, -0.8, 0.5, 1.0], [1, 2, 3], d);
         let present = Tensor::<2, Bool>::from_data(TensorData::new(vec![true, true], [1, 2]), d);
-        let o = m.forward(batch.images, &grids, &layer, Some((roots, present)));
+        let o = m.forward(batch.images, &grids, Some((roots, present)));
         [
             host(o.heatmaps),
             host(o.likelihood),
@@ -517,12 +517,10 @@ fn model_and_training_step(other: &Device, r: &mut Report) {
     // One training step: batch-norm statistics of the batch, the five losses with ground-truth queries,
     // the backward through everything.
     let step = |m: &MvmpHmr, d: &Device| {
-        let layer = SmplxLayer::new(&body, d);
         let batch = FrameBatcher::with_vertices(body.clone()).batch(vec![sample.clone()], d);
         let l = stage2_loss(
             m,
             &batch,
-            &layer,
             &Stage2::at_true_roots(&mvmp::losses::LossWeights::default()),
             d,
         );

@@ -362,6 +362,8 @@ fn run_state_text() -> String {
         model_sha256: "ab".repeat(32),
         checkpoint_sha256: "cd".repeat(32),
         optimizer_sha256: "ef".repeat(32),
+        average: Some("checkpoints/average-step0000480-stage2-epoch002.bpk".into()),
+        average_sha256: "01".repeat(32),
     };
     serde_json::to_string_pretty(&s).unwrap()
 }
@@ -505,13 +507,13 @@ proptest! {
     fn run_states(
         at in any::<Index>(),
         value in json_value(),
-        key in 0usize..3,
+        key in 0usize..4,
         text in path_text(),
     ) {
         let dir = tempfile::tempdir().unwrap();
         let mut doc: serde_json::Value =
             serde_json::from_str(&mutate_json(&run_state_text(), at, value)).unwrap();
-        let key = ["checkpoint", "optimizer", "format"][key];
+        let key = ["checkpoint", "optimizer", "average", "format"][key];
         doc[key] = serde_json::json!(text);
         let doc = doc.to_string();
         write(dir.path(), "state.json", &doc);
@@ -526,6 +528,7 @@ proptest! {
             };
             prop_assert!(inside(&s.checkpoint), "{doc}");
             prop_assert!(s.optimizer.as_deref().is_none_or(inside), "{doc}");
+            prop_assert!(s.average.as_deref().is_none_or(inside), "{doc}");
             // The files it names are not there: the checks refuse, they do not panic.
             prop_assert!(run.check_checkpoint_files(&s).is_err());
         }

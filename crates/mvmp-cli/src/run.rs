@@ -755,7 +755,7 @@ fn pseudo_gt(args: &EvalArgs, pred: &Predictor, device: &Device) -> Result<Optio
             &mvmp_data::layout::load_body_model(r, Path::new("."))?,
             device,
         ),
-        None => pred.layer.clone(),
+        None => (*pred.layer).clone(),
     };
     Ok(Some(PseudoGt {
         dir: dir.to_path_buf(),

@@ -122,8 +122,11 @@ fn sample(cfg: &ModelConfig, views: usize, n: usize) -> Result<FrameSample> {
 /// Bytes a stage's loss and backward allocate beyond what was live before, for `cfg`'s model.
 fn probe(cfg: &ModelConfig, shape: Shape, stage: Stage, body: &BodyModel) -> Result<f64> {
     let device = Device::flex().autodiff();
-    let net = cfg.init(&device);
-    let layer = SmplxLayer::new(body, &device);
+    let net = cfg
+        .init(&device)
+        .with_body(std::sync::Arc::new(body.clone()));
+    // Built before the peak is reset, as `fixed_bytes` counts it.
+    let _layer = net.body_layer(&device);
     let items = (0..shape.batch)
         .map(|_| sample(cfg, shape.views, shape.people))
         .collect::<Result<Vec<_>>>()?;
@@ -135,7 +138,6 @@ fn probe(cfg: &ModelConfig, shape: Shape, stage: Stage, body: &BodyModel) -> Res
         Stage::Whole => mvmp_train::step::stage2_loss(
             &net,
             &batch,
-            &layer,
             &mvmp_train::step::Stage2::at_true_roots(&w),
             &device,
         ),

@@ -1,6 +1,7 @@
 //! The predictor: a trained model in inference mode with its config and body model; images and cameras
 //! in, people in the world out.
 use std::path::Path;
+use std::sync::Arc;
 
 use burn::module::Module;
 use burn::tensor::{Device, Tensor};
@@ -58,9 +59,10 @@ impl PersonPrediction {
 
 /// A model ready to predict (inference mode, no autodiff) with its config and body model.
 pub struct Predictor {
+    /// The network on the plain device, with its body model.
     pub model: MvmpHmr,
-    pub layer: SmplxLayer,
-    pub body: BodyModel,
+    /// The model's body layer on `device`.
+    pub layer: Arc<SmplxLayer>,
     pub device: Device,
 }
 
@@ -78,29 +80,19 @@ impl Predictor {
         Ok((Predictor::new(model, body, device), weights))
     }
 
+    /// `model` (any device: it is taken off autodiff) posing people with `body` on `device`.
     pub fn new(model: MvmpHmr, body: BodyModel, device: &Device) -> Predictor {
-        let layer = SmplxLayer::new(&body, device);
-        Predictor::with_layer(model, body, layer, device)
+        let model = model.valid().with_body(Arc::new(body));
+        Predictor {
+            layer: model.body_layer(device),
+            model,
+            device: device.clone(),
+        }
     }
 
     /// The model's config (the one it was built from).
     pub fn cfg(&self) -> &ModelConfig {
         &self.model.config
-    }
-
-    /// As [`Predictor::new`] with a body layer already built for `device`.
-    pub fn with_layer(
-        model: MvmpHmr,
-        body: BodyModel,
-        layer: SmplxLayer,
-        device: &Device,
-    ) -> Predictor {
-        Predictor {
-            model: model.valid(),
-            layer,
-            body,
-            device: device.clone(),
-        }
     }
 
     /// Detected roots only (the detection branch), per batch item, best first.
@@ -163,7 +155,7 @@ impl Predictor {
         letterboxes: &[Vec<Letterbox>],
     ) -> Vec<Vec<PersonPrediction>> {
         let grids = RigGrids::for_batch(self.cfg(), cameras, letterboxes, &self.device);
-        let out = self.model.forward(images, &grids, &self.layer, None);
+        let out = self.model.forward(images, &grids, None);
         let [b, k, nv, _] = out.vertices.dims();
         let nj = out.joints.dims()[2];
         let n = b * k;

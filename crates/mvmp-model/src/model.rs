@@ -8,6 +8,8 @@
 //!  -> decoder (queries, HTB, heads) -> 53 rotations, betas, expression, T_wld = root + offset
 //!  -> SMPL-X -> vertices [B, K, V, 3], joints [B, K, J, 3] (world metres)
 //! ```
+use std::sync::Arc;
+
 use burn::module::Module;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::tensor::module::avg_pool2d;
@@ -15,6 +17,7 @@ use burn::tensor::ops::AvgPoolOptions;
 use burn::tensor::{Bool, Device, Tensor, TensorData};
 
 use crate::ModelConfig;
+use crate::body::BodyLayers;
 use crate::facing::{FacingHead, facing_readout, turn_to_heading};
 use mvmp_backbone::vit::PATCH;
 use mvmp_backbone::{HRNet, ViT};
@@ -26,7 +29,7 @@ use mvmp_fusion::{
 use mvmp_geom::rotation::rot6d_to_matrix;
 use mvmp_geom::{Camera, Letterbox};
 use mvmp_smplx::names::{NUM_BETAS, NUM_BODY, NUM_EXPRESSION, NUM_REGRESSED};
-use mvmp_smplx::{SmplxLayer, Translation, regressed_to_full_pose};
+use mvmp_smplx::{BodyModel, SmplxLayer, Translation, regressed_to_full_pose};
 
 /// The trainable network.
 #[derive(Module, Debug)]
@@ -45,6 +48,10 @@ pub struct MvmpHmr {
     /// threshold and root placement from here (not saved with the weights).
     #[module(skip)]
     pub config: ModelConfig,
+    /// The body model the forward poses its people with ([`MvmpHmr::with_body`]; not saved with the
+    /// weights: `body_model` in the config names it).
+    #[module(skip)]
+    pub body: Option<BodyLayers>,
 }
 
 /// Sampling grids of one rig: for the ViT feature maps (stride 14) and the HRNet heatmaps (stride 4).
@@ -162,6 +169,7 @@ impl ModelConfig {
                 .facing
                 .then(|| FacingHead::new(self.hrnet_config().width, self.facing_bins, device)),
             config: self.clone(),
+            body: None,
         }
     }
 }
@@ -179,6 +187,21 @@ pub struct Detection {
 }
 
 impl MvmpHmr {
+    /// The network with the body model its forward poses people with.
+    pub fn with_body(mut self, body: Arc<BodyModel>) -> Self {
+        self.body = Some(BodyLayers::new(body));
+        self
+    }
+
+    /// The body layer on `device`. A network without a body model ([`MvmpHmr::with_body`]) cannot pose
+    /// people: only its detection branch runs.
+    pub fn body_layer(&self, device: &Device) -> Arc<SmplxLayer> {
+        self.body
+            .as_ref()
+            .expect("a body model to pose people with (MvmpHmr::with_body)")
+            .on(device)
+    }
+
     /// Per-view features for the volume: the ViT's patch tokens reduced to `feature_channels` by the 1x1
     /// `reduce` layer, `[B*V, 3, S, S]` -> `[B*V, Cf, h, w]`.
     ///
@@ -241,14 +264,13 @@ impl MvmpHmr {
         &self,
         images: Tensor<5>,
         grids: &[RigGrids],
-        layer: &SmplxLayer,
         roots: Option<(Tensor<3>, Tensor<2, Bool>)>,
     ) -> MvmpOutput {
         match roots {
-            Some(r) => self.forward_select(images, grids, layer, |_| r),
+            Some(r) => self.forward_select(images, grids, |_| r),
             None => {
                 let (k, device) = (self.config.max_people, images.device());
-                self.forward_select(images, grids, layer, |det| roots_tensor(det, k, &device))
+                self.forward_select(images, grids, |det| roots_tensor(det, k, &device))
             }
         }
     }
@@ -260,10 +282,9 @@ impl MvmpHmr {
         &self,
         images: Tensor<5>,
         grids: &[RigGrids],
-        layer: &SmplxLayer,
         select: impl FnOnce(&[Vec<Root>]) -> (Tensor<3>, Tensor<2, Bool>),
     ) -> MvmpOutput {
-        self.forward_posed(images, grids, layer, select, true)
+        self.forward_posed(images, grids, select, true)
     }
 
     /// [`MvmpHmr::forward_select`] whose vertices and joints are posed from body-pose rotations
@@ -273,11 +294,11 @@ impl MvmpHmr {
         &self,
         images: Tensor<5>,
         grids: &[RigGrids],
-        layer: &SmplxLayer,
         select: impl FnOnce(&[Vec<Root>]) -> (Tensor<3>, Tensor<2, Bool>),
         pose_grad: bool,
     ) -> MvmpOutput {
         let cfg = &self.config;
+        let layer = self.body_layer(&images.device());
         let [b, v, _, s, _] = images.dims();
         let x = images.clone().reshape([b * v, 3, s, s]);
         let feats = self.view_features(x); // [B*V, Cf, h, w]

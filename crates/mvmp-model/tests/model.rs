@@ -1,12 +1,13 @@
 //! The assembled model: every shipped config validates; forward shapes with detected and given roots;
 //! a loss on the outputs reaches every trainable parameter.
 use std::path::Path;
+use std::sync::Arc;
 
 use burn::module::{Module, ModuleVisitor, Param};
 use burn::tensor::{Bool, Device, Tensor, TensorData};
 use mvmp_geom::{Camera, Letterbox, VoxelGrid};
 use mvmp_model::{ModelConfig, RigGrids};
-use mvmp_smplx::{SmplxLayer, standin_model};
+use mvmp_smplx::standin_model;
 use nalgebra::{Matrix3, Vector3};
 
 fn configs_dir() -> std::path::PathBuf {
@@ -83,15 +84,14 @@ fn forward_shapes_with_detected_and_given_roots() {
 
 fn forward_shapes(cfg: ModelConfig) {
     let d = Device::flex();
-    let net = cfg.init(&d);
-    let layer = SmplxLayer::new(&standin_model(0), &d);
+    let net = cfg.init(&d).with_body(Arc::new(standin_model(0)));
     let cams = rig();
     let lbs: Vec<Letterbox> = cams
         .iter()
         .map(|c| Letterbox::new(c.width, c.height, 64).unwrap())
         .collect();
     let grids = vec![RigGrids::new(&cfg, &cams, &lbs, &d)];
-    let out = net.forward(images(&d), &grids, &layer, None);
+    let out = net.forward(images(&d), &grids, None);
     assert_eq!(out.heatmaps.dims(), [1, 2, 17, 16, 16]);
     assert_eq!(out.likelihood.dims(), [1, 1, 16, 16, 4]);
     assert_eq!(out.vertices.dims(), [1, 3, 10475, 3]);
@@ -102,7 +102,7 @@ fn forward_shapes(cfg: ModelConfig) {
         &d,
     );
     let present = Tensor::<2, Bool>::from_data(TensorData::new(vec![true, false], [1, 2]), &d);
-    let out = net.forward(images(&d), &grids, &layer, Some((roots, present)));
+    let out = net.forward(images(&d), &grids, Some((roots, present)));
     assert_eq!(out.rotmats.dims(), [1, 2, 53, 3, 3]);
     assert_eq!(out.transl.dims(), [1, 2, 3]);
 }
@@ -111,8 +111,7 @@ fn forward_shapes(cfg: ModelConfig) {
 fn a_loss_reaches_every_trainable_parameter() {
     let d = Device::flex().autodiff();
     let cfg = small_config();
-    let net = cfg.init(&d);
-    let layer = SmplxLayer::new(&standin_model(0), &d);
+    let net = cfg.init(&d).with_body(Arc::new(standin_model(0)));
     let cams = rig();
     let lbs: Vec<Letterbox> = cams
         .iter()
@@ -124,7 +123,7 @@ fn a_loss_reaches_every_trainable_parameter() {
         &d,
     );
     let present = Tensor::<2, Bool>::from_data(TensorData::new(vec![true, true], [1, 2]), &d);
-    let out = net.forward(images(&d), &grids, &layer, Some((roots, present)));
+    let out = net.forward(images(&d), &grids, Some((roots, present)));
     let facing = out.facing.expect("tiny.toml has a facing head");
     let loss = out.likelihood.powi_scalar(2).sum() * 1e3
         + facing.powi_scalar(2).sum()

@@ -126,6 +126,11 @@ pub struct StageConfig {
     /// (docs/architecture.md, Training).
     #[serde(default)]
     pub freeze_detection: bool,
+    /// Validate with, and end the run on, an exponential moving average of the weights over the stage's
+    /// steps, with this decay per step (0 = off, the paper). Training itself goes on from the raw weights;
+    /// the average is checkpointed beside them (docs/architecture.md, Weight averaging).
+    #[serde(default)]
+    pub average_decay: f64,
 }
 
 impl StageConfig {
@@ -355,6 +360,12 @@ impl TrainConfig {
                     format!("{}: must be within [0, 1]", s.final_lr_factor),
                 );
             }
+            if !(s.average_decay.is_finite() && (0.0..1.0).contains(&s.average_decay)) {
+                return Err((
+                    format!("{name}.average_decay"),
+                    format!("{}: must be 0 (off) or in (0, 1)", s.average_decay),
+                ));
+            }
             if !(s.grad_clip.is_finite() && s.grad_clip >= 0.0) {
                 return bad(
                     format!("{name}.grad_clip"),
@@ -513,6 +524,7 @@ mod tests {
             grad_clip: 0.0,
             freeze_backbone: false,
             freeze_detection: false,
+            average_decay: 0.0,
         }
     }
 

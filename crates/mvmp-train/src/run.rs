@@ -51,6 +51,12 @@ pub struct RunState {
     pub checkpoint_sha256: String,
     #[serde(default, skip_serializing_if = "String::is_empty")]
     pub optimizer_sha256: String,
+    /// The stage's weight average at the checkpoint (`average_decay`), relative to the run directory,
+    /// and its SHA-256.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub average: Option<String>,
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub average_sha256: String,
 }
 
 /// An open run directory.
@@ -139,6 +145,7 @@ impl RunDir {
         for (key, file) in [
             ("checkpoint", Some(&s.checkpoint)),
             ("optimizer", s.optimizer.as_ref()),
+            ("average", s.average.as_ref()),
         ] {
             let inside = file.is_some_and(|f| {
                 let f = Path::new(f);
@@ -183,6 +190,7 @@ impl RunDir {
         let files = [
             (Some(&s.checkpoint), &s.checkpoint_sha256),
             (s.optimizer.as_ref(), &s.optimizer_sha256),
+            (s.average.as_ref(), &s.average_sha256),
         ];
         for (file, sha) in files {
             let Some(file) = file.filter(|_| !sha.is_empty()) else {

@@ -15,7 +15,6 @@ use mvmp_losses::{
 };
 use mvmp_model::facing::{bin_labels, facing_readout, relative_heading};
 use mvmp_model::{Detection, ModelConfig, MvmpHmr, MvmpOutput, RigGrids, roots_tensor};
-use mvmp_smplx::SmplxLayer;
 use mvmp_smplx::names::{NUM_JOINTS, NUM_REGRESSED, REGRESSED_TO_JOINT};
 
 use crate::config::QueryMode;
@@ -520,7 +519,6 @@ impl<'a> Stage2<'a> {
 pub fn stage2_loss(
     model: &MvmpHmr,
     batch: &FrameBatch,
-    layer: &SmplxLayer,
     setup: &Stage2,
     device: &Device,
 ) -> StepLoss {
@@ -541,7 +539,7 @@ pub fn stage2_loss(
         roots_tensor(&roots, k, device)
     };
     let images = batch.images.clone();
-    let out = model.forward_posed(images, &grids, layer, select, weights.mesh_pose);
+    let out = model.forward_posed(images, &grids, select, weights.mesh_pose);
     let queries: usize = slots.iter().map(Vec::len).sum();
     let t = QueryTargets::new(batch, &slots, out.roots.dims()[1], device);
     let det = Detection {

@@ -23,6 +23,7 @@ use mvmp_model::{ModelConfig, MvmpHmr};
 use mvmp_smplx::{BodyModel, SmplxLayer};
 
 use crate::TrainError;
+use crate::average::WeightAverage;
 use crate::config::{Stage, StageConfig, TrainConfig};
 use crate::run::{RunDir, RunState, STATE_FORMAT, file_hash};
 use crate::step::{Stage2, StepLoss, stage1_loss, stage2_loss};
@@ -453,15 +454,16 @@ struct Trainer<'a> {
     plain: Device,
     ad: Device,
     body: Arc<BodyModel>,
-    /// The body layer of the stage-2 loss (autodiff device). Validation builds its own on the plain
-    /// device and drops it, so that it is not held through the training steps' peak.
-    layer: SmplxLayer,
     data: TrainingSet,
     batcher: FrameBatcher,
     val_source: Option<SourceSpec>,
     cursor: Cursor,
     /// The optimizer state to resume the current stage with.
     resume_optim: Option<PathBuf>,
+    /// The weight average to resume the current stage with.
+    resume_average: Option<PathBuf>,
+    /// The current stage's weight average, when it keeps one (`average_decay`).
+    average: Option<WeightAverage>,
     last_checkpoint: String,
 }
 
@@ -486,6 +488,7 @@ impl<'a> Trainer<'a> {
         };
         let mut last_checkpoint = String::from("none (no checkpoint was written yet)");
         let mut resume_optim = None;
+        let mut resume_average = None;
         if let Some(s) = &state {
             run.check_model_unchanged(s)?;
             run.check_checkpoint_files(s)?;
@@ -499,6 +502,7 @@ impl<'a> Trainer<'a> {
             };
             last_checkpoint = run.root.join(&s.checkpoint).display().to_string();
             resume_optim = s.optimizer.as_ref().map(|o| run.root.join(o));
+            resume_average = s.average.as_ref().map(|a| run.root.join(a));
         }
         let body = mvmp_data::layout::load_body_model(&model_cfg.body_model, &run.root)?;
         let mut data = open_training_set(cfg, model_cfg, &run.root.join("train.toml"))?;
@@ -507,8 +511,10 @@ impl<'a> Trainer<'a> {
         // Ground-truth meshes are posed with the body model of the (first) MVMP-HMR source; joint-annotated
         // people have none.
         let body = Arc::new(body);
-        let layer = SmplxLayer::new(&body, &ad);
-        let batcher = gt_batcher(&data, &body, &layer, model_cfg, &run.root)?;
+        // The model's layer poses the ground truth too. Validation's copy of the model builds its own on
+        // the plain device and drops it, so that it is not held through the training steps' peak.
+        model = model.with_body(body.clone());
+        let batcher = gt_batcher(&data, &body, &model.body_layer(&ad), model_cfg, &run.root)?;
         if let Some(s) = &state {
             check_cursor(run, cfg, s, data.total().div_ceil(cfg.batch_size))?;
         }
@@ -522,7 +528,6 @@ impl<'a> Trainer<'a> {
             cfg,
             opts,
             started,
-            layer,
             plain,
             ad,
             body,
@@ -531,6 +536,8 @@ impl<'a> Trainer<'a> {
             val_source: cfg.validation_source(),
             cursor,
             resume_optim,
+            resume_average,
+            average: None,
             last_checkpoint,
         };
         Ok((trainer, model))
@@ -554,6 +561,7 @@ impl<'a> Trainer<'a> {
                     ..self.cursor
                 };
                 self.resume_optim = None;
+                self.resume_average = None;
             }
             let out;
             (model, out) = self.run_stage(model, mon)?;
@@ -562,7 +570,7 @@ impl<'a> Trainer<'a> {
             }
         }
         let fin = self.run.root.join("model.bpk");
-        mvmp_io::checkpoint::save(&model, &fin)?;
+        mvmp_io::checkpoint::save(&self.averaged(&model), &fin)?;
         let mut s = self
             .run
             .state()?
@@ -581,6 +589,9 @@ impl<'a> Trainer<'a> {
     ) -> Result<(MvmpHmr, Option<Outcome>), TrainError> {
         let stage = self.cursor.stage;
         let sc = self.cfg.stage(stage).clone();
+        // Before the check below: a run stopped between its last checkpoint and its final weights ends
+        // on the saved average.
+        self.average = self.start_average(&model, &sc)?;
         if self.cursor.epoch >= sc.epochs {
             return Ok((model, None));
         }
@@ -622,6 +633,35 @@ impl<'a> Trainer<'a> {
                 .load(&p)
                 .map_err(|e| TrainError::file(&p, format!("optimizer state: {e}"))),
             None => Ok(optim),
+        }
+    }
+
+    /// The stage's weight average: resumed from its checkpoint, or started at the current weights.
+    fn start_average(
+        &mut self,
+        model: &MvmpHmr,
+        sc: &StageConfig,
+    ) -> Result<Option<WeightAverage>, TrainError> {
+        let saved = self.resume_average.take();
+        if sc.average_decay == 0.0 {
+            return Ok(None);
+        }
+        let done = self.cursor.epoch * self.steps_per_epoch() + self.cursor.step_in_epoch;
+        // A stage resumed without a saved average (a config that did not keep one) starts it here.
+        let Some(p) = saved else {
+            return Ok(Some(WeightAverage::start(model, sc.average_decay, done)));
+        };
+        let mut weights = model.valid();
+        load_weights(&mut weights, &p)?;
+        Ok(Some(WeightAverage::start(&weights, sc.average_decay, done)))
+    }
+
+    /// The weights to validate and finish with: the average when the stage keeps one (a plain-device
+    /// copy, so that the training model's running statistics are left alone), else the model's own.
+    fn averaged(&self, model: &MvmpHmr) -> MvmpHmr {
+        match &self.average {
+            Some(a) => a.apply(model.valid()),
+            None => model.clone(),
         }
     }
 
@@ -692,7 +732,7 @@ impl<'a> Trainer<'a> {
                     queries: cfg.queries,
                     gate: cfg.match_gate,
                 };
-                stage2_loss(model, &batch, &self.layer, &setup, ad)
+                stage2_loss(model, &batch, &setup, ad)
             }
         };
         if cfg.term_gradients && bi == 0 {
@@ -721,6 +761,10 @@ impl<'a> Trainer<'a> {
         let clip = clip_factor(&grad_norm, sc.grad_clip);
         let model = apply_gradients(model, optim, grads, &rates, clip);
         clock.lap("optimizer");
+        if let Some(a) = &mut self.average {
+            a.update(&model);
+            clock.lap("average");
+        }
         self.cursor.global += 1;
         self.cursor.step_in_epoch = bi + 1;
         let rec = StepRecord {
@@ -783,7 +827,14 @@ impl<'a> Trainer<'a> {
             ..
         } = self.cursor;
         let metrics = match &self.val_source {
-            Some(src) => validate(model, self.cfg, &self.body, src, stage, &self.plain)?,
+            Some(src) => validate(
+                &self.averaged(model),
+                self.cfg,
+                &self.body,
+                src,
+                stage,
+                &self.plain,
+            )?,
             None => Vec::new(),
         };
         let val = ValRecord {
@@ -832,6 +883,14 @@ impl<'a> Trainer<'a> {
                 .save(tmp)
                 .map_err(|e| TrainError::file(&opt, e.to_string()))
         })?;
+        let average = match &self.average {
+            Some(a) => {
+                let p = dir.join(format!("average-{name}.bpk"));
+                mvmp_io::checkpoint::save(&a.apply(model.valid()), &p)?;
+                Some(p)
+            }
+            None => None,
+        };
         let c = self.cursor;
         self.run.write_state(&RunState {
             format: STATE_FORMAT.into(),
@@ -846,8 +905,16 @@ impl<'a> Trainer<'a> {
             model_sha256: file_hash(&self.run.model_config_path())?,
             checkpoint_sha256: file_hash(&weights)?,
             optimizer_sha256: file_hash(&opt)?,
+            average: average
+                .as_ref()
+                .map(|_| format!("checkpoints/average-{name}.bpk")),
+            average_sha256: match &average {
+                Some(p) => file_hash(p)?,
+                None => String::new(),
+            },
         })?;
-        prune_checkpoints(&dir, &weights, &opt, self.cfg.keep_checkpoints)?;
+        let newest = [opt.as_path(), average.as_deref().unwrap_or(&opt)];
+        prune_checkpoints(&dir, &weights, &newest, self.cfg.keep_checkpoints)?;
         Ok(weights)
     }
 }
@@ -877,7 +944,6 @@ impl PhaseClock {
     }
 }
 
-/// Only the newest optimizer state is needed; model weights: the newest `keep` (never `weights`).
 /// The factor that brings the global gradient norm (over the modules' norms) down to `clip`; `None`
 /// when it is within it or clipping is off (0).
 fn clip_factor(norms: &[(&'static str, f32)], clip: f32) -> Option<f32> {
@@ -885,7 +951,6 @@ fn clip_factor(norms: &[(&'static str, f32)], clip: f32) -> Option<f32> {
     (clip > 0.0 && global > clip).then(|| clip / global)
 }
 
-/// Multiplies every gradient of `module`'s parameters in `grads` by `factor`.
 /// A step's learning rates: the stage's, and the decoder's and detection's when they have their own.
 struct Rates {
     lr: f64,
@@ -936,6 +1001,7 @@ fn detection_grads(grads: &mut Gradients, model: &MvmpHmr) -> Vec<GradientsParam
     out
 }
 
+/// Multiplies every gradient of `module`'s parameters in `grads` by `factor`.
 fn scale_gradients<M: Module>(module: &M, grads: &mut GradientsParams, factor: f32) {
     struct Scale<'a> {
         grads: &'a mut GradientsParams,
@@ -951,10 +1017,12 @@ fn scale_gradients<M: Module>(module: &M, grads: &mut GradientsParams, factor: f
     module.visit(&mut Scale { grads, factor });
 }
 
+/// Only the newest optimizer state and weight average (`newest`) are kept, as a resume reads no other;
+/// model weights: the newest `keep` (never `weights`).
 fn prune_checkpoints(
     dir: &Path,
     weights: &Path,
-    opt: &Path,
+    newest: &[&Path],
     keep: usize,
 ) -> Result<(), TrainError> {
     let mut models = Vec::new();
@@ -965,7 +1033,8 @@ fn prune_checkpoints(
             .and_then(|f| f.to_str())
             .unwrap_or("")
             .to_string();
-        if f.starts_with("optim-") && p != opt {
+        let state = f.starts_with("optim-") || f.starts_with("average-");
+        if state && !newest.contains(&p.as_path()) {
             std::fs::remove_file(&p).map_err(|e| TrainError::io(&p, e))?;
         } else if f.starts_with("step") && f.ends_with(".bpk") {
             models.push(p);

@@ -193,19 +193,13 @@ fn a_few_steps_on_one_batch_lower_the_loss() {
     let ds =
         FrameDataset::open(dataset(), Split::Train, ViewChoice::Fixed(vec![0, 1]), 64).unwrap();
     let body = ds.layout().body_model().unwrap();
-    let layer = SmplxLayer::new(&body, &ad);
+    model = model.with_body(Arc::new(body.clone()));
     let batch = FrameBatcher::with_vertices(body).batch(vec![ds.load(0).unwrap()], &ad);
     let weights = mvmp_losses::LossWeights::default();
     let mut optim = AdamConfig::new().init();
     let mut totals = Vec::new();
     for _ in 0..8 {
-        let l = stage2_loss(
-            &model,
-            &batch,
-            &layer,
-            &Stage2::at_true_roots(&weights),
-            &ad,
-        );
+        let l = stage2_loss(&model, &batch, &Stage2::at_true_roots(&weights), &ad);
         assert_eq!(l.queries, batch.counts[0]);
         totals.push(l.total.clone().into_scalar::<f32>());
         let g = GradientsParams::from_grads(l.total.backward(), &model);
@@ -387,6 +381,70 @@ fn an_interrupted_run_resumes_to_the_same_weights_and_log() {
     );
 }
 
+/// With `average_decay`, stage 2 ends on the average of its weights, not on the last step's, and a run
+/// interrupted in the middle of the stage resumes to the same average.
+#[test]
+fn a_weight_average_ends_the_run_and_survives_a_resume() {
+    let dir = tempfile::tempdir().unwrap();
+    let avg = |s: String| s.replace("[stage2]\n", "[stage2]\naverage_decay = 0.5\n");
+    let (run_a, cfg, model) = new_run(dir.path(), "a", &avg);
+    assert_eq!(cfg.stage2.average_decay, 0.5);
+    let out = mvmp_train::train(&run_a, &cfg, &model, &options(None), &mut Quiet).unwrap();
+    assert_eq!(out, Outcome::Finished);
+    // Stopped after two of stage 2's four steps, then resumed.
+    let (run_b, cfg_b, model_b) = new_run(dir.path(), "b", &avg);
+    let out = mvmp_train::train(&run_b, &cfg_b, &model_b, &options(Some(6)), &mut Quiet).unwrap();
+    assert!(matches!(out, Outcome::Interrupted { .. }), "{out:?}");
+    let s = run_b.state().unwrap().unwrap();
+    let saved = run_b
+        .root
+        .join(s.average.as_deref().expect("an average in the state"));
+    assert!(saved.exists(), "{}", saved.display());
+    let (run_b, cfg_b, model_b) = RunDir::open(&run_b.root).unwrap();
+    let out = mvmp_train::train(&run_b, &cfg_b, &model_b, &options(None), &mut Quiet).unwrap();
+    assert_eq!(out, Outcome::Finished);
+    let (wa, wb) = (load(&run_a.root, &model), load(&run_b.root, &model));
+    let max = wa
+        .iter()
+        .zip(&wb)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0f32, f32::max);
+    assert!(max <= 1e-6, "resumed averages differ by up to {max}");
+    // The final weights are not the last step's.
+    let ckpts = run_a.root.join("checkpoints");
+    let last = ckpts.join("step0000008-stage2-epoch001.bpk");
+    let mut raw = mvmp_train::seeded_init(&model, &Device::flex(), 0);
+    load_weights(&mut raw, &last).unwrap();
+    let gap = weights(&raw)
+        .iter()
+        .zip(&wa)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0f32, f32::max);
+    assert!(gap > 1e-6, "the final weights are the last step's");
+    // One average beside the newest weights; the step's time names its share.
+    let names: Vec<String> = std::fs::read_dir(&ckpts)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    let averages: Vec<&String> = names.iter().filter(|n| n.starts_with("average-")).collect();
+    assert_eq!(
+        averages,
+        ["average-step0000008-stage2-epoch001.bpk"],
+        "{names:?}"
+    );
+    let log = std::fs::read_to_string(run_a.metrics_path()).unwrap();
+    let last_step = log
+        .lines()
+        .rev()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+        .find(|v| v["kind"] == "step")
+        .unwrap();
+    assert!(
+        last_step["phase_seconds"]["average"].as_f64().is_some(),
+        "{last_step}"
+    );
+}
+
 /// With `term_gradients`, each epoch's first step logs every term's module gradient norms: the 2D heatmap
 /// loss reaches HRNet but not the RootNet, the parameter loss the decoder but not the RootNet (roots are
 /// detached), the detection loss the RootNet but not the decoder.
@@ -542,6 +600,14 @@ fn bad_configs_name_the_key() {
         (
             ("[stage2]\n", "[stage2]\ndetection_lr = -1.0\n"),
             "stage2.detection_lr",
+        ),
+        (
+            ("[stage2]\n", "[stage2]\naverage_decay = 1.0\n"),
+            "stage2.average_decay",
+        ),
+        (
+            ("[stage2]\n", "[stage2]\naverage_decay = nan\n"),
+            "stage2.average_decay",
         ),
         (
             (
@@ -1136,7 +1202,6 @@ struct TwoKinds {
     _root: tempfile::TempDir,
     ad: Device,
     model: MvmpHmr,
-    layer: SmplxLayer,
     batcher: FrameBatcher,
     smplx: FrameDataset,
     joints: mvmp_data::sources::JointFrameDataset,
@@ -1160,10 +1225,9 @@ fn two_kinds() -> TwoKinds {
     let body = smplx.layout().body_model().unwrap();
     TwoKinds {
         _root: root,
-        layer: SmplxLayer::new(&body, &ad),
+        model: model.with_body(Arc::new(body.clone())),
         batcher: FrameBatcher::with_vertices(body),
         ad,
-        model,
         smplx,
         joints,
     }
@@ -1175,14 +1239,13 @@ fn joint_annotated_people_get_joint_losses_only() {
         _root,
         ad,
         model,
-        layer,
         batcher,
         smplx: ds,
         joints: pan,
     } = two_kinds();
     let weights = mvmp_losses::LossWeights::default();
     let terms = |batch: &mvmp_data::loader::FrameBatch| {
-        let l = stage2_loss(&model, batch, &layer, &Stage2::at_true_roots(&weights), &ad);
+        let l = stage2_loss(&model, batch, &Stage2::at_true_roots(&weights), &ad);
         let t = term_values(&l);
         (l, t)
     };
@@ -1548,14 +1611,14 @@ fn pseudo_ground_truth_fits_become_smplx_targets() {
     // A batch of such a frame has vertices and every SMPL-X term of stage 2.
     let ad = Device::flex().autodiff();
     let mcfg = model_config();
-    let net = mvmp_train::seeded_init(&mcfg, &ad, 2);
+    let net =
+        mvmp_train::seeded_init(&mcfg, &ad, 2).with_body(Arc::new(mvmp_smplx::standin_model(0)));
     let batch = FrameBatcher::with_vertices(mvmp_smplx::standin_model(0))
         .batch(vec![part.load(0).unwrap()], &ad);
     assert!(batch.vertices.is_some());
     let l = stage2_loss(
         &net,
         &batch,
-        &SmplxLayer::new(&mvmp_smplx::standin_model(0), &ad),
         &Stage2::at_true_roots(&mvmp_losses::LossWeights::default()),
         &ad,
     );
@@ -1638,13 +1701,13 @@ fn a_torn_log_line_and_stale_temporaries_do_not_stop_a_resume() {
 #[test]
 fn body_frame_mesh_terms_run_on_smplx_and_joint_people() {
     let k = two_kinds();
-    let (ad, model, layer) = (&k.ad, &k.model, &k.layer);
+    let (ad, model) = (&k.ad, &k.model);
     let batch = k.batcher.batch(
         vec![k.smplx.load(0).unwrap(), k.joints.load(0).unwrap()],
         ad,
     );
     let terms = |weights: &mvmp_losses::LossWeights| {
-        let l = stage2_loss(model, &batch, layer, &Stage2::at_true_roots(weights), ad);
+        let l = stage2_loss(model, &batch, &Stage2::at_true_roots(weights), ad);
         let t = term_values(&l);
         (l, t)
     };
@@ -1795,7 +1858,7 @@ fn stage_two_can_train_detection_at_its_own_rate() {
 #[test]
 fn mesh_terms_can_leave_the_body_pose_to_the_parameter_term() {
     let k = two_kinds();
-    let (ad, model, layer) = (&k.ad, &k.model, &k.layer);
+    let (ad, model) = (&k.ad, &k.model);
     let batch = k.batcher.batch(vec![k.smplx.load(0).unwrap()], ad);
     // The rotation head's output columns: 6 for the global rotation, then 6 per body joint.
     let columns = |mesh_pose: bool| {
@@ -1805,7 +1868,7 @@ fn mesh_terms_can_leave_the_body_pose_to_the_parameter_term() {
             mesh_pose,
             ..Default::default()
         };
-        let l = stage2_loss(model, &batch, layer, &Stage2::at_true_roots(&weights), ad);
+        let l = stage2_loss(model, &batch, &Stage2::at_true_roots(&weights), ad);
         let g = model
             .decoder
             .rot_head
