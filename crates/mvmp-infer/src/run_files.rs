@@ -1,6 +1,7 @@
 //! The files of a run directory that inference reads (training writes them; see `mvmp_train::run`):
 //! `train.toml` marks the directory as a run, `model.toml` is the resolved model config, and the weights
-//! are `model.bpk` once training finished, else the checkpoint `state.json` names.
+//! are `model.bpk` once training finished, else those of the checkpoint `state.json` names (its weight
+//! average when the stage keeps one: what validation scored).
 use std::path::{Path, PathBuf};
 
 use mvmp_model::ModelConfig;
@@ -32,7 +33,8 @@ pub fn model_config(root: &Path) -> Result<ModelConfig, InferError> {
     Ok(ModelConfig::read(&root.join(MODEL_CONFIG))?)
 }
 
-/// The checkpoint `state.json` names (relative to the run), if the run has a state yet.
+/// The weights of the checkpoint `state.json` names (relative to the run): its weight average when it has
+/// one, else the checkpoint itself; `None` if the run has no state yet.
 pub fn state_checkpoint(root: &Path) -> Result<Option<String>, InferError> {
     let path = root.join(STATE);
     if !path.exists() {
@@ -49,13 +51,16 @@ pub fn state_checkpoint(root: &Path) -> Result<Option<String>, InferError> {
             format!("format {format:?} version {version:?}: expected {STATE_FORMAT:?} version 1"),
         ));
     }
+    if let Some(a) = v.get("average").and_then(|a| a.as_str()) {
+        return Ok(Some(a.to_string()));
+    }
     match v.get("checkpoint").and_then(|c| c.as_str()) {
         Some(c) => Ok(Some(c.to_string())),
         None => Err(InferError::file(&path, "key `checkpoint` is missing")),
     }
 }
 
-/// The weights to predict with: the final weights, else the newest checkpoint.
+/// The weights to predict with: the final weights, else the newest checkpoint's ([`state_checkpoint`]).
 pub fn weights(root: &Path) -> Result<PathBuf, InferError> {
     let fin = root.join(FINAL_WEIGHTS);
     if fin.exists() {

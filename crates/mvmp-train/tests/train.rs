@@ -400,6 +400,8 @@ fn a_weight_average_ends_the_run_and_survives_a_resume() {
         .root
         .join(s.average.as_deref().expect("an average in the state"));
     assert!(saved.exists(), "{}", saved.display());
+    // An unfinished run is evaluated and used with the average, as its validation was.
+    assert_eq!(run_b.weights().unwrap(), saved);
     let (run_b, cfg_b, model_b) = RunDir::open(&run_b.root).unwrap();
     let out = mvmp_train::train(&run_b, &cfg_b, &model_b, &options(None), &mut Quiet).unwrap();
     assert_eq!(out, Outcome::Finished);
