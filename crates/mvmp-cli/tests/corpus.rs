@@ -316,6 +316,7 @@ lr = 1e-3
 warmup_steps = 2
 final_lr_factor = 0.1
 grad_clip = 1.0
+average_decay = 0.9
 [stage2]
 epochs = 1
 lr = 1e-3
@@ -323,6 +324,7 @@ decoder_lr = 1e-4
 warmup_steps = 2
 final_lr_factor = 0.1
 grad_clip = 1.0
+average_decay = 0.9
 [loss]
 detection = 1.0
 parameters = 10.0
@@ -1117,19 +1119,12 @@ fn no_malformed_image_rig_run_or_flag_gets_through() {
     }
     std::fs::write(&rig, rig_text).unwrap();
 
-    // The run's model weights (not the optimizer's, which eval does not read), broken; then its state through `train --resume` (on a copy each time, so that
-    // an accepted case cannot change the run the next one reads).
-    let weights: Vec<PathBuf> = std::fs::read_dir(run.join("checkpoints"))
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .filter(|p| p.extension().is_some_and(|x| x == "bpk"))
-        .filter(|p| {
-            !p.file_name()
-                .unwrap()
-                .to_string_lossy()
-                .starts_with("optim")
-        })
-        .collect();
+    // The weights eval reads (the newest checkpoint's average: the run stopped in a stage that keeps
+    // one), broken; then its state through `train --resume` (on a copy each time, so that an accepted
+    // case cannot change the run the next one reads).
+    let state: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("state.json")).unwrap()).unwrap();
+    let weights = vec![run.join(state["average"].as_str().expect("an average in state.json"))];
     assert!(!weights.is_empty());
     for w in &weights {
         let good = std::fs::read(w).unwrap();
@@ -1182,9 +1177,9 @@ fn no_malformed_image_rig_run_or_flag_gets_through() {
         check(&case.args, &what, &names, None);
         std::fs::remove_dir_all(&copy).unwrap();
     }
-    // The checkpoint and optimizer files state.json names, damaged after they were written (64 bytes
-    // flipped in the middle; such weights once resumed without a word).
-    for key in ["checkpoint", "optimizer"] {
+    // The checkpoint, optimizer and weight-average files state.json names, damaged after they were
+    // written (64 bytes flipped in the middle; such weights once resumed without a word).
+    for key in ["checkpoint", "optimizer", "average"] {
         copy_dir(&run, &copy);
         let state: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(copy.join("state.json")).unwrap())
