@@ -1,5 +1,6 @@
 //! The training loop: stage 1 (HRNet + RootNet), then stage 2 (the whole model), with checkpoints every
 //! epoch and on interruption, validation every epoch, exact resume and a stop on non-finite losses.
+use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -570,7 +571,7 @@ impl<'a> Trainer<'a> {
             }
         }
         let fin = self.run.root.join("model.bpk");
-        mvmp_io::checkpoint::save(&self.averaged(&model), &fin)?;
+        mvmp_io::checkpoint::save(self.averaged(&model).as_ref(), &fin)?;
         let mut s = self
             .run
             .state()?
@@ -658,10 +659,10 @@ impl<'a> Trainer<'a> {
 
     /// The weights to validate and finish with: the average when the stage keeps one (a plain-device
     /// copy, so that the training model's running statistics are left alone), else the model's own.
-    fn averaged(&self, model: &MvmpHmr) -> MvmpHmr {
+    fn averaged<'m>(&self, model: &'m MvmpHmr) -> Cow<'m, MvmpHmr> {
         match &self.average {
-            Some(a) => a.apply(model.valid()),
-            None => model.clone(),
+            Some(a) => Cow::Owned(a.apply(model.valid())),
+            None => Cow::Borrowed(model),
         }
     }
 
@@ -828,7 +829,7 @@ impl<'a> Trainer<'a> {
         } = self.cursor;
         let metrics = match &self.val_source {
             Some(src) => validate(
-                &self.averaged(model),
+                self.averaged(model).as_ref(),
                 self.cfg,
                 &self.body,
                 src,
@@ -883,10 +884,10 @@ impl<'a> Trainer<'a> {
                 .save(tmp)
                 .map_err(|e| TrainError::file(&opt, e.to_string()))
         })?;
-        let average = match &self.average {
-            Some(a) => {
+        let average = match self.average {
+            Some(_) => {
                 let p = dir.join(format!("average-{name}.bpk"));
-                mvmp_io::checkpoint::save(&a.apply(model.valid()), &p)?;
+                mvmp_io::checkpoint::save(self.averaged(model).as_ref(), &p)?;
                 Some(p)
             }
             None => None,
