@@ -5,7 +5,8 @@ use std::path::Path;
 
 use burn::data::dataset::Dataset;
 use criterion::{Criterion, criterion_group, criterion_main};
-use mvmp::data::loader::{FrameDataset, Split, ViewChoice};
+use mvmp::data::dataset::FrameDataset;
+use mvmp::data::loader::{Split, ViewChoice};
 use mvmp::data::synth::render::{Scenery, face_parts, render_view};
 use mvmp::data::synth::scene::{Poser, place_people};
 use mvmp::data::synth::{SynthConfig, generate, look_at};

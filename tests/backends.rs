@@ -13,7 +13,8 @@ use std::path::Path;
 use burn::data::dataloader::batcher::Batcher;
 use burn::module::{Module, ModuleVisitor, Param};
 use burn::tensor::{Bool, Device, Gradients, Tensor, TensorData};
-use mvmp::data::loader::{FrameBatcher, FrameDataset, Split, ViewChoice};
+use mvmp::data::dataset::FrameDataset;
+use mvmp::data::loader::{FrameBatcher, Split, ViewChoice};
 use mvmp::data::synth::{SynthConfig, generate};
 use mvmp::decoder::{DecoderConfig, DecoderOptions};
 use mvmp::fusion::pool::nms3d;
@@ -475,7 +476,7 @@ fn model_and_training_step(other: &Device, r: &mut Report) {
     let data = dataset(dir.path());
     let cfg = small_model_config();
     let ds = FrameDataset::open(&data, Split::Train, ViewChoice::Fixed(vec![0, 1]), 64).unwrap();
-    let body = ds.layout().body_model().unwrap();
+    let body = ds.layout().unwrap().body_model().unwrap();
     let sample = ds.load(0).unwrap();
     let flex = Device::flex();
     let model = mvmp::train::seeded_init(&cfg, &flex.clone().autodiff(), 4)

@@ -454,7 +454,7 @@ fn load_images(paths: &[PathBuf], cams: &[Camera]) -> Result<Vec<image::RgbImage
             );
         }
     }
-    Ok(mvmp_data::sources::read_frame_images(paths, cams)?)
+    Ok(mvmp_data::dataset::read_frame_images(paths, cams)?)
 }
 
 /// Infer one frame; returns the number of people.
@@ -786,7 +786,7 @@ type OpenSequences =
         &[String],
         &[&str],
         usize,
-    ) -> Result<Vec<Box<dyn mvmp_data::sources::JointAnnotated>>, mvmp_data::DataError>;
+    ) -> Result<Vec<Box<dyn mvmp_data::sequence::Sequence>>, mvmp_data::DataError>;
 
 /// A joint-annotated dataset as `mvmp eval` reads it in place: which sequences, cameras and joints, and
 /// how the report names them.

@@ -215,13 +215,7 @@ impl Annotation {
     /// The people hold `n` joints, what the body model `body_model` outputs (losses and metrics index them
     /// by its layout); `validate` has checked that every person holds as many as the first.
     pub fn check_joints(&self, n: usize, body_model: &str) -> Result<(), String> {
-        match self.people.first() {
-            Some(p) if p.joints_3d.len() != n => Err(format!(
-                "people[0].joints_3d has {} joints, the body model `{body_model}` outputs {n}",
-                p.joints_3d.len()
-            )),
-            _ => Ok(()),
-        }
+        crate::dataset::check_joints(&self.people, n, body_model)
     }
 
     /// Consistency of counts and values; errors name the key path and the value.

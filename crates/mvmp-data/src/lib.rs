@@ -3,6 +3,7 @@
 pub mod augment;
 pub mod cdf_pose;
 pub mod check;
+pub mod dataset;
 pub mod error;
 pub mod fixtures;
 pub mod h36m;
@@ -10,6 +11,7 @@ pub mod layout;
 pub mod loader;
 pub mod mean;
 pub mod panoptic;
+pub mod sequence;
 pub mod sources;
 pub mod stats;
 pub mod synth;

@@ -1,17 +1,16 @@
-//! Reading an MVMP-HMR-layout dataset for training: a burn `Dataset` over frames, view selection,
-//! letterboxed and normalised images, ground-truth tensors, splits by scene and a padding batcher.
-use std::path::Path;
+//! What a frame dataset ([`crate::dataset`]) serves and how it is batched: samples, view selection,
+//! letterboxed and normalised images, splits of an MVMP-HMR dataset by scene, and the padding batcher that
+//! makes ground-truth tensors.
 use std::sync::Arc;
 
 use burn::data::dataloader::batcher::Batcher;
-use burn::data::dataset::{Dataset, DatasetError};
 use burn::tensor::{Bool, Device, Tensor, TensorData};
 use nalgebra::{Vector2, Vector3};
 
 use crate::DataError;
-use crate::layout::{Annotation, DatasetLayout, FrameRef, Person};
-use mvmp_geom::{Camera, Letterbox, Rig};
-use mvmp_smplx::names::{NUM_BETAS, NUM_EXPRESSION, NUM_JOINTS, NUM_JOINTS_WITH_LANDMARKS};
+use crate::layout::{Annotation, DatasetLayout, FrameRef};
+use mvmp_geom::{Camera, Letterbox};
+use mvmp_smplx::names::{NUM_BETAS, NUM_EXPRESSION, NUM_JOINTS};
 
 /// ImageNet normalisation (RGB).
 pub const IMAGENET_MEAN: [f32; 3] = [0.485, 0.456, 0.406];
@@ -23,7 +22,7 @@ pub enum ViewChoice {
     /// These camera indices, in this order.
     Fixed(Vec<usize>),
     /// `count` views drawn at random per sample (training); the draw depends on `seed`, the epoch set with
-    /// [`FrameDataset::set_epoch`] and the sample index only.
+    /// [`crate::dataset::FrameDataset::set_epoch`] and the sample index only.
     Random { count: usize, seed: u64 },
 }
 
@@ -157,196 +156,6 @@ pub struct FrameSample {
     pub cover: Vec<bool>,
 }
 
-/// A burn dataset over the frames of some scenes.
-pub struct FrameDataset {
-    layout: Arc<DatasetLayout>,
-    frames: Vec<FrameRef>,
-    views: ViewChoice,
-    size: u32,
-    epoch: std::sync::atomic::AtomicU64,
-    /// The joints per person every annotation must hold (the body layer's output) and that layer's body
-    /// model, once known.
-    joints: Option<(usize, String)>,
-}
-
-impl FrameDataset {
-    /// Frames of a split, with images letterboxed to `size`.
-    pub fn open(
-        root: &Path,
-        split: Split,
-        views: ViewChoice,
-        size: u32,
-    ) -> Result<Self, DataError> {
-        let layout = DatasetLayout::open(root)?;
-        let frames = split_frames(&layout, split)?;
-        let min_views = layout.scenes.iter().map(|s| s.rig.len()).min().unwrap_or(0);
-        match &views {
-            ViewChoice::Fixed(v) => {
-                if let Some(&bad) = v.iter().find(|&&i| i >= min_views) {
-                    let scene = layout.scenes.iter().find(|s| s.rig.len() <= bad);
-                    let name = scene.map_or(String::new(), |s| format!(" ({})", s.name));
-                    return Err(DataError::file(
-                        root,
-                        format!(
-                            "{} views requested (camera index {bad}), but a scene{name} has only \
-                             {min_views} cameras",
-                            bad + 1
-                        ),
-                    ));
-                }
-            }
-            ViewChoice::Random { count, .. } => {
-                if *count == 0 || *count > min_views {
-                    return Err(DataError::file(
-                        root,
-                        format!("{count} random views requested, scenes have {min_views} cameras"),
-                    ));
-                }
-            }
-        }
-        if size < 14 {
-            return Err(DataError::file(
-                root,
-                format!("input size {size} is too small"),
-            ));
-        }
-        Ok(FrameDataset {
-            layout: Arc::new(layout),
-            frames,
-            views,
-            size,
-            epoch: Default::default(),
-            joints: None,
-        })
-    }
-
-    /// From now on a frame whose people hold another number of joints than `n` (what the body layer that
-    /// consumes them outputs) is an error naming the file, instead of a mismatch deep in a loss or metric.
-    pub fn expect_joints(&mut self, n: usize, body_model: &str) {
-        self.joints = Some((n, body_model.to_string()));
-    }
-
-    pub fn layout(&self) -> &DatasetLayout {
-        &self.layout
-    }
-
-    pub fn frames(&self) -> &[FrameRef] {
-        &self.frames
-    }
-
-    /// Set the epoch that seeds random view choices.
-    pub fn set_epoch(&self, epoch: u64) {
-        self.epoch
-            .store(epoch, std::sync::atomic::Ordering::Relaxed);
-    }
-
-    fn select_views(&self, index: usize, available: usize) -> Vec<usize> {
-        let epoch = self.epoch.load(std::sync::atomic::Ordering::Relaxed);
-        select_views(&self.views, epoch, index, available)
-    }
-
-    /// The chosen views of frame `f`: its images letterboxed and normalised `[V][3][S][S]`, their
-    /// cameras and letterboxes. An image whose size is not its camera's is an error naming both.
-    fn load_views(
-        &self,
-        f: &FrameRef,
-        rig: &Rig,
-        ann: &Annotation,
-        views: &[usize],
-    ) -> Result<LoadedViews, DataError> {
-        let cameras: Vec<Camera> = views.iter().map(|&v| rig.cameras[v].clone()).collect();
-        let imgs = (views.iter().zip(&cameras))
-            .map(|(&v, cam)| crate::check::read_view_image(&f.dir.join(&ann.images[v]), cam))
-            .collect::<Result<Vec<_>, _>>()?;
-        let (images, letterboxes) = letterbox_views(&imgs, &cameras, self.size)?;
-        Ok((images, cameras, letterboxes))
-    }
-
-    /// Load sample `index`.
-    pub fn load(&self, index: usize) -> Result<FrameSample, DataError> {
-        self.load_with_draw(index, index)
-    }
-
-    /// Frame `index` with the views of draw number `draw` (a frame drawn repeatedly in an epoch gets a
-    /// view draw per repeat).
-    pub fn load_with_draw(&self, index: usize, draw: usize) -> Result<FrameSample, DataError> {
-        let f = &self.frames[index];
-        let scene = &self.layout.scenes[f.scene];
-        let apath = f.dir.join("annotation.json");
-        let ann = Annotation::read(&apath, scene.rig.len())?;
-        if let Some((n, body)) = &self.joints {
-            ann.check_joints(*n, body)
-                .map_err(|what| DataError::file(&apath, what))?;
-        }
-        let views = self.select_views(draw, scene.rig.len());
-        let s = self.size as usize;
-        let (images, cameras, letterboxes) = self.load_views(f, &scene.rig, &ann, &views)?;
-        let people: Vec<PersonGt> = ann
-            .people
-            .iter()
-            .map(|p| person_gt(p, &views, &letterboxes))
-            .collect();
-        Ok(FrameSample {
-            scene: f.scene_name.clone(),
-            frame: f.frame_name.clone(),
-            images,
-            size: s,
-            cameras,
-            letterboxes,
-            cover: vec![
-                true;
-                people
-                    .first()
-                    .map_or(NUM_JOINTS_WITH_LANDMARKS, |p| p.joints_3d.len())
-            ],
-            people,
-        })
-    }
-}
-
-/// A frame's chosen views: images `[V][3][S][S]`, cameras, letterboxes.
-type LoadedViews = (Vec<f32>, Vec<Camera>, Vec<Letterbox>);
-
-/// One person's ground truth for the chosen views: parameters as float32 (the full pose, 10 betas, 10
-/// expression values), pelvis, 3D joints, and each view's 2D joints in letterboxed pixels.
-fn person_gt(p: &Person, views: &[usize], letterboxes: &[Letterbox]) -> PersonGt {
-    let joints_2d = views
-        .iter()
-        .zip(letterboxes)
-        .map(|(&v, lb)| {
-            p.views[v]
-                .joints_2d
-                .iter()
-                .map(|j| {
-                    let q = lb.apply(Vector2::new(j[0], j[1]));
-                    [q.x as f32, q.y as f32, j[2] as f32]
-                })
-                .collect()
-        })
-        .collect();
-    let f32s = |v: &[f64], n: usize| -> Vec<f32> {
-        let mut o: Vec<f32> = v.iter().map(|&x| x as f32).collect();
-        o.resize(n, 0.0);
-        o
-    };
-    let pose = f32s(&p.smplx.full_pose(), NUM_JOINTS * 3);
-    PersonGt {
-        id: p.id,
-        pose,
-        betas: f32s(&p.smplx.betas, NUM_BETAS)
-            .try_into()
-            .expect("10 betas"),
-        expression: f32s(&p.smplx.expression, NUM_EXPRESSION)
-            .try_into()
-            .expect("10 values"),
-        pelvis: p.pelvis.map(|x| x as f32),
-        joints_3d: p.joints_3d.iter().map(|j| j.map(|x| x as f32)).collect(),
-        joint_valid: vec![1.0; p.joints_3d.len()],
-        joints_2d,
-        smplx: true,
-    }
-}
-
 /// Views letterboxed into the network's `size` x `size` input: the images `[V * 3 * size * size]`
 /// (planar, normalised) and each view's letterbox.
 pub fn letterbox_views(
@@ -385,16 +194,6 @@ pub fn letterbox_into(img: &image::RgbImage, lb: &Letterbox, out: &mut [f32]) {
             out[c * s * s + v * s + u] =
                 (p.0[c] as f32 / 255.0 - IMAGENET_MEAN[c]) / IMAGENET_STD[c];
         }
-    }
-}
-
-impl Dataset<FrameSample> for FrameDataset {
-    fn get(&self, index: usize) -> Result<FrameSample, DatasetError> {
-        self.load(index).map_err(DatasetError::new)
-    }
-
-    fn len(&self) -> usize {
-        self.frames.len()
     }
 }
 

@@ -7,10 +7,9 @@ use burn::data::dataloader::batcher::Batcher;
 use burn::data::dataset::Dataset;
 use burn::tensor::{Device, Tensor, TensorData};
 use mvmp_data::check::check_dataset;
+use mvmp_data::dataset::FrameDataset;
 use mvmp_data::layout::{Annotation, DatasetLayout};
-use mvmp_data::loader::{
-    FrameBatcher, FrameDataset, Split, ViewChoice, project_to_network, split_scenes,
-};
+use mvmp_data::loader::{FrameBatcher, Split, ViewChoice, project_to_network, split_scenes};
 use mvmp_data::synth::{SynthConfig, generate};
 use mvmp_smplx::{ParamTensors, SmplxLayer, Translation};
 use nalgebra::{Vector2, Vector3};
@@ -489,7 +488,7 @@ fn joints_of_another_body_model_are_named_by_the_check_and_the_loader() {
     );
     let mut ds = FrameDataset::open(&root, Split::All, ViewChoice::Fixed(vec![0]), 56).unwrap();
     let bad = ds
-        .frames()
+        .frame_refs()
         .iter()
         .position(|f| f.dir.ends_with("scene_000/frame_000001"))
         .unwrap();

@@ -7,9 +7,10 @@ use std::path::{Path, PathBuf};
 use burn::data::dataloader::batcher::Batcher;
 use burn::tensor::{Device, Tensor};
 
-use mvmp_data::loader::{FrameBatch, FrameBatcher, FrameDataset, Split, ViewChoice};
+use mvmp_data::dataset::{FrameDataset, read_frame_images};
+use mvmp_data::loader::{FrameBatch, FrameBatcher, Split, ViewChoice};
 use mvmp_data::mean::{MeanAccumulator, MeanParams};
-use mvmp_data::sources::JointAnnotated;
+use mvmp_data::sequence::{FramePeople, Sequence};
 use mvmp_geom::Camera;
 use mvmp_infer::{InferError, PersonPrediction, Predictor};
 use mvmp_smplx::people::read_people_npz;
@@ -131,13 +132,16 @@ pub fn evaluate_frames(
         ViewChoice::Fixed((0..opts.views).collect()),
         image_size,
     )?;
-    let body = ds.layout().body_model()?;
-    let body_name = ds.layout().index.body_model.clone();
+    let layout = ds
+        .layout()
+        .expect("a dataset opened from a layout keeps it");
+    let body = layout.body_model()?;
+    let body_name = layout.index.body_model.clone();
     ds.expect_joints(body.num_output_joints(), &body_name);
     let batcher = FrameBatcher::with_vertices(body);
     let n = match opts.max_frames {
-        0 => ds.frames().len(),
-        m => m.min(ds.frames().len()),
+        0 => ds.len(),
+        m => m.min(ds.len()),
     };
     let mut ev = Evaluator::new(opts.gate);
     ev.root = opts.joints.root();
@@ -389,7 +393,7 @@ pub struct PseudoGtCount {
 /// most `max_frames` frames (0: all), in sequence order; `each(i, n)` after every frame.
 pub fn evaluate_joint_sequences(
     pred: &Predictor,
-    seqs: &[Box<dyn JointAnnotated>],
+    seqs: &[Box<dyn Sequence>],
     set: JointSet,
     max_frames: usize,
     gate: f64,
@@ -424,7 +428,8 @@ pub fn evaluate_joint_sequences(
     for (i, &(si, fi)) in frames.iter().enumerate() {
         let seq = &seqs[si];
         let cams = seq.cameras();
-        let images = mvmp_data::sources::read_frame_images(&seq.images(fi), cams)?;
+        let sf = seq.frame(fi)?;
+        let images = read_frame_images(&sf.images, cams)?;
         let people = pred.predict_images(&images, cams)?;
         let poses = people
             .iter()
@@ -438,8 +443,7 @@ pub fn evaluate_joint_sequences(
             .collect();
         let frame = PathBuf::from(format!("{} frame {}", seq.name(), seq.frame_key(fi)));
         let poses = pick_joints(poses, set, &frame, "predictions")?;
-        let mut gt: Vec<PersonPose> = seq
-            .people(fi)?
+        let mut gt: Vec<PersonPose> = annotated_joints(sf.people, set)
             .into_iter()
             .map(|p| PersonPose {
                 joints: p.joints,
@@ -463,4 +467,26 @@ pub fn evaluate_joint_sequences(
         each(i, n);
     }
     Ok((ev, count))
+}
+
+/// A frame's people as joints of `set`: a joint set's as annotated, an SMPL-X person's picked from its
+/// joints (every one annotated).
+fn annotated_joints(
+    people: FramePeople,
+    set: JointSet,
+) -> Vec<mvmp_data::sequence::AnnotatedPerson> {
+    match people {
+        FramePeople::Joints(_, people) => people,
+        FramePeople::Smplx(people) => people
+            .into_iter()
+            .map(|p| {
+                let joints = set.select(&p.joints_3d);
+                mvmp_data::sequence::AnnotatedPerson {
+                    id: p.id as i64,
+                    valid: vec![true; joints.len()],
+                    joints,
+                }
+            })
+            .collect(),
+    }
 }

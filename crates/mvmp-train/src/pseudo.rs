@@ -1,7 +1,7 @@
 //! SMPL-X pseudo-ground-truth fits as training targets for the people of joint-annotated datasets.
 use mvmp_data::DataError;
+use mvmp_data::dataset::MeshSource;
 use mvmp_data::loader::FrameSample;
-use mvmp_data::sources::MeshSource;
 use mvmp_eval::drivers::PseudoGt;
 
 /// The fits of [`PseudoGt`] as SMPL-X ground truth: a person with a matched fit takes the fit's pose,

@@ -18,7 +18,8 @@ use rayon::prelude::*;
 use serde_json::json;
 
 use mvmp_data::loader::{FrameBatcher, ViewChoice};
-use mvmp_data::sources::{SourceDataset, SourceSpec, TrainingSet, covered_slots};
+use mvmp_data::sequence::covered_slots;
+use mvmp_data::sources::{SourceFormat, SourceSpec, TrainingSet};
 use mvmp_losses::LossWeights;
 use mvmp_model::{ModelConfig, MvmpHmr};
 use mvmp_smplx::{BodyModel, SmplxLayer};
@@ -191,7 +192,7 @@ pub fn open_training_set(
             model_cfg.image_size,
         )?;
         parts.push(match (&spec.pseudo_gt, part) {
-            (Some(dir), SourceDataset::Joints(d)) => {
+            (Some(dir), d) if spec.format != SourceFormat::Mvmp => {
                 let dir = PathBuf::from(dir);
                 if !dir.is_dir() {
                     return Err(bad(
@@ -200,7 +201,7 @@ pub fn open_training_set(
                     ));
                 }
                 let meshes = pseudo_gt_meshes(cfg, model_cfg, config, dir)?;
-                SourceDataset::Joints(d.with_meshes(meshes))
+                d.with_meshes(meshes)
             }
             (_, part) => part,
         });
@@ -284,8 +285,8 @@ fn start_at_data_mean(
 ) -> Result<MvmpHmr, TrainError> {
     let mut acc = mvmp_data::mean::MeanAccumulator::default();
     for part in &data.parts {
-        if let SourceDataset::Mvmp(d) = part {
-            acc.add_frames(d.layout(), d.frames())?;
+        if let Some(layout) = part.layout() {
+            acc.add_frames(layout, part.frame_refs())?;
         }
     }
     Ok(match acc.finish() {
@@ -428,10 +429,7 @@ fn gt_batcher(
     model_cfg: &ModelConfig,
     run_root: &Path,
 ) -> Result<FrameBatcher, TrainError> {
-    let source = data.parts.iter().find_map(|p| match p {
-        SourceDataset::Mvmp(d) => Some(d.layout()),
-        SourceDataset::Joints(_) => None,
-    });
+    let source = data.parts.iter().find_map(|p| p.layout());
     Ok(match source {
         Some(l)
             if !mvmp_data::layout::same_body_model(

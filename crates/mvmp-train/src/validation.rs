@@ -7,8 +7,9 @@ use burn::data::dataloader::batcher::Batcher;
 use burn::module::Module;
 use burn::tensor::Device;
 
-use mvmp_data::loader::{FrameBatcher, FrameDataset, Split, ViewChoice};
-use mvmp_data::sources::{JointFrameDataset, SourceFormat, SourceSpec};
+use mvmp_data::dataset::FrameDataset;
+use mvmp_data::loader::{FrameBatcher, Split, ViewChoice};
+use mvmp_data::sources::{SourceFormat, SourceSpec};
 use mvmp_eval::drivers::{EvalOptions, evaluate, ground_truth};
 use mvmp_eval::spread;
 use mvmp_eval::{Evaluator, PersonPose};
@@ -85,7 +86,7 @@ pub(crate) fn source_cameras(spec: &SourceSpec) -> Result<usize, TrainError> {
 fn validation_sequences(
     cfg: &TrainConfig,
     source: &SourceSpec,
-) -> Result<Vec<Box<dyn mvmp_data::sources::JointAnnotated>>, TrainError> {
+) -> Result<Vec<Box<dyn mvmp_data::sequence::Sequence>>, TrainError> {
     let cams = source.camera_names();
     if cfg.test_views == 0 || cfg.test_views > cams.len() {
         return Err(TrainError::file(
@@ -194,7 +195,7 @@ fn validate_joints(
 ) -> Result<Vec<(String, f64)>, TrainError> {
     let seqs = validation_sequences(cfg, source)?;
     let metrics = if stage == Stage::Detection {
-        let ds = JointFrameDataset::new(
+        let ds = FrameDataset::new(
             &source.root,
             seqs,
             ViewChoice::Fixed((0..cfg.test_views).collect()),
@@ -235,13 +236,7 @@ pub fn root_metrics(
         ViewChoice::Fixed((0..opts.views).collect()),
         pred.cfg().image_size,
     )?;
-    root_metrics_of(
-        pred,
-        ds.frames().len(),
-        |i| ds.load(i),
-        opts.max_frames,
-        opts.gate,
-    )
+    root_metrics_of(pred, ds.len(), |i| ds.load(i), opts.max_frames, opts.gate)
 }
 
 /// Root metrics over `len` samples given by `load` (at most `max_frames`; 0 = all).

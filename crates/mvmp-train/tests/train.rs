@@ -10,7 +10,8 @@ use burn::data::dataloader::batcher::Batcher;
 use burn::module::{Module, ModuleVisitor, Param};
 use burn::optim::{AdamConfig, GradientsParams};
 use burn::tensor::{Device, Tensor};
-use mvmp_data::loader::{FrameBatcher, FrameDataset, Split, ViewChoice};
+use mvmp_data::dataset::FrameDataset;
+use mvmp_data::loader::{FrameBatcher, Split, ViewChoice};
 use mvmp_data::sources::{open_h36m, open_panoptic};
 use mvmp_data::synth::{SynthConfig, generate};
 use mvmp_eval::Evaluator;
@@ -192,7 +193,7 @@ fn a_few_steps_on_one_batch_lower_the_loss() {
     let mut model = mvmp_train::seeded_init(&cfg, &ad, 1);
     let ds =
         FrameDataset::open(dataset(), Split::Train, ViewChoice::Fixed(vec![0, 1]), 64).unwrap();
-    let body = ds.layout().body_model().unwrap();
+    let body = ds.layout().unwrap().body_model().unwrap();
     model = model.with_body(Arc::new(body.clone()));
     let batch = FrameBatcher::with_vertices(body).batch(vec![ds.load(0).unwrap()], &ad);
     let weights = mvmp_losses::LossWeights::default();
@@ -239,7 +240,7 @@ fn a_binned_facing_head_learns_in_stage_one() {
     let mut model = mvmp_train::seeded_init(&cfg, &ad, 1);
     let ds =
         FrameDataset::open(dataset(), Split::Train, ViewChoice::Fixed(vec![0, 1]), 64).unwrap();
-    let body = ds.layout().body_model().unwrap();
+    let body = ds.layout().unwrap().body_model().unwrap();
     let batch = FrameBatcher::with_vertices(body).batch(vec![ds.load(0).unwrap()], &ad);
     let weights = mvmp_losses::LossWeights {
         facing: 1.0,
@@ -697,8 +698,8 @@ fn inference_outputs_load_back_and_reproject_into_the_overlays() {
         .predict(batch.images.clone(), &batch.cameras, &batch.letterboxes)
         .remove(0);
     assert_eq!(people.len(), 3, "threshold -inf keeps the top-K roots");
-    let frame = &ds.frames()[0];
-    let rig = &ds.layout().scenes[frame.scene].rig;
+    let frame = &ds.frame_refs()[0];
+    let rig = &ds.layout().unwrap().scenes[frame.scene].rig;
     let ann = mvmp_data::Annotation::read(&frame.dir.join("annotation.json"), rig.len()).unwrap();
     let images: Vec<image::RgbImage> = ann
         .images
@@ -1092,7 +1093,7 @@ fn panoptic_source(root: &Path, views: usize) -> mvmp_data::sources::SourceSpec 
 
 #[test]
 fn panoptic_frames_become_samples_with_their_joints_in_smplx_slots() {
-    use mvmp_data::sources::{SourceDataset, covered_slots};
+    use mvmp_data::sequence::covered_slots;
     use mvmp_smplx::joint_sets::JointSet;
     let root = tempfile::tempdir().unwrap();
     panoptic_fixture(root.path(), "160906_pizza1", 3);
@@ -1106,13 +1107,13 @@ fn panoptic_frames_become_samples_with_their_joints_in_smplx_slots() {
     std::fs::write(&f0, v.to_string()).unwrap();
 
     let spec = panoptic_source(root.path(), 3);
-    let ds = match spec
+    let ds = spec
         .open_training(ViewChoice::Fixed(vec![0, 2]), 64)
-        .unwrap()
-    {
-        SourceDataset::Joints(d) => d,
-        SourceDataset::Mvmp(_) => panic!("a Panoptic source reads joint-annotated sequences"),
-    };
+        .unwrap();
+    assert!(
+        ds.layout().is_none(),
+        "a Panoptic source is not an MVMP-HMR layout"
+    );
     assert_eq!(ds.len(), 3);
     let s = ds.load(0).unwrap();
     assert_eq!(
@@ -1206,7 +1207,7 @@ struct TwoKinds {
     model: MvmpHmr,
     batcher: FrameBatcher,
     smplx: FrameDataset,
-    joints: mvmp_data::sources::JointFrameDataset,
+    joints: FrameDataset,
 }
 
 fn two_kinds() -> TwoKinds {
@@ -1215,16 +1216,12 @@ fn two_kinds() -> TwoKinds {
     let ad = Device::flex().autodiff();
     let cfg = model_config();
     let model = mvmp_train::seeded_init(&cfg, &ad, 2);
-    let joints = match panoptic_source(root.path(), 2)
+    let joints = panoptic_source(root.path(), 2)
         .open_training(ViewChoice::Fixed(vec![0, 1]), 64)
-        .unwrap()
-    {
-        mvmp_data::sources::SourceDataset::Joints(d) => d,
-        _ => unreachable!(),
-    };
+        .unwrap();
     let smplx =
         FrameDataset::open(dataset(), Split::Train, ViewChoice::Fixed(vec![0, 1]), 64).unwrap();
-    let body = smplx.layout().body_model().unwrap();
+    let body = smplx.layout().unwrap().body_model().unwrap();
     TwoKinds {
         _root: root,
         model: model.with_body(Arc::new(body.clone())),
@@ -1471,7 +1468,7 @@ fn source_configs_are_checked() {
 
 #[test]
 fn h36m_frames_become_samples_with_all_17_joints() {
-    use mvmp_data::sources::{SourceDataset, SourceFormat, SourceSpec};
+    use mvmp_data::sources::{SourceFormat, SourceSpec};
     use mvmp_smplx::joint_sets::JointSet;
     let root = tempfile::tempdir().unwrap();
     h36m_fixture(root.path());
@@ -1489,12 +1486,9 @@ fn h36m_frames_become_samples_with_all_17_joints() {
         repeat: None,
         pseudo_gt: None,
     };
-    let SourceDataset::Joints(ds) = spec
+    let ds = spec
         .open_training(ViewChoice::Random { count: 2, seed: 1 }, 64)
-        .unwrap()
-    else {
-        panic!("Human3.6M is joint-annotated")
-    };
+        .unwrap();
     // 5 pose rows, every 2nd: rows 0, 2, 4.
     assert_eq!(ds.len(), 3);
     let s = ds.load(1).unwrap();
