@@ -9,8 +9,8 @@ use serde_json::json;
 use mvmp_data::loader::Split;
 use mvmp_data::sources::SourceFormat;
 use mvmp_eval::drivers::{
-    EvalOptions, PseudoGt, PseudoGtCount, evaluate, evaluate_frames, evaluate_joint_sequences,
-    mean_pose_at, pose_params, reference_mean,
+    EvalOptions, PseudoGt, PseudoGtCount, evaluate, evaluate_joint_sequences, evaluate_sequences,
+    mean_pose_at, mvmp_split, pose_params, reference_mean,
 };
 use mvmp_eval::joint_sets::JointSet;
 use mvmp_eval::{AP_THRESHOLDS, Evaluator, Metrics};
@@ -293,9 +293,9 @@ fn eval_predictions(
     let layer = SmplxLayer::new(&body, device);
     let views = args.views.unwrap_or(1).min(min_views.max(1));
     let opts = args.options(views);
-    // Images are not needed here: a small input size keeps loading cheap.
-    let ev = evaluate_frames(args.data, &opts, 28, device, |_, _, batch| {
-        let (scene, frame) = &batch.names[0];
+    let (seqs, truth) = mvmp_split(args.data, opts.split, device)?;
+    let (ev, _) = evaluate_sequences(&seqs, &truth, &opts, |_, _, at| {
+        let (scene, frame) = at.names();
         let path = dir.join(scene).join(frame).join("people.npz");
         if !path.exists() {
             return Err(mvmp_infer::InferError::file(
@@ -323,19 +323,9 @@ fn eval_mean_pose(
     // the untrained decoder's parameters.
     let (mean, people) = reference_mean(args.data, device)?;
     let opts = args.options(1);
-    let ev = evaluate_frames(args.data, &opts, 28, device, |_, _, batch| {
-        let [_, p, _] = batch.pelvis.dims();
-        let pel: Vec<f32> = batch
-            .pelvis
-            .to_data()
-            .convert::<f32>()
-            .try_into_vec()
-            .unwrap();
-        let pelvis: Vec<[f32; 3]> = (0..batch.counts[0])
-            .take(p)
-            .map(|i| [pel[i * 3], pel[i * 3 + 1], pel[i * 3 + 2]])
-            .collect();
-        Ok(mean_pose_at(&layer, &mean, &pelvis))
+    let (seqs, truth) = mvmp_split(args.data, opts.split, device)?;
+    let (ev, _) = evaluate_sequences(&seqs, &truth, &opts, |_, _, at| {
+        Ok(mean_pose_at(&layer, &mean, &at.roots()))
     })?;
     Ok((
         ev,
@@ -540,11 +530,18 @@ pub const DEMO_TRAIN: &str = include_str!("../../../configs/train/tiny.toml");
 /// The demo's synthesis (with `scenes` one-frame scenes), model and training configs written into `dir`
 /// as `synth.toml`, `model.toml` and `train.toml` (the training config pointing at the model beside it).
 pub fn write_demo_configs(dir: &Path, scenes: usize) -> Result<()> {
-    let synth = DEMO_SYNTH.replace("\nscenes = 144\n", &format!("\nscenes = {scenes}\n"));
+    let is_count = |l: &str| l.starts_with("scenes = ");
     anyhow::ensure!(
-        synth.contains(&format!("\nscenes = {scenes}\n")),
-        "the embedded synthesis config has no `scenes = 144` line"
+        DEMO_SYNTH.lines().filter(|l| is_count(l)).count() == 1,
+        "the embedded synthesis config has no single `scenes = N` line"
     );
+    let synth: String = DEMO_SYNTH
+        .lines()
+        .map(|l| match is_count(l) {
+            true => format!("scenes = {scenes}\n"),
+            false => format!("{l}\n"),
+        })
+        .collect();
     write_atomic(&dir.join("synth.toml"), synth.as_bytes())?;
     write_atomic(&dir.join("model.toml"), DEMO_MODEL.as_bytes())?;
     let train = DEMO_TRAIN.replace("\"../model/tiny.toml\"", "\"model.toml\"");

@@ -1,16 +1,18 @@
-//! Evaluation drivers: a predictor scored on a dataset split (the MVMP-HMR layout through its frame
-//! dataset, Panoptic and Human3.6M through their joint-annotated sequences), the reference baselines, and
-//! SMPL-X pseudo-ground-truth meshes for joint-annotated data.
-use mvmp_smplx::names::{NUM_BETAS, NUM_EXPRESSION, NUM_REGRESSED, REGRESSED_TO_JOINT};
+//! Evaluation drivers: one scoring loop over the sequences of any dataset (MVMP-HMR scenes, Panoptic,
+//! Human3.6M; [`evaluate_sequences`]) with a predictor, stored predictions or a reference baseline as the
+//! prediction, ground-truth meshes posed from SMPL-X annotations or taken from pseudo-ground-truth fits.
+use mvmp_smplx::names::{NUM_BETAS, NUM_EXPRESSION, NUM_JOINTS, NUM_REGRESSED, REGRESSED_TO_JOINT};
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
-use burn::data::dataloader::batcher::Batcher;
-use burn::tensor::{Device, Tensor};
+use burn::tensor::{Device, Tensor, TensorData};
 
-use mvmp_data::dataset::{FrameDataset, read_frame_images};
-use mvmp_data::loader::{FrameBatch, FrameBatcher, Split, ViewChoice};
+use mvmp_data::DatasetLayout;
+use mvmp_data::dataset::{check_joints, read_frame_images};
+use mvmp_data::layout::Person;
+use mvmp_data::loader::Split;
 use mvmp_data::mean::{MeanAccumulator, MeanParams};
-use mvmp_data::sequence::{FramePeople, Sequence};
+use mvmp_data::sequence::{FramePeople, MvmpScene, Sequence, SequenceFrame, frame_pairs};
 use mvmp_geom::Camera;
 use mvmp_infer::{InferError, PersonPrediction, Predictor};
 use mvmp_smplx::people::read_people_npz;
@@ -27,46 +29,6 @@ pub fn pose_of(p: &PersonPrediction) -> PersonPose {
         score: p.score as f64,
         valid: None,
     }
-}
-
-/// Ground truth of a batch item as eval poses (joints and, when the batch has them, vertices).
-pub fn ground_truth(batch: &FrameBatch) -> Vec<Vec<PersonPose>> {
-    let [b, p, j, _] = batch.joints_3d.dims();
-    let j3: Vec<f32> = batch
-        .joints_3d
-        .to_data()
-        .convert::<f32>()
-        .try_into_vec()
-        .unwrap();
-    let verts: Option<(usize, Vec<f32>)> = batch.vertices.as_ref().map(|v| {
-        (
-            v.dims()[2],
-            v.to_data().convert::<f32>().try_into_vec().unwrap(),
-        )
-    });
-    (0..b)
-        .map(|bi| {
-            (0..batch.counts[bi])
-                .map(|pi| {
-                    let k = bi * p + pi;
-                    let joints = (0..j)
-                        .map(|ji| std::array::from_fn(|a| j3[(k * j + ji) * 3 + a] as f64))
-                        .collect();
-                    let vertices = verts.as_ref().map(|(nv, v)| {
-                        (0..*nv)
-                            .map(|vi| std::array::from_fn(|a| v[(k * nv + vi) * 3 + a] as f64))
-                            .collect()
-                    });
-                    PersonPose {
-                        joints,
-                        vertices,
-                        score: 1.0,
-                        valid: None,
-                    }
-                })
-                .collect()
-        })
-        .collect()
 }
 
 /// The people's joints picked to `set`; people with too few joints for it are an error naming `what`
@@ -118,80 +80,257 @@ pub struct FramePredictions {
     pub cameras: Vec<Camera>,
 }
 
-/// Score any predictor on a dataset split: `predict` returns the people of a one-frame batch.
-pub fn evaluate_frames(
-    data: &Path,
-    opts: &EvalOptions,
-    image_size: u32,
-    device: &Device,
-    mut predict: impl FnMut(usize, usize, &FrameBatch) -> Result<Vec<PersonPose>, InferError>,
-) -> Result<Evaluator, InferError> {
-    let mut ds = FrameDataset::open(
-        data,
-        opts.split,
-        ViewChoice::Fixed((0..opts.views).collect()),
-        image_size,
-    )?;
-    let layout = ds
-        .layout()
-        .expect("a dataset opened from a layout keeps it");
-    let body = layout.body_model()?;
-    let body_name = layout.index.body_model.clone();
-    ds.expect_joints(body.num_output_joints(), &body_name);
-    let batcher = FrameBatcher::with_vertices(body);
-    let n = match opts.max_frames {
-        0 => ds.len(),
-        m => m.min(ds.len()),
-    };
-    let mut ev = Evaluator::new(opts.gate);
-    ev.root = opts.joints.root();
-    for i in 0..n {
-        let batch = batcher.batch(vec![ds.load(i)?], device);
-        let name = &batch.names[0];
-        let frame = data.join(&name.0).join(&name.1);
-        let poses = pick_joints(predict(i, n, &batch)?, opts.joints, &frame, "predictions")?;
-        let gt = pick_joints(
-            ground_truth(&batch).remove(0),
-            opts.joints,
-            &frame,
-            "annotations",
-        )?;
-        ev.add_frame(&batch.names[0].0, &poses, &gt);
-    }
-    Ok(ev)
+/// What scores a frame's people besides their annotations: the layer that poses SMPL-X ground truth
+/// (with its body model's name: such people must hold the joints it outputs) and the pseudo-ground-truth
+/// meshes of joint-annotated people.
+#[derive(Clone, Default)]
+pub struct Truth {
+    pub body: Option<(SmplxLayer, String)>,
+    pub pseudo: Option<PseudoGt>,
 }
 
-/// Score the predictor on a dataset split. `each` sees every frame's predictions (for saving them).
+/// A frame as the scoring loop hands it to a predictor.
+pub struct EvalFrame<'a> {
+    pub sequence: &'a dyn Sequence,
+    pub index: usize,
+    pub frame: &'a SequenceFrame,
+}
+
+impl EvalFrame<'_> {
+    /// The sequence's name and the frame's key (where predictions of it are stored).
+    pub fn names(&self) -> (String, String) {
+        (self.sequence.name(), self.sequence.frame_key(self.index))
+    }
+
+    /// The first `views` cameras.
+    pub fn cameras(&self, views: usize) -> &[Camera] {
+        let cams = self.sequence.cameras();
+        &cams[..views.min(cams.len())]
+    }
+
+    /// The images of the first `views` cameras, each checked against its camera.
+    pub fn images(&self, views: usize) -> Result<Vec<image::RgbImage>, InferError> {
+        let cams = self.cameras(views);
+        Ok(read_frame_images(&self.frame.images[..cams.len()], cams)?)
+    }
+
+    /// Each annotated person's root: the SMPL-X pelvis, or the joint set's root joint.
+    pub fn roots(&self) -> Vec<[f32; 3]> {
+        match &self.frame.people {
+            FramePeople::Smplx(people) => {
+                people.iter().map(|p| p.pelvis.map(|x| x as f32)).collect()
+            }
+            FramePeople::Joints(set, people) => people
+                .iter()
+                .map(|p| p.joints[set.root()].map(|x| x as f32))
+                .collect(),
+        }
+    }
+}
+
+/// The one scoring loop: every frame of `seqs` (at most `opts.max_frames`; 0 = all, in sequence order),
+/// `predict`'s people against the annotated ones, on the joints of `opts.joints` (predicted SMPL-X joints
+/// are mapped to a dataset's set), matched on that set's root. PVE and PA-PVE need ground-truth meshes:
+/// SMPL-X people are posed with `truth.body`, joint-annotated ones take `truth.pseudo`'s fits.
+pub fn evaluate_sequences(
+    seqs: &[Box<dyn Sequence>],
+    truth: &Truth,
+    opts: &EvalOptions,
+    mut predict: impl FnMut(usize, usize, &EvalFrame) -> Result<Vec<PersonPose>, InferError>,
+) -> Result<(Evaluator, PseudoGtCount), InferError> {
+    for s in seqs {
+        let n = s.cameras().len();
+        if opts.views == 0 || opts.views > n {
+            return Err(InferError::file(
+                s.name(),
+                format!(
+                    "{} views requested, but the sequence has {n} cameras",
+                    opts.views
+                ),
+            ));
+        }
+    }
+    let mut frames = frame_pairs(seqs);
+    if opts.max_frames > 0 {
+        frames.truncate(opts.max_frames);
+    }
+    let mut ev = Evaluator::new(opts.gate);
+    ev.root = opts.joints.root();
+    let mut count = PseudoGtCount::default();
+    let n = frames.len();
+    for (i, &(si, fi)) in frames.iter().enumerate() {
+        let sequence = seqs[si].as_ref();
+        let frame = sequence.frame(fi)?;
+        let at = EvalFrame {
+            sequence,
+            index: fi,
+            frame: &frame,
+        };
+        let (gt, meshes) = truth.people(&at, opts.joints, &mut count)?;
+        let mut poses = predict(i, n, &at)?;
+        if !meshes {
+            poses.iter_mut().for_each(|p| p.vertices = None);
+        }
+        let poses = pick_joints(poses, opts.joints, &frame.source, "predictions")?;
+        ev.add_frame(&sequence.name(), &poses, &gt);
+    }
+    Ok((ev, count))
+}
+
+impl Truth {
+    /// The annotated people of a frame as eval poses on `set`, and whether they can have meshes.
+    fn people(
+        &self,
+        at: &EvalFrame,
+        set: JointSet,
+        count: &mut PseudoGtCount,
+    ) -> Result<(Vec<PersonPose>, bool), InferError> {
+        let source = &at.frame.source;
+        match &at.frame.people {
+            FramePeople::Smplx(people) => {
+                let posed = match &self.body {
+                    Some((layer, name)) => {
+                        check_joints(people, layer.num_joints(), name)
+                            .map_err(|what| InferError::file(source, what))?;
+                        smplx_truth(layer, people)
+                    }
+                    None => people
+                        .iter()
+                        .map(|p| joints_pose(&p.joints_3d, None))
+                        .collect(),
+                };
+                Ok((
+                    pick_joints(posed, set, source, "annotations")?,
+                    self.body.is_some(),
+                ))
+            }
+            FramePeople::Joints(jset, people) => {
+                let mut gt: Vec<PersonPose> = people
+                    .iter()
+                    .map(|p| joints_pose(&p.joints, Some(p.valid.clone())))
+                    .collect();
+                if let Some(pseudo) = &self.pseudo {
+                    let roots: Vec<[f64; 3]> = gt.iter().map(|g| g.joints[jset.root()]).collect();
+                    let (name, key) = at.names();
+                    for (g, fit) in gt.iter_mut().zip(pseudo.fits(&name, &key, &roots)?) {
+                        g.vertices = fit.and_then(|f| f.posed.vertices);
+                    }
+                    count.people += gt.len();
+                    count.with_mesh += gt.iter().filter(|g| g.vertices.is_some()).count();
+                }
+                Ok((gt, self.pseudo.is_some()))
+            }
+        }
+    }
+}
+
+/// An annotated person's joints as an eval pose (no mesh).
+fn joints_pose(joints: &[[f64; 3]], valid: Option<Vec<bool>>) -> PersonPose {
+    PersonPose {
+        joints: joints.to_vec(),
+        vertices: None,
+        score: 1.0,
+        valid,
+    }
+}
+
+/// SMPL-X people as eval poses: their annotated joints and their parameters' mesh, posed with the pelvis
+/// placed at its annotated position (as training's ground truth is).
+fn smplx_truth(layer: &SmplxLayer, people: &[Person]) -> Vec<PersonPose> {
+    if people.is_empty() {
+        return Vec::new();
+    }
+    let n = people.len();
+    let f32s = |v: &[f64], len: usize| -> Vec<f32> {
+        let mut o: Vec<f32> = v.iter().map(|&x| x as f32).collect();
+        o.resize(len, 0.0);
+        o
+    };
+    let cat = |f: &dyn Fn(&Person) -> Vec<f32>| -> Vec<f32> { people.iter().flat_map(f).collect() };
+    let device = layer.device();
+    let t2 =
+        |data: Vec<f32>, w: usize| Tensor::<2>::from_data(TensorData::new(data, [n, w]), device);
+    let out = layer.forward_axis_angle(
+        Tensor::from_data(
+            TensorData::new(
+                cat(&|p| f32s(&p.smplx.full_pose(), NUM_JOINTS * 3)),
+                [n, NUM_JOINTS, 3],
+            ),
+            device,
+        ),
+        t2(cat(&|p| f32s(&p.smplx.betas, NUM_BETAS)), NUM_BETAS),
+        t2(
+            cat(&|p| f32s(&p.smplx.expression, NUM_EXPRESSION)),
+            NUM_EXPRESSION,
+        ),
+        t2(cat(&|p| p.pelvis.iter().map(|&x| x as f32).collect()), 3),
+        mvmp_smplx::Translation::Pelvis,
+    );
+    to_poses(out.joints, out.vertices, std::iter::repeat(1.0))
+        .into_iter()
+        .zip(people)
+        .map(|(posed, p)| PersonPose {
+            joints: p.joints_3d.clone(),
+            ..posed
+        })
+        .collect()
+}
+
+/// The scenes of an MVMP-HMR split and what scores them (the dataset's body model on `device`).
+pub fn mvmp_split(
+    data: &Path,
+    split: Split,
+    device: &Device,
+) -> Result<(Vec<Box<dyn Sequence>>, Truth), InferError> {
+    let layout = Arc::new(DatasetLayout::open(data)?);
+    let layer = SmplxLayer::new(&layout.body_model()?, device);
+    let name = layout.index.body_model.clone();
+    let seqs = MvmpScene::split(layout, split)?
+        .into_iter()
+        .map(|s| Box::new(s) as Box<dyn Sequence>)
+        .collect();
+    let truth = Truth {
+        body: Some((layer, name)),
+        pseudo: None,
+    };
+    Ok((seqs, truth))
+}
+
+/// The predictor's people in the first `views` cameras of a frame.
+pub fn predict_frame(
+    pred: &Predictor,
+    views: usize,
+    at: &EvalFrame,
+) -> Result<Vec<PersonPrediction>, InferError> {
+    pred.predict_images(&at.images(views)?, at.cameras(views))
+}
+
+/// Score the predictor on an MVMP-HMR dataset split. `each` sees every frame's predictions (for saving
+/// them).
 pub fn evaluate(
     pred: &Predictor,
     data: &Path,
     opts: &EvalOptions,
     mut each: impl FnMut(usize, usize, FramePredictions) -> Result<(), InferError>,
 ) -> Result<Evaluator, InferError> {
-    evaluate_frames(
-        data,
-        opts,
-        pred.cfg().image_size,
-        &pred.device,
-        |i, n, batch| {
-            let people = pred
-                .predict(batch.images.clone(), &batch.cameras, &batch.letterboxes)
-                .remove(0);
-            let poses = people.iter().map(pose_of).collect();
-            let (scene, frame) = batch.names[0].clone();
-            each(
-                i,
-                n,
-                FramePredictions {
-                    scene,
-                    frame,
-                    people,
-                    cameras: batch.cameras[0].clone(),
-                },
-            )?;
-            Ok(poses)
-        },
-    )
+    let (seqs, truth) = mvmp_split(data, opts.split, &pred.device)?;
+    let (ev, _) = evaluate_sequences(&seqs, &truth, opts, |i, n, at| {
+        let people = predict_frame(pred, opts.views, at)?;
+        let poses = people.iter().map(pose_of).collect();
+        let (scene, frame) = at.names();
+        each(
+            i,
+            n,
+            FramePredictions {
+                scene,
+                frame,
+                people,
+                cameras: at.cameras(opts.views).to_vec(),
+            },
+        )?;
+        Ok(poses)
+    })?;
+    Ok(ev)
 }
 
 /// Pose stored parameters (smplx `transl` meaning) into eval poses with a body layer.
@@ -388,9 +527,10 @@ pub struct PseudoGtCount {
 
 /// Score `pred` on sequences read in place whose ground truth is joints of `set` (the predicted SMPL-X
 /// joints are mapped to it), matched on the set's root joint: Panoptic (`JointSet::Panoptic15`, sequences
-/// from `mvmp_data::sources::open_panoptic`) and Human3.6M (`JointSet::H36m17`, `open_h36m`). PVE and
-/// PA-PVE are computed only with pseudo-ground-truth meshes (`pseudo`), for the people that have one. At
-/// most `max_frames` frames (0: all), in sequence order; `each(i, n)` after every frame.
+/// from `mvmp_data::sources::open_panoptic`) and Human3.6M (`JointSet::H36m17`, `open_h36m`), every camera
+/// the sequences were opened with. PVE and PA-PVE are computed only with pseudo-ground-truth meshes
+/// (`pseudo`), for the people that have one. At most `max_frames` frames (0: all), in sequence order;
+/// `each(i, n)` after every frame.
 pub fn evaluate_joint_sequences(
     pred: &Predictor,
     seqs: &[Box<dyn Sequence>],
@@ -400,14 +540,6 @@ pub fn evaluate_joint_sequences(
     pseudo: Option<&PseudoGt>,
     mut each: impl FnMut(usize, usize),
 ) -> Result<(Evaluator, PseudoGtCount), InferError> {
-    let mut frames: Vec<(usize, usize)> = seqs
-        .iter()
-        .enumerate()
-        .flat_map(|(si, s)| (0..s.len()).map(move |fi| (si, fi)))
-        .collect();
-    if max_frames > 0 {
-        frames.truncate(max_frames);
-    }
     if let Some(p) = pseudo
         && p.layer.num_vertices() != pred.layer.num_vertices()
     {
@@ -421,72 +553,20 @@ pub fn evaluate_joint_sequences(
             ),
         ));
     }
-    let mut ev = Evaluator::new(gate);
-    ev.root = set.root();
-    let mut count = PseudoGtCount::default();
-    let n = frames.len();
-    for (i, &(si, fi)) in frames.iter().enumerate() {
-        let seq = &seqs[si];
-        let cams = seq.cameras();
-        let sf = seq.frame(fi)?;
-        let images = read_frame_images(&sf.images, cams)?;
-        let people = pred.predict_images(&images, cams)?;
-        let poses = people
-            .iter()
-            .map(|p| {
-                let mut pose = pose_of(p);
-                if pseudo.is_none() {
-                    pose.vertices = None;
-                }
-                pose
-            })
-            .collect();
-        let frame = PathBuf::from(format!("{} frame {}", seq.name(), seq.frame_key(fi)));
-        let poses = pick_joints(poses, set, &frame, "predictions")?;
-        let mut gt: Vec<PersonPose> = annotated_joints(sf.people, set)
-            .into_iter()
-            .map(|p| PersonPose {
-                joints: p.joints,
-                vertices: None,
-                score: 1.0,
-                valid: Some(p.valid),
-            })
-            .collect();
-        if let Some(p) = pseudo {
-            let roots: Vec<[f64; 3]> = gt.iter().map(|g| g.joints[set.root()]).collect();
-            for (g, fit) in gt
-                .iter_mut()
-                .zip(p.fits(&seq.name(), &seq.frame_key(fi), &roots)?)
-            {
-                g.vertices = fit.and_then(|f| f.posed.vertices);
-            }
-            count.people += gt.len();
-            count.with_mesh += gt.iter().filter(|g| g.vertices.is_some()).count();
-        }
-        ev.add_frame(&seq.name(), &poses, &gt);
+    let opts = EvalOptions {
+        split: Split::All,
+        views: seqs.iter().map(|s| s.cameras().len()).min().unwrap_or(0),
+        max_frames,
+        gate,
+        joints: set,
+    };
+    let truth = Truth {
+        body: None,
+        pseudo: pseudo.cloned(),
+    };
+    evaluate_sequences(seqs, &truth, &opts, |i, n, at| {
+        let people = predict_frame(pred, opts.views, at)?;
         each(i, n);
-    }
-    Ok((ev, count))
-}
-
-/// A frame's people as joints of `set`: a joint set's as annotated, an SMPL-X person's picked from its
-/// joints (every one annotated).
-fn annotated_joints(
-    people: FramePeople,
-    set: JointSet,
-) -> Vec<mvmp_data::sequence::AnnotatedPerson> {
-    match people {
-        FramePeople::Joints(_, people) => people,
-        FramePeople::Smplx(people) => people
-            .into_iter()
-            .map(|p| {
-                let joints = set.select(&p.joints_3d);
-                mvmp_data::sequence::AnnotatedPerson {
-                    id: p.id as i64,
-                    valid: vec![true; joints.len()],
-                    joints,
-                }
-            })
-            .collect(),
-    }
+        Ok(people.iter().map(pose_of).collect())
+    })
 }

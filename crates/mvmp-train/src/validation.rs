@@ -10,7 +10,7 @@ use burn::tensor::Device;
 use mvmp_data::dataset::FrameDataset;
 use mvmp_data::loader::{FrameBatcher, Split, ViewChoice};
 use mvmp_data::sources::{SourceFormat, SourceSpec};
-use mvmp_eval::drivers::{EvalOptions, evaluate, ground_truth};
+use mvmp_eval::drivers::{EvalOptions, evaluate};
 use mvmp_eval::spread;
 use mvmp_eval::{Evaluator, PersonPose};
 use mvmp_infer::Predictor;
@@ -256,7 +256,18 @@ fn root_metrics_of(
     let mut ev = Evaluator::new(gate);
     let mut facing = Vec::new();
     for i in 0..n {
-        let batch = batcher.batch(vec![load(i)?], &pred.device);
+        let sample = load(i)?;
+        let gt: Vec<PersonPose> = sample
+            .people
+            .iter()
+            .map(|p| PersonPose {
+                joints: vec![p.joints_3d[primary].map(|x| x as f64)],
+                vertices: None,
+                score: 1.0,
+                valid: None,
+            })
+            .collect();
+        let batch = batcher.batch(vec![sample], &pred.device);
         let (mut roots, det, grids) =
             pred.detect_with_maps(batch.images.clone(), &batch.cameras, &batch.letterboxes);
         let roots = roots.remove(0);
@@ -267,16 +278,6 @@ fn root_metrics_of(
             pred.cfg(),
             &pred.device,
         ));
-        let gt: Vec<PersonPose> = ground_truth(&batch)
-            .remove(0)
-            .into_iter()
-            .map(|p| PersonPose {
-                joints: vec![p.joints[primary]],
-                vertices: None,
-                score: 1.0,
-                valid: None,
-            })
-            .collect();
         let det: Vec<PersonPose> = roots
             .iter()
             .map(|r| PersonPose {
