@@ -230,6 +230,10 @@ pub struct FrameBatch {
     /// Number of people per sample.
     pub counts: Vec<usize>,
     pub names: Vec<(String, String)>,
+    /// Each sample's people and annotated joints as loaded (what the tensors above pad and stack), so that
+    /// targets and metrics are read on the host rather than back from the device.
+    pub people: Vec<Vec<PersonGt>>,
+    pub covers: Vec<Vec<bool>>,
 }
 
 /// Pads people and stacks views; with a body model it also poses the ground truth into vertices.
@@ -328,6 +332,8 @@ impl Batcher<FrameSample, FrameBatch> for FrameBatcher {
                 .iter()
                 .map(|i| (i.scene.clone(), i.frame.clone()))
                 .collect(),
+            covers: items.iter().map(|i| i.cover.clone()).collect(),
+            people: items.into_iter().map(|i| i.people).collect(),
         }
     }
 }

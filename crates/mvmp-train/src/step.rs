@@ -51,63 +51,45 @@ pub struct HostGt {
 }
 
 impl HostGt {
+    /// The batch's ground truth as its samples held it, each person's joints padded to the batch's
+    /// `J` with zeros (as the tensors are).
     pub fn new(batch: &FrameBatch) -> Self {
-        let [b, p, j, _] = batch.joints_3d.dims();
+        let [_, p, j, _] = batch.joints_3d.dims();
         let v = batch.joints_2d.dims()[1];
-        let j3: Vec<f32> = batch
-            .joints_3d
-            .to_data()
-            .convert::<f32>()
-            .try_into_vec()
-            .expect("f32 joints");
-        let j2: Vec<f32> = batch
-            .joints_2d
-            .to_data()
-            .convert::<f32>()
-            .try_into_vec()
-            .expect("f32 joints");
-        let joints = (0..b)
-            .map(|bi| {
-                (0..batch.counts[bi])
-                    .map(|pi| {
-                        (0..j)
-                            .map(|ji| {
-                                let o = ((bi * p + pi) * j + ji) * 3;
-                                [j3[o] as f64, j3[o + 1] as f64, j3[o + 2] as f64]
-                            })
+        let padded = |x: &[[f32; 3]]| -> Vec<[f32; 3]> {
+            let mut o = x.to_vec();
+            o.resize(j, [0.0; 3]);
+            o
+        };
+        let joints = (batch.people.iter())
+            .map(|people| {
+                (people.iter())
+                    .map(|q| {
+                        padded(&q.joints_3d)
+                            .iter()
+                            .map(|x| x.map(f64::from))
                             .collect()
                     })
                     .collect()
             })
             .collect();
-        let joints_2d = (0..b)
-            .map(|bi| {
+        let joints_2d = (batch.people.iter())
+            .map(|people| {
                 (0..v)
                     .map(|vi| {
-                        (0..batch.counts[bi])
-                            .map(|pi| {
-                                (0..j)
-                                    .map(|ji| {
-                                        let o = (((bi * v + vi) * p + pi) * j + ji) * 3;
-                                        [j2[o], j2[o + 1], j2[o + 2]]
-                                    })
-                                    .collect()
-                            })
+                        (people.iter())
+                            .map(|q| padded(q.joints_2d.get(vi).map_or(&[], |x| x.as_slice())))
                             .collect()
                     })
                     .collect()
             })
             .collect();
-        let cover: Vec<f32> = batch
-            .cover
-            .to_data()
-            .convert::<f32>()
-            .try_into_vec()
-            .expect("f32 cover");
-        let cover = cover
-            .chunks(j.max(1))
-            .take(b)
-            .map(|c| c.iter().map(|&x| x > 0.5).collect())
+        let cover = (batch.covers.iter())
+            .map(|c| {
+                let mut c = c.clone();
+                c.resize(j, false);
+                c
+            })
             .collect();
         HostGt {
             cover,
