@@ -220,24 +220,26 @@ pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, s
 }
 
 /// `--save-predictions` is refused rather than ignored where there is nothing to save: only a model's
-/// predictions on an mvmp tree are written.
+/// predictions are written.
 fn check_save_predictions(args: &EvalArgs) -> Result<()> {
-    if let Some(dir) = args.save_predictions {
-        if args.format != SourceFormat::Mvmp {
-            bail!(
-                "--save-predictions {}: predictions are saved for --format mvmp only, not {}",
-                dir.display(),
-                args.format
-            );
-        }
-        if !matches!(args.source, Source::Run(_)) {
-            bail!(
-                "--save-predictions {}: needs --run (stored predictions and the mean pose have nothing new to save)",
-                dir.display()
-            );
-        }
+    if let Some(dir) = args.save_predictions
+        && !matches!(args.source, Source::Run(_))
+    {
+        bail!(
+            "--save-predictions {}: needs --run (stored predictions and the mean pose have nothing new to save)",
+            dir.display()
+        );
     }
     Ok(())
+}
+
+/// With `--save-predictions`, the staging directory every frame's files go to, moved into place once all
+/// frames are scored.
+fn stage_predictions(args: &EvalArgs) -> Result<Option<StagedDir>> {
+    Ok(args
+        .save_predictions
+        .map(|d| StagedDir::new(d).map(|s| s.owning(mvmp_infer::output::is_frame_output)))
+        .transpose()?)
 }
 
 /// What one scoring gave: the evaluator, where the predictions came from, the views used.
@@ -258,11 +260,7 @@ fn eval_run(
     let opts = args.options(views);
     let mut pb = LazyBar::new("eval", quiet);
     let faces = pred.layer.faces().to_vec();
-    // Every frame's files go to a staging directory, moved into place once all are scored.
-    let staged = args
-        .save_predictions
-        .map(|d| StagedDir::new(d).map(|s| s.owning(mvmp_infer::output::is_frame_output)))
-        .transpose()?;
+    let staged = stage_predictions(args)?;
     let ev = evaluate(&pred, args.data, &opts, |i, n, fp| {
         if let Some(dir) = &staged {
             let d = dir.path().join(&fp.scene).join(&fp.frame);
@@ -872,6 +870,8 @@ fn eval_joint_dataset(
         );
     }
     let mut pb = LazyBar::new("eval", quiet);
+    let faces = pred.layer.faces().to_vec();
+    let staged = stage_predictions(args)?;
     let (ev, count) = evaluate_joint_sequences(
         &pred,
         &seqs,
@@ -879,9 +879,19 @@ fn eval_joint_dataset(
         args.frames,
         args.gate,
         pseudo.as_ref(),
-        |i, n| pb.done(i, n),
+        |i, n, fp| {
+            if let Some(dir) = &staged {
+                let d = dir.path().join(&fp.scene).join(&fp.frame);
+                write_frame(&d, &fp.people, &faces, &fp.cameras, None, &pred.cfg().grid)?;
+            }
+            pb.done(i, n);
+            Ok(())
+        },
     )?;
     pb.finish();
+    if let Some(s) = staged {
+        s.finish()?;
+    }
     let mut header = json!({
         "source": run_source(&run, &weights)?,
         "data": absolute(args.data),

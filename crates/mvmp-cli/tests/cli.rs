@@ -896,21 +896,7 @@ fn train_eval_infer_end_to_end() {
         listing(),
         "a failed inference left files behind"
     );
-    // Predictions are saved only where a model's predictions on an mvmp tree are scored.
-    expect_error(
-        &[
-            "eval",
-            "--run",
-            &p("run"),
-            "--data",
-            &p("ds"),
-            "--format",
-            "panoptic",
-            "--save-predictions",
-            &p("x"),
-        ],
-        &["--save-predictions", "panoptic"],
-    );
+    // Predictions are saved only where a model's predictions are scored.
     expect_error(
         &[
             "eval",
@@ -963,8 +949,17 @@ fn train_eval_infer_end_to_end() {
         "2",
         "--out",
         &report,
+        "--save-predictions",
+        &p("h36m_pred"),
     ]);
     assert!(o.status.success(), "{}", stderr(&o));
+    // Saved in the layout pseudo-ground-truth is read from: <subject>/<action>/<image number>.
+    for row in [0usize, 2, 4] {
+        let f = dir
+            .path()
+            .join(format!("h36m_pred/S9/Walking/{:06}/people.npz", row + 1));
+        assert!(f.is_file(), "{} was not written", f.display());
+    }
     let r: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
     assert_eq!(r["dataset"], "human3.6m");

@@ -315,20 +315,7 @@ pub fn evaluate(
 ) -> Result<Evaluator, InferError> {
     let (seqs, truth) = mvmp_split(data, opts.split, &pred.device)?;
     let (ev, _) = evaluate_sequences(&seqs, &truth, opts, |i, n, at| {
-        let people = predict_frame(pred, opts.views, at)?;
-        let poses = people.iter().map(pose_of).collect();
-        let (scene, frame) = at.names();
-        each(
-            i,
-            n,
-            FramePredictions {
-                scene,
-                frame,
-                people,
-                cameras: at.cameras(opts.views).to_vec(),
-            },
-        )?;
-        Ok(poses)
+        scored_frame(pred, opts.views, at, |fp| each(i, n, fp))
     })?;
     Ok(ev)
 }
@@ -530,7 +517,7 @@ pub struct PseudoGtCount {
 /// from `mvmp_data::sources::open_panoptic`) and Human3.6M (`JointSet::H36m17`, `open_h36m`), every camera
 /// the sequences were opened with. PVE and PA-PVE are computed only with pseudo-ground-truth meshes
 /// (`pseudo`), for the people that have one. At most `max_frames` frames (0: all), in sequence order;
-/// `each(i, n)` after every frame.
+/// `each` sees every frame's predictions (for saving them).
 pub fn evaluate_joint_sequences(
     pred: &Predictor,
     seqs: &[Box<dyn Sequence>],
@@ -538,7 +525,7 @@ pub fn evaluate_joint_sequences(
     max_frames: usize,
     gate: f64,
     pseudo: Option<&PseudoGt>,
-    mut each: impl FnMut(usize, usize),
+    mut each: impl FnMut(usize, usize, FramePredictions) -> Result<(), InferError>,
 ) -> Result<(Evaluator, PseudoGtCount), InferError> {
     if let Some(p) = pseudo
         && p.layer.num_vertices() != pred.layer.num_vertices()
@@ -565,8 +552,25 @@ pub fn evaluate_joint_sequences(
         pseudo: pseudo.cloned(),
     };
     evaluate_sequences(seqs, &truth, &opts, |i, n, at| {
-        let people = predict_frame(pred, opts.views, at)?;
-        each(i, n);
-        Ok(people.iter().map(pose_of).collect())
+        scored_frame(pred, opts.views, at, |fp| each(i, n, fp))
     })
+}
+
+/// The predictor's people in a frame as eval poses, after `each` has seen them.
+fn scored_frame(
+    pred: &Predictor,
+    views: usize,
+    at: &EvalFrame,
+    each: impl FnOnce(FramePredictions) -> Result<(), InferError>,
+) -> Result<Vec<PersonPose>, InferError> {
+    let people = predict_frame(pred, views, at)?;
+    let poses = people.iter().map(pose_of).collect();
+    let (scene, frame) = at.names();
+    each(FramePredictions {
+        scene,
+        frame,
+        people,
+        cameras: at.cameras(views).to_vec(),
+    })?;
+    Ok(poses)
 }

@@ -216,7 +216,7 @@ fn validate_joints(
             cfg.val_frames,
             cfg.match_gate,
             None,
-            |_, _| {},
+            |_, _, _| Ok(()),
         )?;
         let m = ev.overall();
         measured(&[("mpjpe_mm", m.mpjpe_mm), ("recall_500", m.recall_500)])

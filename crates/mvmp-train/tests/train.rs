@@ -41,10 +41,15 @@ fn evaluate_panoptic(
     each: impl FnMut(usize, usize),
 ) -> Result<(Evaluator, PseudoGtCount), TrainError> {
     let seqs = open_panoptic(root, sequences, cameras, stride)?;
-    let set = JointSet::Panoptic15;
-    Ok(evaluate_joint_sequences(
-        pred, &seqs, set, max_frames, gate, pseudo, each,
-    )?)
+    score(
+        pred,
+        &seqs,
+        JointSet::Panoptic15,
+        max_frames,
+        gate,
+        pseudo,
+        each,
+    )
 }
 
 /// Human3.6M read in place and scored, as `mvmp eval --format h36m` does.
@@ -61,9 +66,33 @@ fn evaluate_h36m(
     each: impl FnMut(usize, usize),
 ) -> Result<(Evaluator, PseudoGtCount), TrainError> {
     let seqs = open_h36m(root, subjects, cameras, stride)?;
-    let set = JointSet::H36m17;
+    score(
+        pred,
+        &seqs,
+        JointSet::H36m17,
+        max_frames,
+        gate,
+        pseudo,
+        each,
+    )
+}
+
+/// Joint-annotated sequences scored; `each(i, n)` after every frame.
+fn score(
+    pred: &Predictor,
+    seqs: &[Box<dyn mvmp_data::sequence::Sequence>],
+    set: JointSet,
+    max_frames: usize,
+    gate: f64,
+    pseudo: Option<&PseudoGt>,
+    mut each: impl FnMut(usize, usize),
+) -> Result<(Evaluator, PseudoGtCount), TrainError> {
+    let done = |i, n, _| {
+        each(i, n);
+        Ok(())
+    };
     Ok(evaluate_joint_sequences(
-        pred, &seqs, set, max_frames, gate, pseudo, each,
+        pred, seqs, set, max_frames, gate, pseudo, done,
     )?)
 }
 
