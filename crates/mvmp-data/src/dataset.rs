@@ -8,7 +8,7 @@ use burn::data::dataset::{Dataset, DatasetError};
 use nalgebra::{Vector2, Vector3};
 
 use crate::DataError;
-use crate::layout::{DatasetLayout, FrameRef, Person};
+use crate::layout::{DatasetLayout, FrameRef, Person, check_joints};
 use crate::loader::{FrameSample, PersonGt, Split, ViewChoice, letterbox_views, select_views};
 use crate::sequence::{AnnotatedPerson, FramePeople, MvmpScene, Sequence, frame_pairs};
 use mvmp_geom::{Camera, Letterbox};
@@ -232,18 +232,6 @@ fn check_layout_views(layout: &DatasetLayout, views: &ViewChoice) -> Result<(), 
         }
     }
     Ok(())
-}
-
-/// The people hold `n` joints, what the body model `body_model` outputs (losses and metrics index them
-/// by its layout); an annotation's validation has checked that every person holds as many as the first.
-pub fn check_joints(people: &[Person], n: usize, body_model: &str) -> Result<(), String> {
-    match people.first() {
-        Some(p) if p.joints_3d.len() != n => Err(format!(
-            "people[0].joints_3d has {} joints, the body model `{body_model}` outputs {n}",
-            p.joints_3d.len()
-        )),
-        _ => Ok(()),
-    }
 }
 
 /// Read and check the images of one frame against its cameras.

@@ -215,7 +215,7 @@ impl Annotation {
     /// The people hold `n` joints, what the body model `body_model` outputs (losses and metrics index them
     /// by its layout); `validate` has checked that every person holds as many as the first.
     pub fn check_joints(&self, n: usize, body_model: &str) -> Result<(), String> {
-        crate::dataset::check_joints(&self.people, n, body_model)
+        check_joints(&self.people, n, body_model)
     }
 
     /// Consistency of counts and values; errors name the key path and the value.
@@ -360,6 +360,18 @@ fn person_problems(
 /// The largest image coordinate an annotation may hold (pixels): a joint just in front of a camera
 /// projects far outside its image and is kept; one beyond this is a damaged file.
 pub const MAX_PIXEL: f64 = 1.0e12;
+
+/// The people hold `n` joints, what the body model `body_model` outputs (losses and metrics index them
+/// by its layout); an annotation's validation has checked that every person holds as many as the first.
+pub fn check_joints(people: &[Person], n: usize, body_model: &str) -> Result<(), String> {
+    match people.first() {
+        Some(p) if p.joints_3d.len() != n => Err(format!(
+            "people[0].joints_3d has {} joints, the body model `{body_model}` outputs {n}",
+            p.joints_3d.len()
+        )),
+        _ => Ok(()),
+    }
+}
 
 /// One frame of a dataset: where it is and what it holds.
 #[derive(Debug, Clone)]

@@ -8,8 +8,8 @@ use std::sync::Arc;
 use burn::tensor::{Device, Tensor, TensorData};
 
 use mvmp_data::DatasetLayout;
-use mvmp_data::dataset::{check_joints, read_frame_images};
-use mvmp_data::layout::Person;
+use mvmp_data::dataset::read_frame_images;
+use mvmp_data::layout::{Person, check_joints};
 use mvmp_data::loader::Split;
 use mvmp_data::mean::{MeanAccumulator, MeanParams};
 use mvmp_data::sequence::{FramePeople, MvmpScene, Sequence, SequenceFrame, frame_pairs};
