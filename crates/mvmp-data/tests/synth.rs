@@ -632,3 +632,52 @@ fn body_model_references_are_the_same_model_only_when_they_name_it() {
     // A file that is not there is no model at all.
     assert!(!same_body_model("missing.npz", &a, "missing.npz", &a));
 }
+
+/// Every frame's people are read without its images: a tree whose images are all gone still gives each
+/// scene's people and image paths, while the frame dataset, which letterboxes the images, names the
+/// first one missing.
+#[test]
+fn ground_truth_is_read_without_images() {
+    use mvmp_data::sequence::{FramePeople, open_mvmp};
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().join("no_images");
+    copy_tree(dataset(), &root);
+    let mut removed = 0;
+    for f in DatasetLayout::open(&root).unwrap().frames() {
+        for e in std::fs::read_dir(&f.dir).unwrap() {
+            let p = e.unwrap().path();
+            if p.extension().is_some_and(|x| x == "png") {
+                std::fs::remove_file(p).unwrap();
+                removed += 1;
+            }
+        }
+    }
+    assert!(removed > 0);
+    let layout = DatasetLayout::open(dataset()).unwrap();
+    let seqs = open_mvmp(&root, Split::All).unwrap();
+    assert_eq!(seqs.len(), layout.scenes.len());
+    for (seq, scene) in seqs.iter().zip(&layout.scenes) {
+        assert_eq!(seq.name(), scene.name);
+        assert_eq!(seq.len(), scene.index.frames.len());
+        for i in 0..seq.len() {
+            let frame = seq.frame(i).unwrap();
+            let ann = Annotation::read(
+                &scene
+                    .dir
+                    .join(&scene.index.frames[i])
+                    .join("annotation.json"),
+                scene.rig.len(),
+            )
+            .unwrap();
+            let FramePeople::Smplx(people) = &frame.people else {
+                panic!("an MVMP-HMR frame holds SMPL-X people")
+            };
+            assert_eq!(people.len(), ann.people.len());
+            assert_eq!(frame.images.len(), scene.rig.len());
+            assert!(frame.images.iter().all(|p| !p.exists()));
+        }
+    }
+    let ds = FrameDataset::open(&root, Split::All, ViewChoice::Fixed(vec![0]), 56).unwrap();
+    let err = ds.load(0).unwrap_err().to_string();
+    assert!(err.contains(".png"), "{err}");
+}
