@@ -280,27 +280,35 @@ fn person_gt(p: &Person, views: &[usize], letterboxes: &[Letterbox]) -> PersonGt
                 .collect()
         })
         .collect();
-    let f32s = |v: &[f64], n: usize| -> Vec<f32> {
-        let mut o: Vec<f32> = v.iter().map(|&x| x as f32).collect();
-        o.resize(n, 0.0);
-        o
-    };
-    let pose = f32s(&p.smplx.full_pose(), NUM_JOINTS * 3);
+    let (pose, betas, expression) = smplx_values(p);
     PersonGt {
         id: p.id,
         pose,
-        betas: f32s(&p.smplx.betas, NUM_BETAS)
-            .try_into()
-            .expect("10 betas"),
-        expression: f32s(&p.smplx.expression, NUM_EXPRESSION)
-            .try_into()
-            .expect("10 values"),
+        betas,
+        expression,
         pelvis: p.pelvis.map(|x| x as f32),
         joints_3d: p.joints_3d.iter().map(|j| j.map(|x| x as f32)).collect(),
         joint_valid: vec![1.0; p.joints_3d.len()],
         joints_2d,
         smplx: true,
     }
+}
+
+/// A person's SMPL-X parameters as the network's float32 values: the full pose (55 x 3 axis-angle), 10
+/// betas, 10 expression values (missing ones zero, extra ones dropped).
+pub fn smplx_values(p: &Person) -> (Vec<f32>, [f32; NUM_BETAS], [f32; NUM_EXPRESSION]) {
+    let f32s = |v: &[f64], n: usize| -> Vec<f32> {
+        let mut o: Vec<f32> = v.iter().map(|&x| x as f32).collect();
+        o.resize(n, 0.0);
+        o
+    };
+    let fixed =
+        |v: &[f64]| -> [f32; 10] { std::array::from_fn(|i| v.get(i).map_or(0.0, |&x| x as f32)) };
+    (
+        f32s(&p.smplx.full_pose(), NUM_JOINTS * 3),
+        fixed(&p.smplx.betas),
+        fixed(&p.smplx.expression),
+    )
 }
 
 /// A joint-annotated person as a sample person: joints in their SMPL-X slots, 2D joints in each selected

@@ -118,6 +118,17 @@ impl MvmpScene {
         Ok(out)
     }
 
+    /// [`MvmpScene::split`] as sequences.
+    pub fn sequences(
+        layout: Arc<DatasetLayout>,
+        split: Split,
+    ) -> Result<Vec<Box<dyn Sequence>>, DataError> {
+        Ok(MvmpScene::split(layout, split)?
+            .into_iter()
+            .map(|s| Box::new(s) as Box<dyn Sequence>)
+            .collect())
+    }
+
     pub fn frames(&self) -> &[FrameRef] {
         &self.frames
     }
@@ -247,9 +258,5 @@ pub fn frame_pairs(seqs: &[Box<dyn Sequence>]) -> Vec<(usize, usize)> {
 
 /// The scenes of an MVMP-HMR dataset's split as sequences.
 pub fn open_mvmp(root: &Path, split: Split) -> Result<Vec<Box<dyn Sequence>>, DataError> {
-    let layout = Arc::new(DatasetLayout::open(root)?);
-    Ok(MvmpScene::split(layout, split)?
-        .into_iter()
-        .map(|s| Box::new(s) as Box<dyn Sequence>)
-        .collect())
+    MvmpScene::sequences(Arc::new(DatasetLayout::open(root)?), split)
 }

@@ -8,7 +8,7 @@ use std::sync::Arc;
 use burn::tensor::{Device, Tensor, TensorData};
 
 use mvmp_data::DatasetLayout;
-use mvmp_data::dataset::read_frame_images;
+use mvmp_data::dataset::{read_frame_images, smplx_values};
 use mvmp_data::layout::{Person, check_joints};
 use mvmp_data::loader::Split;
 use mvmp_data::mean::{MeanAccumulator, MeanParams};
@@ -241,29 +241,27 @@ fn smplx_truth(layer: &SmplxLayer, people: &[Person]) -> Vec<PersonPose> {
         return Vec::new();
     }
     let n = people.len();
-    let f32s = |v: &[f64], len: usize| -> Vec<f32> {
-        let mut o: Vec<f32> = v.iter().map(|&x| x as f32).collect();
-        o.resize(len, 0.0);
-        o
-    };
-    let cat = |f: &dyn Fn(&Person) -> Vec<f32>| -> Vec<f32> { people.iter().flat_map(f).collect() };
+    let values: Vec<_> = people.iter().map(smplx_values).collect();
     let device = layer.device();
     let t2 =
         |data: Vec<f32>, w: usize| Tensor::<2>::from_data(TensorData::new(data, [n, w]), device);
     let out = layer.forward_axis_angle(
         Tensor::from_data(
             TensorData::new(
-                cat(&|p| f32s(&p.smplx.full_pose(), NUM_JOINTS * 3)),
+                values.iter().flat_map(|v| v.0.clone()).collect(),
                 [n, NUM_JOINTS, 3],
             ),
             device,
         ),
-        t2(cat(&|p| f32s(&p.smplx.betas, NUM_BETAS)), NUM_BETAS),
+        t2(values.iter().flat_map(|v| v.1).collect(), NUM_BETAS),
+        t2(values.iter().flat_map(|v| v.2).collect(), NUM_EXPRESSION),
         t2(
-            cat(&|p| f32s(&p.smplx.expression, NUM_EXPRESSION)),
-            NUM_EXPRESSION,
+            people
+                .iter()
+                .flat_map(|p| p.pelvis.map(|x| x as f32))
+                .collect(),
+            3,
         ),
-        t2(cat(&|p| p.pelvis.iter().map(|&x| x as f32).collect()), 3),
         mvmp_smplx::Translation::Pelvis,
     );
     to_poses(out.joints, out.vertices, std::iter::repeat(1.0))
@@ -285,10 +283,7 @@ pub fn mvmp_split(
     let layout = Arc::new(DatasetLayout::open(data)?);
     let layer = SmplxLayer::new(&layout.body_model()?, device);
     let name = layout.index.body_model.clone();
-    let seqs = MvmpScene::split(layout, split)?
-        .into_iter()
-        .map(|s| Box::new(s) as Box<dyn Sequence>)
-        .collect();
+    let seqs = MvmpScene::sequences(layout, split)?;
     let truth = Truth {
         body: Some((layer, name)),
         pseudo: None,
