@@ -237,23 +237,22 @@ fn preview_camera(size: u32, extent: f64, front: f64) -> Result<Camera> {
     )?)
 }
 
-pub fn bench(model: Option<&Path>, batch: usize, iters: usize, device: &Device) -> Result<()> {
+pub fn bench(
+    model: Option<&Path>,
+    batch: usize,
+    iters: usize,
+    backward: bool,
+    device: &Device,
+) -> Result<()> {
     if batch == 0 || iters == 0 {
         bail!("--batch and --iters must be positive (got {batch} and {iters})");
     }
     let model = load_model(model)?;
+    if backward {
+        return bench_backward(&model, batch, iters, device);
+    }
     let layer = SmplxLayer::new(&model, device);
-    // Random-ish but fixed poses: small angles on every joint, varied shapes.
-    let pose: Vec<f32> = (0..batch * NUM_JOINTS * 3)
-        .map(|i| ((i * 7919 % 1000) as f32 / 1000.0 - 0.5) * 0.6)
-        .collect();
-    let betas: Vec<f32> = (0..batch * NUM_BETAS)
-        .map(|i| (i * 104729 % 1000) as f32 / 500.0 - 1.0)
-        .collect();
-    let pose = Tensor::<3>::from_data(TensorData::new(pose, [batch, NUM_JOINTS, 3]), device);
-    let betas = Tensor::<2>::from_data(TensorData::new(betas, [batch, NUM_BETAS]), device);
-    let expr = Tensor::<2>::zeros([batch, NUM_EXPRESSION], device);
-    let transl = Tensor::<2>::zeros([batch, 3], device);
+    let (pose, betas, expr, transl) = bench_inputs(batch, device);
     let run = || {
         let out = layer.forward_axis_angle(
             pose.clone(),
@@ -265,17 +264,7 @@ pub fn bench(model: Option<&Path>, batch: usize, iters: usize, device: &Device) 
         // Reading a value back waits for the device to finish.
         let _ = out.vertices.sum().into_scalar::<f32>();
     };
-    for _ in 0..3 {
-        run();
-    }
-    let mut times = Vec::with_capacity(iters);
-    for _ in 0..iters {
-        let t0 = Instant::now();
-        run();
-        times.push(t0.elapsed().as_secs_f64() * 1e3);
-    }
-    times.sort_by(f64::total_cmp);
-    let median = times[times.len() / 2];
+    let median = median_ms(iters, run);
     // The line on stdout keeps its documented form; which path ran goes to stderr.
     let path = if layer.is_fused() {
         "the fused CPU pass"
@@ -284,5 +273,70 @@ pub fn bench(model: Option<&Path>, batch: usize, iters: usize, device: &Device) 
     };
     eprintln!("smplx forward on {device:?}: {path}");
     println!("smplx forward batch {batch}: {median:.2} ms");
+    Ok(())
+}
+
+/// Fixed, random-ish bodies for the benchmarks: small angles on every joint, varied shapes.
+fn bench_inputs(batch: usize, device: &Device) -> (Tensor<3>, Tensor<2>, Tensor<2>, Tensor<2>) {
+    let pose: Vec<f32> = (0..batch * NUM_JOINTS * 3)
+        .map(|i| ((i * 7919 % 1000) as f32 / 1000.0 - 0.5) * 0.6)
+        .collect();
+    let betas: Vec<f32> = (0..batch * NUM_BETAS)
+        .map(|i| (i * 104729 % 1000) as f32 / 500.0 - 1.0)
+        .collect();
+    (
+        Tensor::from_data(TensorData::new(pose, [batch, NUM_JOINTS, 3]), device),
+        Tensor::from_data(TensorData::new(betas, [batch, NUM_BETAS]), device),
+        Tensor::zeros([batch, NUM_EXPRESSION], device),
+        Tensor::zeros([batch, 3], device),
+    )
+}
+
+/// The median of `iters` timed runs after 3 warm-up runs, in milliseconds.
+fn median_ms(iters: usize, mut run: impl FnMut()) -> f64 {
+    for _ in 0..3 {
+        run();
+    }
+    let mut times: Vec<f64> = (0..iters)
+        .map(|_| {
+            let t0 = Instant::now();
+            run();
+            t0.elapsed().as_secs_f64() * 1e3
+        })
+        .collect();
+    times.sort_by(f64::total_cmp);
+    times[times.len() / 2]
+}
+
+/// Forward and backward as training runs them (autodiff, gradients of every input): the fused
+/// operation beside the tensor ops where the layer has it (flex), the tensor ops elsewhere.
+fn bench_backward(model: &BodyModel, batch: usize, iters: usize, device: &Device) -> Result<()> {
+    let device = device.clone().autodiff();
+    let layer = SmplxLayer::new(model, &device);
+    let (pose, betas, expr, transl) = bench_inputs(batch, &device);
+    let paths: &[(&str, bool)] = if layer.is_fused() {
+        &[("fused", true), ("tensor ops", false)]
+    } else {
+        &[("tensor ops", false)]
+    };
+    for &(name, fused) in paths {
+        let median = median_ms(iters, || {
+            let (p, b) = (pose.clone().require_grad(), betas.clone().require_grad());
+            let rot = mvmp_geom::rotation::axis_angle_to_matrix(
+                p.clone().reshape([batch * NUM_JOINTS, 3]),
+            )
+            .reshape([batch, NUM_JOINTS, 3, 3]);
+            let (e, t) = (expr.clone(), transl.clone());
+            let out = if fused {
+                layer.forward(rot, b.clone(), e, t, Translation::Standard)
+            } else {
+                layer.forward_tensor_ops(rot, b.clone(), e, t, Translation::Standard)
+            };
+            let grads = (out.vertices.sum() + out.joints.sum()).backward();
+            // Reading a gradient back waits for the device to finish.
+            let _ = p.grad(&grads).map(|g| g.sum().into_scalar::<f32>());
+        });
+        println!("smplx forward+backward batch {batch}, {name}: {median:.2} ms");
+    }
     Ok(())
 }

@@ -357,7 +357,8 @@ enum BenchCommand {
         #[arg(long, allow_negative_numbers = true, default_value_t = 4096)]
         plain_up_to: usize,
     },
-    /// Median wall time of the SMPL-X forward.
+    /// Median wall time of the SMPL-X forward; with --backward, of forward and backward as training runs
+    /// them (on the CPU the fused operation beside the tensor ops).
     Smplx {
         /// Bodies per forward (at most 4096: each holds 10475 posed vertices and the packed features).
         #[arg(long, allow_negative_numbers = true, default_value_t = 30, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=4096))]
@@ -367,6 +368,9 @@ enum BenchCommand {
         /// Timed repetitions after the warm-up.
         #[arg(long, allow_negative_numbers = true, default_value_t = 20, value_parser = at_least_one())]
         iters: usize,
+        /// Time forward and backward (gradients of every input) instead of the forward alone.
+        #[arg(long)]
+        backward: bool,
     },
     /// Projection and fusion at a model config's scale (its grid, input size, channels): the sampling
     /// grids of a ring rig and the median fusion times from them.
@@ -702,6 +706,7 @@ fn bench_command(cmd: BenchCommand, device: &Device, host: bool) -> anyhow::Resu
             batch,
             model,
             iters,
-        } => body::bench(model.as_deref(), batch, iters, device),
+            backward,
+        } => body::bench(model.as_deref(), batch, iters, backward, device),
     }
 }

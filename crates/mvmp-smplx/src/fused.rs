@@ -21,6 +21,8 @@ use crate::BodyModel;
 use crate::names::{NUM_BETAS, NUM_EXPRESSION, NUM_JOINTS, NUM_POSE_JOINTS};
 use crate::params::Translation;
 
+mod backward;
+
 /// Vertices per block: two AVX-512 registers of float32 per coordinate.
 pub(crate) const BLOCK: usize = mvmp_kernels::panel::PANEL;
 
@@ -48,6 +50,9 @@ pub(crate) struct FusedLbs {
     chain_order: Vec<usize>,
     /// Extra joints as weighted sums of three vertices.
     extra: Vec<[(usize, f32); 3]>,
+    /// `packed` as one row-major `[K, 3 * blocks * BLOCK]` matrix (columns: axis, then vertex), made by
+    /// the first backward: the backward's product runs on it as one GEMM.
+    rows: std::sync::OnceLock<Vec<f32>>,
 }
 
 impl std::fmt::Debug for FusedLbs {
@@ -70,10 +75,12 @@ struct Posed<'a> {
     joints: &'a mut [f32],
 }
 
-/// Float32 arrays of a fused forward: `vertices [N, V, 3]`, `joints [N, J, 3]`.
+/// Float32 arrays of a fused forward: `vertices [N, V, 3]`, `joints [N, J, 3]` and, when asked for (the
+/// backward's input), the unposed vertices `[blocks][3][N][BLOCK]`.
 pub(crate) struct FusedOutput {
     pub vertices: Vec<f32>,
     pub joints: Vec<f32>,
+    pub unposed: Vec<f32>,
 }
 
 impl FusedLbs {
@@ -155,6 +162,37 @@ impl FusedLbs {
             parents,
             chain_order,
             extra,
+            rows: std::sync::OnceLock::new(),
+        })
+    }
+
+    pub(crate) fn num_components(&self) -> usize {
+        self.num_components
+    }
+
+    pub(crate) fn num_vertices(&self) -> usize {
+        self.num_vertices
+    }
+
+    /// Output joints: the 55 of the skeleton and the vertex joints.
+    pub(crate) fn num_joints(&self) -> usize {
+        NUM_JOINTS + self.extra.len()
+    }
+
+    /// [`FusedLbs::rows`]'s matrix, made on first use.
+    fn rows(&self) -> &[f32] {
+        self.rows.get_or_init(|| {
+            let (k, vp) = (self.k, self.num_blocks * BLOCK);
+            let mut rows = vec![0f32; k * 3 * vp];
+            for blk in 0..self.num_blocks {
+                for a in 0..3 {
+                    let panel = &self.packed[(blk * 3 + a) * k * BLOCK..][..k * BLOCK];
+                    for (q, src) in panel.chunks_exact(BLOCK).enumerate() {
+                        rows[q * 3 * vp + a * vp + blk * BLOCK..][..BLOCK].copy_from_slice(src);
+                    }
+                }
+            }
+            rows
         })
     }
 
@@ -167,6 +205,7 @@ impl FusedLbs {
         coeffs: &[f32],
         transl: &[f32],
         mode: Translation,
+        keep_unposed: bool,
     ) -> FusedOutput {
         let nc = self.num_components;
         debug_assert_eq!(rot.len(), n * NUM_JOINTS * 9);
@@ -192,9 +231,17 @@ impl FusedLbs {
                 },
             );
         }
-        let vertices = self.skin(n, &feat, &transforms, &shift);
+        let mut unposed = match keep_unposed {
+            true => vec![0f32; self.num_blocks * 3 * n * BLOCK],
+            false => Vec::new(),
+        };
+        let vertices = self.skin(n, &feat, &transforms, &shift, &mut unposed);
         self.vertex_joints(n, &vertices, &mut joints);
-        FusedOutput { vertices, joints }
+        FusedOutput {
+            vertices,
+            joints,
+            unposed,
+        }
     }
 
     /// `feat [K, N]`: column b holds body b's GEMM features, 1, its coefficients, and its 54 non-root
@@ -219,9 +266,9 @@ impl FusedLbs {
         feat
     }
 
-    /// One body's kinematic chain: its rest joints from the shape, every joint's world rotation and
-    /// position, the skinning transforms, the shift and the posed joints.
-    fn pose_body(&self, c: &[f32], r: &[f32], tr: [f32; 3], mode: Translation, out: Posed) {
+    /// One body's rest joints from its shape coefficients `c`, and every joint's world rotation and
+    /// position from its rotations `r` (`[55][9]`).
+    fn chain(&self, c: &[f32], r: &[f32]) -> Chain {
         let mut rest = self.j_template.clone();
         for (ci, &cv) in c.iter().enumerate() {
             let dir = &self.j_shapedirs[ci * NUM_JOINTS * 3..(ci + 1) * NUM_JOINTS * 3];
@@ -232,31 +279,31 @@ impl FusedLbs {
         let mut g_rot = [[0f32; 9]; NUM_JOINTS];
         let mut g_t = [[0f32; 3]; NUM_JOINTS];
         for &j in &self.chain_order {
-            let rj: [f32; 9] = r[j * 9..j * 9 + 9].try_into().expect("9 entries");
-            let jr = [rest[j * 3], rest[j * 3 + 1], rest[j * 3 + 2]];
+            let rj = rotation(r, j);
+            let jr = point(&rest, j);
             if j == 0 {
                 g_rot[0] = rj;
                 g_t[0] = jr;
                 continue;
             }
             let p = self.parents[j];
-            let rel = [
-                jr[0] - rest[p * 3],
-                jr[1] - rest[p * 3 + 1],
-                jr[2] - rest[p * 3 + 2],
-            ];
             let gp = g_rot[p];
-            g_t[j] = add3(mat_vec(&gp, &rel), g_t[p]);
+            g_t[j] = add3(mat_vec(&gp, &sub3(jr, point(&rest, p))), g_t[p]);
             g_rot[j] = mat_mul(&gp, &rj);
         }
+        Chain { rest, g_rot, g_t }
+    }
+
+    /// One body's kinematic chain: the skinning transforms, the shift and the posed joints.
+    fn pose_body(&self, c: &[f32], r: &[f32], tr: [f32; 3], mode: Translation, out: Posed) {
+        let Chain { rest, g_rot, g_t } = self.chain(c, r);
         let s = match mode {
             Translation::Standard => tr,
-            Translation::Pelvis => [tr[0] - rest[0], tr[1] - rest[1], tr[2] - rest[2]],
+            Translation::Pelvis => sub3(tr, point(&rest, 0)),
         };
         out.shift.copy_from_slice(&s);
         for j in 0..NUM_JOINTS {
-            let jr = [rest[j * 3], rest[j * 3 + 1], rest[j * 3 + 2]];
-            let t = sub3(g_t[j], mat_vec(&g_rot[j], &jr));
+            let t = sub3(g_t[j], mat_vec(&g_rot[j], &point(&rest, j)));
             let a = &mut out.transforms[j * 12..(j + 1) * 12];
             for row in 0..3 {
                 a[row * 4..row * 4 + 3].copy_from_slice(&g_rot[j][row * 3..row * 3 + 3]);
@@ -269,11 +316,20 @@ impl FusedLbs {
     }
 
     /// Every body's vertices `[N, V, 3]`: per block, the GEMM of the packed rows and the features gives
-    /// the unposed vertices, then the block is skinned and shifted.
-    fn skin(&self, n: usize, feat: &[f32], transforms: &[f32], shift: &[f32]) -> Vec<f32> {
+    /// the unposed vertices (copied to `keep [blocks][3][N][BLOCK]` unless it is empty), then the block
+    /// is skinned and shifted.
+    fn skin(
+        &self,
+        n: usize,
+        feat: &[f32],
+        transforms: &[f32],
+        shift: &[f32],
+        keep: &mut [f32],
+    ) -> Vec<f32> {
         let k = self.k;
         let mut vertices = vec![0f32; n * self.num_vertices * 3];
         let out = SendPtr(vertices.as_mut_ptr());
+        let kept = (!keep.is_empty()).then_some(SendPtr(keep.as_mut_ptr()));
         let isa = Isa::detect();
         (0..self.num_blocks).into_par_iter().for_each_init(
             || vec![0f32; 3 * n * BLOCK],
@@ -283,6 +339,13 @@ impl FusedLbs {
                         &self.packed[(blk * 3 + a) * k * BLOCK..(blk * 3 + a + 1) * k * BLOCK];
                     let dst = &mut unposed[a * n * BLOCK..(a + 1) * n * BLOCK];
                     gemm_panel(isa, panel, feat, k, n, dst);
+                }
+                if let Some(kept) = kept {
+                    let len = 3 * n * BLOCK;
+                    // SAFETY: block `blk` writes only its own `len` values of `keep`, which outlives the
+                    // parallel loop.
+                    unsafe { std::slice::from_raw_parts_mut(kept.get().add(blk * len), len) }
+                        .copy_from_slice(unposed);
                 }
                 // SAFETY: block `blk` writes only vertices blk*BLOCK.. of each body, which no other
                 // block touches, and `vertices` outlives the parallel loop.
@@ -411,6 +474,23 @@ impl FusedLbs {
             }
         }
     }
+}
+
+/// One body's rest joints `[55 * 3]` and its joints' world rotations (row-major) and positions.
+struct Chain {
+    rest: Vec<f32>,
+    g_rot: [[f32; 9]; NUM_JOINTS],
+    g_t: [[f32; 3]; NUM_JOINTS],
+}
+
+/// Joint `j`'s rotation from `[55][9]`.
+fn rotation(r: &[f32], j: usize) -> [f32; 9] {
+    r[j * 9..j * 9 + 9].try_into().expect("9 entries")
+}
+
+/// Joint `j`'s point from `[55][3]`.
+fn point(p: &[f32], j: usize) -> [f32; 3] {
+    [p[j * 3], p[j * 3 + 1], p[j * 3 + 2]]
 }
 
 fn mat_mul(a: &[f32; 9], b: &[f32; 9]) -> [f32; 9] {

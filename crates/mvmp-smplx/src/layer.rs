@@ -60,7 +60,7 @@ pub struct SmplxLayer {
     num_extra: usize,
     faces: Vec<[u32; 3]>,
     device: Device,
-    /// The fused CPU pass, made when the layer lives on the CPU backend without autodiff.
+    /// The fused CPU pass, made when the layer lives on the CPU backend (flex), with or without autodiff.
     fused: Option<Arc<FusedLbs>>,
 }
 
@@ -90,7 +90,7 @@ impl SmplxLayer {
         let parents: Vec<usize> = (0..NUM_JOINTS)
             .map(|j| model.parents[j].max(0) as usize)
             .collect();
-        let fused = mvmp_kernels::cpu::runs_fused(device)
+        let fused = (*device == Device::flex())
             .then(|| FusedLbs::new(model, j_template.clone(), j_sd.clone(), taps));
         let f2 = |d: Vec<f32>, s: [usize; 2]| Tensor::<2>::from_data(TensorData::new(d, s), device);
         SmplxLayer {
@@ -159,9 +159,11 @@ impl SmplxLayer {
     /// Forward from rotation matrices `[N, 55, 3, 3]`, betas `[N, 10]`, expression `[N, 10]`,
     /// translation `[N, 3]`.
     ///
-    /// On the CPU backend without autodiff (inference) this runs the fused pass of `fused.rs`; otherwise,
-    /// and whenever a gradient can flow, the tensor ops of [`SmplxLayer::forward_tensor_ops`]. Both compute
-    /// the same function (tested to 1e-5 m).
+    /// On the CPU backend (flex) this runs the fused pass of `fused.rs`: as it is for inference, and under
+    /// autodiff as one operation with its own backward (`op.rs`; off with
+    /// [`crate::set_fused_backward`]). Elsewhere it runs the tensor ops of
+    /// [`SmplxLayer::forward_tensor_ops`]. They compute the same function (tested to 1e-5 m) and the same
+    /// gradients.
     pub fn forward(
         &self,
         rot: Tensor<4>,
@@ -170,25 +172,58 @@ impl SmplxLayer {
         transl: Tensor<2>,
         mode: Translation,
     ) -> SmplxOutput {
-        if let Some(fused) = &self.fused
-            && [
+        if let Some(fused) = &self.fused {
+            let autodiff = [
                 rot.device(),
                 betas.device(),
                 expression.device(),
                 transl.device(),
             ]
             .iter()
-            .all(|d| !d.is_autodiff())
-            && let Some(out) = self.forward_fused(fused, &rot, &betas, &expression, &transl, mode)
-        {
-            return out;
+            .any(|d| d.is_autodiff());
+            if !autodiff
+                && let Some(out) =
+                    self.forward_fused(fused, &rot, &betas, &expression, &transl, mode)
+            {
+                return out;
+            }
+            if autodiff && crate::op::fused_backward() && rot.dims()[0] > 0 {
+                return self.forward_op(fused, rot, betas, expression, transl, mode);
+            }
         }
         self.forward_tensor_ops(rot, betas, expression, transl, mode)
     }
 
-    /// Whether [`SmplxLayer::forward`] runs the fused CPU pass for inputs without autodiff.
+    /// Whether [`SmplxLayer::forward`] runs the fused CPU pass (the layer lives on flex).
     pub fn is_fused(&self) -> bool {
         self.fused.is_some()
+    }
+
+    /// The fused pass as one differentiable operation.
+    fn forward_op(
+        &self,
+        fused: &Arc<FusedLbs>,
+        rot: Tensor<4>,
+        betas: Tensor<2>,
+        expression: Tensor<2>,
+        transl: Tensor<2>,
+        mode: Translation,
+    ) -> SmplxOutput {
+        let n = rot.dims()[0];
+        let inputs = Tensor::cat(
+            vec![rot.reshape([n, NUM_JOINTS * 9]), betas, expression, transl],
+            1,
+        );
+        let plan = crate::op::LbsPlan {
+            lbs: fused.clone(),
+            mode,
+        };
+        let out = crate::op::pose(inputs, plan);
+        let v = self.num_vertices;
+        SmplxOutput {
+            vertices: out.clone().narrow(1, 0, v),
+            joints: out.narrow(1, v, self.num_joints()),
+        }
     }
 
     fn forward_fused(
@@ -205,7 +240,7 @@ impl SmplxLayer {
         let rot = host(rot.clone().reshape([n, NUM_JOINTS * 9]))?;
         let coeffs = host(Tensor::cat(vec![betas.clone(), expression.clone()], 1))?;
         let transl = host(transl.clone())?;
-        let out = fused.forward(n, &rot, &coeffs, &transl, mode);
+        let out = fused.forward(n, &rot, &coeffs, &transl, mode, false);
         let nj = self.num_joints();
         Some(SmplxOutput {
             vertices: Tensor::from_data(

@@ -127,8 +127,39 @@ fn ref_loss(pose: &[f64], betas: &[f64], expr: &[f64], transl: [f64; 3]) -> f64 
     sv * 1e-3 + sj
 }
 
+/// Both training paths: the fused operation (`forward` under autodiff on flex) and the tensor ops.
+#[derive(Debug, Clone, Copy)]
+enum Path {
+    Fused,
+    TensorOps,
+}
+
+fn pose_with(
+    layer: &SmplxLayer,
+    path: Path,
+    pose: Tensor<3>,
+    b: Tensor<2>,
+    e: Tensor<2>,
+    tr: Tensor<2>,
+    mode: Translation,
+) -> mvmp_smplx::SmplxOutput {
+    let n = pose.dims()[0];
+    let rot =
+        mvmp_geom::rotation::axis_angle_to_matrix(pose.reshape([n * 55, 3])).reshape([n, 55, 3, 3]);
+    match path {
+        Path::Fused => layer.forward(rot, b, e, tr, mode),
+        Path::TensorOps => layer.forward_tensor_ops(rot, b, e, tr, mode),
+    }
+}
+
 #[test]
 fn gradients_match_finite_differences() {
+    for path in [Path::Fused, Path::TensorOps] {
+        gradients_match_finite_differences_on(path);
+    }
+}
+
+fn gradients_match_finite_differences_on(path: Path) {
     let d = Device::flex().autodiff();
     let m = standin();
     let layer = SmplxLayer::new(m, &d);
@@ -140,7 +171,9 @@ fn gradients_match_finite_differences() {
     let bt = t(&betas, [1, 10], &d).require_grad();
     let et = t(&expr, [1, 10], &d).require_grad();
     let tt = t(&transl, [1, 3], &d).require_grad();
-    let out = layer.forward_axis_angle(
+    let out = pose_with(
+        &layer,
+        path,
         pt.clone(),
         bt.clone(),
         et.clone(),
@@ -164,7 +197,7 @@ fn gradients_match_finite_differences() {
         let tol = 2e-3 * fd.abs().max(1.0);
         assert!(
             (got as f64 - fd).abs() < tol,
-            "d loss / d {name}[{k}]: autodiff {got} vs finite differences {fd}"
+            "{path:?}: d loss / d {name}[{k}]: autodiff {got} vs finite differences {fd}"
         );
     };
     // Global orientation, a knee, an elbow, the jaw, a finger joint.
@@ -271,12 +304,86 @@ fn fused_pass_matches_the_tensor_ops() {
     }
 }
 
-/// Inputs that carry gradients must bypass the fused pass and still get them.
+/// The fused operation's backward gives the tensor ops' gradients in every input (rotation matrices,
+/// betas, expression, translation), for both translation modes and batch sizes that fill the kernels'
+/// tiles exactly and ones that leave a remainder.
 #[test]
-fn autodiff_inputs_take_the_differentiable_path() {
+fn fused_backward_matches_the_tensor_ops() {
     let d = Device::flex().autodiff();
     let layer = SmplxLayer::new(standin(), &d);
-    assert!(!layer.is_fused());
+    assert!(
+        layer.is_fused(),
+        "autodiff flex must take the fused operation"
+    );
+    for n in [1usize, 3, 13] {
+        let pose: Vec<f64> = (0..n)
+            .flat_map(|i| test_pose(0.41 * i as f64 + 0.2))
+            .collect();
+        let betas: Vec<f64> = (0..n * 10).map(|k| (k as f64 * 0.71).sin() * 2.0).collect();
+        let expr: Vec<f64> = (0..n * 10).map(|k| (k as f64 * 1.3).cos()).collect();
+        let transl: Vec<f64> = (0..n * 3).map(|k| (k as f64 * 0.5).sin() * 3.0).collect();
+        for mode in [Translation::Standard, Translation::Pelvis] {
+            let run = |path: Path| {
+                let rot = mvmp_geom::rotation::axis_angle_to_matrix(t(&pose, [n * 55, 3], &d))
+                    .reshape([n, 55, 3, 3])
+                    .detach()
+                    .require_grad();
+                let b = t(&betas, [n, 10], &d).require_grad();
+                let e = t(&expr, [n, 10], &d).require_grad();
+                let tr = t(&transl, [n, 3], &d).require_grad();
+                let out = match path {
+                    Path::Fused => {
+                        layer.forward(rot.clone(), b.clone(), e.clone(), tr.clone(), mode)
+                    }
+                    Path::TensorOps => layer.forward_tensor_ops(
+                        rot.clone(),
+                        b.clone(),
+                        e.clone(),
+                        tr.clone(),
+                        mode,
+                    ),
+                };
+                let [_, nv, _] = out.vertices.dims();
+                let [_, nj, _] = out.joints.dims();
+                let wv = t(&loss_weights(n * nv * 3), [n, nv, 3], &d);
+                let wj = t(&loss_weights(n * nj * 3), [n, nj, 3], &d);
+                let grads = ((out.vertices * wv).sum() + (out.joints * wj).sum()).backward();
+                [
+                    vals(rot.grad(&grads).unwrap()),
+                    vals(b.grad(&grads).unwrap()),
+                    vals(e.grad(&grads).unwrap()),
+                    vals(tr.grad(&grads).unwrap()),
+                ]
+            };
+            let (fused, plain) = (run(Path::Fused), run(Path::TensorOps));
+            for (what, a, b) in ["rotations", "betas", "expression", "translation"]
+                .iter()
+                .zip(&fused)
+                .zip(&plain)
+                .map(|((w, a), b)| (w, a, b))
+            {
+                let scale = b.iter().fold(1f32, |m, x| m.max(x.abs()));
+                let worst = a
+                    .iter()
+                    .zip(b)
+                    .map(|(x, y)| (x - y).abs())
+                    .fold(0f32, f32::max);
+                // Both float32 sums over ~10^4 vertices in different orders.
+                assert!(
+                    worst <= 1e-5 * scale,
+                    "batch {n}, {mode:?}, {what}: max diff {worst} (largest gradient {scale})"
+                );
+            }
+        }
+    }
+}
+
+/// Axis-angle inputs under autodiff get their gradients through the fused operation.
+#[test]
+fn autodiff_inputs_get_gradients() {
+    let d = Device::flex().autodiff();
+    let layer = SmplxLayer::new(standin(), &d);
+    assert!(layer.is_fused());
     let betas = t(&[0.5; 10], [1, 10], &d).require_grad();
     let out = layer.forward_axis_angle(
         t(&test_pose(0.2), [1, 55, 3], &d),
