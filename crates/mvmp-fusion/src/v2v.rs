@@ -115,8 +115,16 @@ pub fn conv_in_slabs(conv: &Conv3d, x: Tensor<5>, max_voxels: usize) -> Tensor<5
     let [b, ci, nx, ny, nz] = x.dims();
     let [kx, ky, kz] = conv.kernel_size;
     let rows = (max_voxels / (ny * nz).max(1)).clamp(1, nx);
-    if rows >= nx || conv.stride != [1; 3] || conv.dilation != [1; 3] || conv.groups != 1 {
+    if conv.stride != [1; 3] || conv.dilation != [1; 3] || conv.groups != 1 {
         return conv.forward(x);
+    }
+    let bias = conv.bias.as_ref().map(|p| p.val());
+    if rows >= nx {
+        let PaddingConfig3d::Explicit(px, py, pz) = conv.padding else {
+            return conv.forward(x);
+        };
+        let options = burn::tensor::ops::ConvOptions::new([1; 3], [px, py, pz], [1; 3], 1);
+        return mvmp_kernels::wgrad::conv3d(x, conv.weight.val(), bias, options);
     }
     let (h, device) = (kx / 2, x.device());
     let options = burn::tensor::ops::ConvOptions::new([1; 3], [0, ky / 2, kz / 2], [1; 3], 1);
@@ -133,10 +141,10 @@ pub fn conv_in_slabs(conv: &Conv3d, x: Tensor<5>, max_voxels: usize) -> Tensor<5
             if e + h > nx {
                 parts.push(zeros(e + h - nx));
             }
-            burn::tensor::module::conv3d(
+            mvmp_kernels::wgrad::conv3d(
                 Tensor::cat(parts, 2),
                 conv.weight.val(),
-                conv.bias.as_ref().map(|p| p.val()),
+                bias.clone(),
                 options.clone(),
             )
         })

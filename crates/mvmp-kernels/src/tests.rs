@@ -659,3 +659,50 @@ fn the_columns_product_is_columns_then_matmul_bit_for_bit() {
         }
     }
 }
+
+/// The convolution with the tiled weight gradient equals burn's: values and the gradients of input,
+/// weight and bias, for the RootNet's 7x7x7 front over a volume whose last axis is shorter than the
+/// kernel, uneven kernels and paddings, more positions than one tile, and two batch items.
+#[test]
+fn tiled_weight_gradients_are_the_convolutions() {
+    use burn::tensor::ops::ConvOptions;
+    let d = Device::flex().autodiff();
+    seed(11);
+    for (x_dims, co, kernel, pad, bias) in [
+        ([1, 5, 8, 8, 6], 3, [7, 7, 7], [3, 3, 3], true),
+        ([2, 3, 5, 6, 7], 4, [3, 5, 3], [1, 2, 1], false),
+        ([2, 2, 4, 9, 11], 2, [1, 3, 5], [0, 1, 2], true),
+        ([1, 2, 3, 3, 3], 2, [3, 3, 3], [0, 0, 0], false),
+    ] {
+        let x = normal(x_dims, 1.0, &d).require_grad();
+        let weight =
+            normal([co, x_dims[1], kernel[0], kernel[1], kernel[2]], 0.5, &d).require_grad();
+        let b = bias.then(|| normal([co], 1.0, &d).require_grad());
+        let options = ConvOptions::new([1; 3], pad, [1; 3], 1);
+        let run = |tiled: bool| {
+            let (xi, wi, bi) = (x.clone(), weight.clone(), b.clone());
+            let y = match tiled {
+                true => crate::wgrad::conv3d(xi, wi, bi, options.clone()),
+                false => burn::tensor::module::conv3d(xi, wi, bi, options.clone()),
+            };
+            let probe = normal(y.dims(), 1.0, &d);
+            let grads = (y.clone() * probe).sum().backward();
+            let mut out = vec![
+                y.detach().flatten::<1>(0, 4),
+                x.grad(&grads).unwrap().flatten::<1>(0, 4),
+                weight.grad(&grads).unwrap().flatten::<1>(0, 4),
+            ];
+            out.extend(b.as_ref().map(|b| b.grad(&grads).unwrap()));
+            out
+        };
+        seed(12);
+        let tiled = run(true);
+        seed(12);
+        let plain = run(false);
+        assert_close(
+            tiled,
+            plain,
+            &format!("input {x_dims:?} kernel {kernel:?} pad {pad:?}"),
+        );
+    }
+}
