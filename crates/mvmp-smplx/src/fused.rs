@@ -211,10 +211,32 @@ impl FusedLbs {
         debug_assert_eq!(rot.len(), n * NUM_JOINTS * 9);
         debug_assert_eq!(coeffs.len(), n * nc);
         debug_assert_eq!(transl.len(), n * 3);
-        // Per body: the skinning transforms `[55][12]` and the shift; the posed joints go straight to
-        // the output.
-        let nj = NUM_JOINTS + self.extra.len();
         let feat = self.features(n, rot, coeffs);
+        let (transforms, shift, mut joints) = self.pose_bodies(n, rot, coeffs, transl, mode);
+        let mut unposed = match keep_unposed {
+            true => vec![0f32; self.num_blocks * 3 * n * BLOCK],
+            false => Vec::new(),
+        };
+        let vertices = self.skin(n, &feat, &transforms, &shift, &mut unposed);
+        self.vertex_joints(n, &vertices, &mut joints);
+        FusedOutput {
+            vertices,
+            joints,
+            unposed,
+        }
+    }
+
+    /// Every body's kinematic chain: the skinning transforms `[N][55][12]`, the shifts `[N][3]` and the
+    /// joints `[N, 55 + extra, 3]` with the 55 posed skeleton joints filled in.
+    fn pose_bodies(
+        &self,
+        n: usize,
+        rot: &[f32],
+        coeffs: &[f32],
+        transl: &[f32],
+        mode: Translation,
+    ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        let (nc, nj) = (self.num_components, NUM_JOINTS + self.extra.len());
         let mut transforms = vec![0f32; n * NUM_JOINTS * 12];
         let mut shift = vec![0f32; n * 3];
         let mut joints = vec![0f32; n * nj * 3];
@@ -231,17 +253,7 @@ impl FusedLbs {
                 },
             );
         }
-        let mut unposed = match keep_unposed {
-            true => vec![0f32; self.num_blocks * 3 * n * BLOCK],
-            false => Vec::new(),
-        };
-        let vertices = self.skin(n, &feat, &transforms, &shift, &mut unposed);
-        self.vertex_joints(n, &vertices, &mut joints);
-        FusedOutput {
-            vertices,
-            joints,
-            unposed,
-        }
+        (transforms, shift, joints)
     }
 
     /// `feat [K, N]`: column b holds body b's GEMM features, 1, its coefficients, and its 54 non-root

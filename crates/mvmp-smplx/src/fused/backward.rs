@@ -15,7 +15,7 @@
 use mvmp_kernels::cpu::SendPtr;
 use rayon::prelude::*;
 
-use super::{BLOCK, Chain, FusedLbs, Posed, point, rotation, sub3};
+use super::{BLOCK, Chain, FusedLbs, point, rotation, sub3};
 use crate::names::NUM_JOINTS;
 use crate::params::Translation;
 
@@ -44,22 +44,7 @@ impl FusedLbs {
         let nc = self.num_components;
         let nj = NUM_JOINTS + self.extra.len();
         assert_eq!(unposed.len(), self.num_blocks * 3 * n * BLOCK);
-        let mut transforms = vec![0f32; n * NUM_JOINTS * 12];
-        let mut shift = vec![0f32; n * 3];
-        let mut joints = vec![0f32; n * NUM_JOINTS * 3];
-        for b in 0..n {
-            self.pose_body(
-                &coeffs[b * nc..(b + 1) * nc],
-                &rot[b * NUM_JOINTS * 9..(b + 1) * NUM_JOINTS * 9],
-                [transl[b * 3], transl[b * 3 + 1], transl[b * 3 + 2]],
-                mode,
-                Posed {
-                    transforms: &mut transforms[b * NUM_JOINTS * 12..(b + 1) * NUM_JOINTS * 12],
-                    shift: &mut shift[b * 3..b * 3 + 3],
-                    joints: &mut joints[b * NUM_JOINTS * 3..(b + 1) * NUM_JOINTS * 3],
-                },
-            );
-        }
+        let (transforms, _, _) = self.pose_bodies(n, rot, coeffs, transl, mode);
         let gv = self.vertex_gradient(n, grad_v, grad_j);
         let d_shift = self.shift_gradient(n, &gv, grad_j);
         let (d_unposed, d_transforms) = self.skin_backward(n, unposed, &transforms, &gv);
