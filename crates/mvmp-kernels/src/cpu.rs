@@ -1,13 +1,5 @@
-//! What the fused CPU passes (SMPL-X, fusion) share: where they run, the vector instruction set their
-//! kernels use, and the pointer their parallel workers write through.
-use burn::tensor::Device;
-
-/// Whether `device` takes the fused SMPL-X pass: burn's flex backend without autodiff. (`Device` equality
-/// does not tell autodiff flex from plain flex, hence both checks.) Fusion's fused pass runs on flex
-/// under autodiff too, with its own backward (mvmp-fusion).
-pub fn runs_fused(device: &Device) -> bool {
-    !device.is_autodiff() && *device == Device::flex()
-}
+//! What the fused CPU passes (SMPL-X, fusion) share: the vector instruction set their kernels use, and
+//! the pointer their parallel workers write through.
 
 /// Detected at run time, so one binary runs everywhere and uses the widest registers it finds.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
