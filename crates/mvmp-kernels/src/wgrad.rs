@@ -203,13 +203,14 @@ fn tile_columns(x: &[f32], g: &Geometry, bi: usize, r0: usize, nr: usize, cols: 
                         let (z, y) = (r / oh, r % oh);
                         let dst = &mut out[q * ow..(q + 1) * ow];
                         let (iz, iy) = ((z + dz).wrapping_sub(pd), (y + dy).wrapping_sub(ph));
-                        if iz >= d || iy >= h {
+                        if iz >= d || iy >= h || hi == lo {
                             dst.fill(0.0);
                             continue;
                         }
                         let src = &plane[(iz * h + iy) * w..][..w];
                         dst[..lo].fill(0.0);
                         dst[hi..].fill(0.0);
+                        // lo >= pw - dx whenever the run is not empty, so this does not underflow.
                         let first = lo + dx - pw;
                         dst[lo..hi].copy_from_slice(&src[first..first + (hi - lo)]);
                     }
