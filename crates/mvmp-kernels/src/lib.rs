@@ -2,7 +2,7 @@
 //! each backend runs the forward in its own ops, and under autodiff the backward is the one written
 //! here rather than the one burn would derive from the forward's ops: tiled attention, a transformer
 //! block recomputed in its backward, a convolution's columns (im2col) and their product with the weight,
-//! a 3D convolution whose weight gradient is a tiled product (`wgrad`), batch norm and GELU on flex.
+//! a 3D convolution whose gradients are tiled products (`wgrad`), batch norm and GELU on flex.
 //! `conv` holds convolutions written as matrix products for training. `cpu` and `panel` hold what the fused CPU passes
 //! share: instruction-set dispatch, the pointer of their parallel writes, and the SMPL-X panel products.
 

@@ -660,8 +660,8 @@ fn the_columns_product_is_columns_then_matmul_bit_for_bit() {
     }
 }
 
-/// The convolution with the tiled weight gradient equals burn's: values and the gradients of input,
-/// weight and bias, for the RootNet's 7x7x7 front over a volume whose last axis is shorter than the
+/// The convolution with the tiled gradients equals burn's: values and the gradients of input, weight
+/// and bias, for the RootNet's 7x7x7 front over a volume whose last axis is shorter than the
 /// kernel, uneven kernels and paddings, paddings wider than the volume, more positions than one tile,
 /// and two batch items.
 #[test]
@@ -675,6 +675,8 @@ fn tiled_weight_gradients_are_the_convolutions() {
         ([2, 2, 4, 9, 11], 2, [1, 3, 5], [0, 1, 2], true),
         ([1, 2, 3, 3, 3], 2, [3, 3, 3], [0, 0, 0], false),
         ([1, 2, 4, 2, 1], 2, [3, 5, 7], [1, 2, 3], true),
+        // Paddings wider than the kernel less one: the input's gradient is burn's there.
+        ([1, 2, 3, 4, 5], 2, [1, 3, 3], [1, 1, 3], true),
     ] {
         let x = normal(x_dims, 1.0, &d).require_grad();
         let weight =

@@ -1,15 +1,16 @@
-//! A 3D convolution whose weight gradient is a product of tiled columns, for the RootNet's large
-//! kernels in training on flex.
+//! A 3D convolution whose gradients are products of tiled columns, for the RootNet in training on flex.
 //!
 //! burn derives a convolution's weight gradient as another convolution, with the output gradient as its
-//! kernel (`conv3d_weight_backward`); for the tiny RootNet's 7^3 front (17 channels in, 8 out, a
-//! 32 x 32 x 8 volume) that took about 90 of the 160 ms of the layer's forward and backward, against 21
-//! ms for flex's forward (tiled im2col and a GEMM). Here the forward and the input's gradient stay
-//! burn's, and the weight gradient is `dy . columns` over tiles of output positions: each tile's columns
-//! (transposed, one row per kernel tap and input channel) are built in a small buffer and multiplied at
-//! once, so no tile holds more than [`TILE`] positions' columns. Tiles go to a fixed number of chunks,
-//! each summing its tiles in order, and the chunks are added in order: the result does not depend on
-//! the number of threads.
+//! kernel (`conv3d_weight_backward`), and the input's as a transposed convolution; for the tiny
+//! RootNet's 7^3 front (17 channels in, 8 out, a 32 x 32 x 8 volume) they took about 90 and 50 of the
+//! 160 ms of the layer's forward and backward, against 21 ms for flex's forward (tiled im2col and a
+//! GEMM). Here the forward stays burn's. The weight gradient is `dy . columns` over tiles of output
+//! positions: each tile's columns (transposed, one row per kernel tap and input channel) are built in a
+//! small buffer and multiplied at once, so no tile holds more than [`TILE`] positions' columns. Tiles go
+//! to a fixed number of chunks, each summing its tiles in order, and the chunks are added in order: the
+//! result does not depend on the number of threads. The input's gradient is the forward's counterpart:
+//! the output gradient's columns, over tiles of input positions, times the kernel flipped and with its
+//! channel axes swapped; every tile writes its own positions.
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
 use burn::backend::autodiff::grads::Gradients;
@@ -20,6 +21,7 @@ use burn::tensor::ops::ConvOptions;
 use burn::tensor::{Device, Tensor, TensorData};
 use rayon::prelude::*;
 
+use crate::cpu::SendPtr;
 use crate::host::{HostF32, dims};
 
 /// Output positions per tile: 64 positions of a 7^3 kernel over 17 channels are 1.5 MB of columns.
@@ -28,7 +30,7 @@ const TILE: usize = 64;
 const CHUNKS: usize = 8;
 
 /// `conv3d(x, weight, bias, options)`; in training on flex with stride 1, dilation 1 and one group, one
-/// operation whose weight gradient is the tiled product (see the module's notes). Elsewhere burn's.
+/// operation whose gradients are the tiled products (see the module's notes). Elsewhere burn's.
 pub fn conv3d(
     x: Tensor<5>,
     weight: Tensor<5>,
@@ -125,7 +127,24 @@ impl<B: Backend> Backward<B, 2> for WeightGradBackward {
             grads.register::<B>(node.id, dw);
         }
         if let Some(node) = node_x {
-            grads.register::<B>(node.id, B::conv3d_x_backward(x, weight, dy, options));
+            let geometry = Geometry {
+                x: dims(&x),
+                y: dims(&dy),
+                kernel: [w_dims[2], w_dims[3], w_dims[4]],
+                pad: options.padding.map(|(begin, _)| begin),
+            };
+            let dx = match geometry.transposed() {
+                Some(flipped) => {
+                    let dx = input_gradient(
+                        &HostF32::read::<B>(dy),
+                        &HostF32::read::<B>(weight),
+                        &flipped,
+                    );
+                    B::float_from_data(TensorData::new(dx, geometry.x), &device)
+                }
+                None => B::conv3d_x_backward(x, weight, dy, options),
+            };
+            grads.register::<B>(node.id, dx);
         }
     }
 }
@@ -138,6 +157,116 @@ pub(crate) struct Geometry {
     pub y: [usize; 5],
     pub kernel: [usize; 3],
     pub pad: [usize; 3],
+}
+
+impl Geometry {
+    /// The convolution that gives the input's gradient: the output gradient, padded by `k - 1 - pad`
+    /// before each axis, convolved with the kernel flipped and its channel axes swapped, gives back the
+    /// input's shape. `None` where a padding is wider than `k - 1` (the gradient would be a crop).
+    fn transposed(&self) -> Option<Geometry> {
+        let [a, b, c] = [0, 1, 2].map(|a| (self.kernel[a] - 1).checked_sub(self.pad[a]));
+        let pad = [a?, b?, c?];
+        Some(Geometry {
+            x: self.y,
+            y: self.x,
+            kernel: self.kernel,
+            pad,
+        })
+    }
+}
+
+/// `dx` of a stride-1 convolution `[B, Ci, D, H, W]` from the output gradient `dy [B, Co, ...]`, the
+/// kernel `w [Co, Ci, kd, kh, kw]` and the transposed geometry ([`Geometry::transposed`]: `g.x` is
+/// `dy`'s shape, `g.y` the input's): over the same tiles as the weight gradient, each tile's columns of
+/// `dy` times the flipped kernel `[Ci, Co * taps]`. Every tile writes its own output positions, so the
+/// tiles run in parallel and each value is one product, whatever the number of threads.
+pub(crate) fn input_gradient(dy: &[f32], w: &[f32], g: &Geometry) -> Vec<f32> {
+    let [b, co, ..] = g.x;
+    let [_, ci, d, h, wd] = g.y;
+    let taps: usize = g.kernel.iter().product();
+    let kc = co * taps;
+    let mut flipped = vec![0f32; ci * kc];
+    for o in 0..co {
+        for c in 0..ci {
+            let src = &w[(o * ci + c) * taps..][..taps];
+            let dst = &mut flipped[(c * co + o) * taps..][..taps];
+            for (t, v) in src.iter().enumerate() {
+                dst[taps - 1 - t] = *v;
+            }
+        }
+    }
+    let p = d * h * wd;
+    let mut dx = vec![0f32; b * ci * p];
+    let rows = (TILE / wd.max(1)).max(1);
+    let tiles: Vec<(usize, usize, usize)> = (0..b)
+        .flat_map(|bi| {
+            (0..d * h)
+                .step_by(rows)
+                .map(move |r| (bi, r, rows.min(d * h - r)))
+        })
+        .collect();
+    let out = SendPtr(dx.as_mut_ptr());
+    tiles.par_iter().for_each_init(
+        || vec![0f32; kc * rows * wd],
+        |cols, &(bi, r0, nr)| {
+            let t = nr * wd;
+            tile_columns(dy, g, bi, r0, nr, &mut cols[..kc * t]);
+            // SAFETY: the tile's positions `r0 * wd..r0 * wd + t` of each of batch item `bi`'s `ci`
+            // planes (`p` apart) lie inside `dx`, and no other tile writes them.
+            unsafe {
+                write_product(
+                    out.get().add(bi * ci * p + r0 * wd),
+                    p,
+                    &flipped,
+                    &cols[..kc * t],
+                    ci,
+                    kc,
+                    t,
+                )
+            };
+        },
+    );
+    dx
+}
+
+/// `dst [m, t] = lhs [m, kc] . cols [kc, t]`, `dst` rows `p` apart.
+///
+/// # Safety
+/// `dst` must be valid for writes of `m` rows of `t` values `p` apart that nothing else accesses.
+unsafe fn write_product(
+    dst: *mut f32,
+    p: usize,
+    lhs: &[f32],
+    cols: &[f32],
+    m: usize,
+    kc: usize,
+    t: usize,
+) {
+    assert!(lhs.len() == m * kc && cols.len() == kc * t);
+    // SAFETY: the assert bounds what the product reads; the caller vouches for `dst`.
+    unsafe {
+        gemm::gemm(
+            m,
+            t,
+            kc,
+            dst,
+            1,
+            p as isize,
+            false,
+            lhs.as_ptr(),
+            1,
+            kc as isize,
+            cols.as_ptr(),
+            1,
+            t as isize,
+            0.0,
+            1.0,
+            false,
+            false,
+            false,
+            gemm::Parallelism::None,
+        );
+    }
 }
 
 /// `dW [Co, Ci, kd, kh, kw]` of a stride-1 convolution from its input and output gradient (host
