@@ -42,6 +42,24 @@ pub fn bench_attention(args: &AttentionArgs, device: &Device) -> Result<()> {
             args.heads,
             args.head_dim
         );
+        // The scores: `heads x tile x tile` per tile of the tiled path, `heads x N x N` on the plain one.
+        let tile = args.tile.min(n);
+        let tiled = args.heads.saturating_mul(tile).saturating_mul(tile);
+        anyhow::ensure!(
+            tiled <= MAX_ELEMENTS,
+            "--tile {} at --tokens {n} with --heads {}: {tiled} scores per tile, more than the \
+             {MAX_ELEMENTS} the benchmark allows",
+            args.tile,
+            args.heads
+        );
+        let plain = args.heads.saturating_mul(n).saturating_mul(n);
+        anyhow::ensure!(
+            n > args.plain_up_to || plain <= MAX_ELEMENTS,
+            "--plain-up-to {} runs the plain path at --tokens {n} with --heads {}: {plain} scores, more \
+             than the {MAX_ELEMENTS} the benchmark allows (lower --plain-up-to)",
+            args.plain_up_to,
+            args.heads
+        );
     }
     let device = device.clone().autodiff();
     println!(

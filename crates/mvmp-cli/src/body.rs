@@ -78,6 +78,9 @@ fn pose(model: &BodyModel, bodies: &[SmplxParams], device: &Device) -> Result<(P
 }
 
 pub fn forward(model: Option<&Path>, params: &Path, out: &Path, device: &Device) -> Result<()> {
+    for name in ["output.npz", "output.json"] {
+        crate::paths::not_over_input("--out", &out.join(name), params)?;
+    }
     let bodies = SmplxParams::read_json(params)?;
     let model = load_model(model)?;
     let (verts, joints) = pose(&model, &bodies, device)?;
@@ -136,6 +139,9 @@ pub fn render(
 ) -> Result<()> {
     if !(16..=8192).contains(&size) {
         bail!("--size {size}: expected 16 to 8192 pixels");
+    }
+    for input in params.into_iter().chain(model) {
+        crate::paths::not_over_input("--out", out, input)?;
     }
     let bodies = match params {
         Some(p) => SmplxParams::read_json(p)?,

@@ -75,13 +75,10 @@ pub fn stats(dir: &Path, json: bool, sheet: Option<&Path>) -> Result<()> {
 }
 
 pub fn check(format: SourceFormat, dir: &Path, deep: bool) -> Result<()> {
-    if deep && format != SourceFormat::Mvmp {
-        anyhow::bail!("--deep applies to --format mvmp (not {format})");
-    }
     match format {
         SourceFormat::Mvmp => {}
-        SourceFormat::Panoptic => return check_panoptic(dir),
-        SourceFormat::H36m => return check_h36m(dir),
+        SourceFormat::Panoptic => return check_panoptic(dir, deep),
+        SourceFormat::H36m => return check_h36m(dir, deep),
     }
     let r = mvmp_data::check::check_dataset(dir, deep);
     println!(
@@ -103,9 +100,18 @@ pub fn check(format: SourceFormat, dir: &Path, deep: bool) -> Result<()> {
     report_problems(&r.problems, dir)
 }
 
-fn check_panoptic(dir: &Path) -> Result<()> {
+/// What a check of a public dataset's tree read of its images.
+fn images_note(deep: bool) -> &'static str {
+    if deep {
+        "every image decoded whole; every pose file parsed"
+    } else {
+        "image headers only (present, an image, the camera's size): pass --deep to decode every image; every pose file parsed"
+    }
+}
+
+fn check_panoptic(dir: &Path, deep: bool) -> Result<()> {
     let cams = mvmp_data::panoptic::VOXELPOSE_CAMERAS;
-    let r = mvmp_data::panoptic::check_tree(dir, &cams);
+    let r = mvmp_data::panoptic::check_tree_with(dir, &cams, deep);
     println!(
         "checked {} as CMU Panoptic (cameras {}):",
         dir.display(),
@@ -114,12 +120,13 @@ fn check_panoptic(dir: &Path) -> Result<()> {
     for (name, c, f, p) in &r.sequences {
         println!("  {name}: {c} cameras, {f} frames, {p} people with an annotated root");
     }
+    println!("{}", images_note(deep));
     report_problems(&r.problems, dir)
 }
 
-fn check_h36m(dir: &Path) -> Result<()> {
+fn check_h36m(dir: &Path, deep: bool) -> Result<()> {
     let cams = mvmp_data::h36m::CAMERAS;
-    let r = mvmp_data::h36m::check_tree(dir, &cams);
+    let r = mvmp_data::h36m::check_tree_with(dir, &cams, deep);
     println!(
         "checked {} as Human3.6M (cameras {}):",
         dir.display(),
@@ -135,6 +142,7 @@ fn check_h36m(dir: &Path) -> Result<()> {
         }
         println!("    {action}: {c} cameras, {f} frames, {complete} with every camera's image");
     }
+    println!("{}", images_note(deep));
     report_problems(&r.problems, dir)
 }
 

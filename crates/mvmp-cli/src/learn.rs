@@ -132,9 +132,12 @@ pub fn bench_learn(args: &LearnArgs, device: &Device) -> Result<()> {
             out.display()
         );
     }
-    // The benchmark writes in place (its runs can be watched as they train); a failure removes what it
-    // wrote, so that nothing half-done stays behind.
-    bench_into(args, device).map_err(|err| match clear(out, existed) {
+    // The benchmark writes in place (its runs can be watched as they train); a failure or an interrupt
+    // removes what it wrote, so that nothing half-done stays behind.
+    crate::interrupt::unfinished_output(out, existed);
+    let result = bench_into(args, device);
+    crate::interrupt::finished(out);
+    result.map_err(|err| match crate::interrupt::clear(out, existed) {
         Ok(()) => anyhow::anyhow!(
             "{err:#} (what was written under {} was removed)",
             out.display()
@@ -144,28 +147,6 @@ pub fn bench_learn(args: &LearnArgs, device: &Device) -> Result<()> {
             out.display()
         ),
     })
-}
-
-/// Remove what the benchmark wrote: the directory itself if it made it, else its contents.
-fn clear(out: &Path, existed: bool) -> std::io::Result<()> {
-    let result = if existed {
-        std::fs::read_dir(out).and_then(|entries| {
-            entries.into_iter().try_for_each(|e| {
-                let p = e?.path();
-                if p.is_dir() {
-                    std::fs::remove_dir_all(p)
-                } else {
-                    std::fs::remove_file(p)
-                }
-            })
-        })
-    } else {
-        std::fs::remove_dir_all(out)
-    };
-    match result {
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
-        other => other,
-    }
 }
 
 fn bench_into(args: &LearnArgs, device: &Device) -> Result<()> {
@@ -354,7 +335,7 @@ fn report(rows: &[Row], args: &LearnArgs, frames: usize, (e1, e2): (usize, usize
 
 #[cfg(test)]
 mod tests {
-    use super::{clear, verdict};
+    use super::verdict;
 
     #[test]
     fn a_direction_reproduces_only_beyond_the_noise() {
@@ -362,27 +343,5 @@ mod tests {
         assert!(verdict(&[Some(Some(true)), Some(None)]).starts_with("not distinguished"));
         assert!(verdict(&[Some(Some(true)), Some(Some(false))]).starts_with("does not reproduce"));
         assert!(verdict(&[Some(Some(true)), None]).starts_with("not measured"));
-    }
-
-    #[test]
-    fn a_failed_benchmark_leaves_its_output_as_it_found_it() {
-        let root = tempfile::tempdir().unwrap();
-        let out = root.path().join("learn");
-        let fill = || {
-            std::fs::create_dir_all(out.join("runs/full/checkpoints")).unwrap();
-            std::fs::write(out.join("runs/full/metrics.jsonl"), "{}\n").unwrap();
-            std::fs::write(out.join("learning.md"), "partial").unwrap();
-        };
-        // Made by the benchmark: removed whole.
-        fill();
-        clear(&out, false).unwrap();
-        assert!(!out.exists());
-        // Given empty by the user: emptied again, kept.
-        fill();
-        clear(&out, true).unwrap();
-        assert_eq!(std::fs::read_dir(&out).unwrap().count(), 0);
-        // Nothing written yet: nothing to do.
-        std::fs::remove_dir(&out).unwrap();
-        clear(&out, false).unwrap();
     }
 }

@@ -51,6 +51,14 @@ fn up_to(max: usize) -> clap::builder::RangedU64ValueParser<usize> {
     clap::builder::RangedU64ValueParser::<usize>::new().range(1..=max as u64)
 }
 
+/// A body-model reference flag: `standin:SEED` or a path.
+fn body_reference(s: &str) -> Result<String, String> {
+    mvmp_smplx::check_reference(s).map(|()| s.to_string())
+}
+
+/// Most timed repetitions a benchmark takes (`--iters`): each run's time is kept for the median.
+const MAX_ITERS: usize = 1_000_000;
+
 /// Most minutes a time flag takes (a year and more): a larger one would overflow the duration it sets.
 const MAX_MINUTES: f64 = 1e6;
 
@@ -241,7 +249,7 @@ struct EvalCli {
     save_predictions: Option<PathBuf>,
     /// Body model for --predictions (`standin:SEED` or an SMPLX npz; default: the dataset's) and for
     /// --pseudo-gt (default: the run's).
-    #[arg(long)]
+    #[arg(long, value_parser = body_reference)]
     body_model: Option<String>,
     /// Joints MPJPE is taken on: smplx127, panoptic15 or h36m17 (mapped from SMPL-X joints).
     #[arg(long, default_value = "smplx127")]
@@ -289,7 +297,7 @@ enum DataCommand {
         /// Layout of the dataset: mvmp, panoptic or h36m.
         #[arg(long, default_value = "mvmp")]
         format: SourceFormat,
-        /// Decode every image whole (mvmp layout; a plain check reads image headers only).
+        /// Decode every image whole (a plain check reads image headers only).
         #[arg(long)]
         deep: bool,
         /// Dataset root.
@@ -366,7 +374,7 @@ enum BenchCommand {
         #[arg(long)]
         model: Option<PathBuf>,
         /// Timed repetitions after the warm-up.
-        #[arg(long, allow_negative_numbers = true, default_value_t = 20, value_parser = at_least_one())]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 20, value_parser = up_to(MAX_ITERS))]
         iters: usize,
         /// Time forward and backward (gradients of every input) instead of the forward alone.
         #[arg(long)]
@@ -380,7 +388,7 @@ enum BenchCommand {
         #[arg(long, allow_negative_numbers = true, default_value_t = 5, value_parser = up_to(mvmp_train::config::MAX_VIEWS))]
         views: usize,
         /// Timed repetitions after the warm-up.
-        #[arg(long, allow_negative_numbers = true, default_value_t = 5, value_parser = at_least_one())]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 5, value_parser = up_to(MAX_ITERS))]
         iters: usize,
     },
     /// The learning benchmark: the full tiny model and the paper's comparisons (VoxelSMPLX, max and
@@ -428,7 +436,7 @@ enum BenchCommand {
         config: PathBuf,
         #[arg(long, allow_negative_numbers = true, default_value_t = 4, value_parser = up_to(mvmp_train::config::MAX_VIEWS))]
         views: usize,
-        #[arg(long, allow_negative_numbers = true, default_value_t = 3, value_parser = at_least_one())]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 3, value_parser = up_to(MAX_ITERS))]
         iters: usize,
         /// Time each stage's forward and backward (on the autodiff device; what a training step runs).
         #[arg(long)]

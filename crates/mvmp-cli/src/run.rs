@@ -171,6 +171,7 @@ pub fn error_parts(m: &Metrics) -> Option<String> {
 /// Run an evaluation; returns the overall figures and the report.
 pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, serde_json::Value)> {
     check_save_predictions(args)?;
+    check_outputs(args)?;
     match args.format {
         SourceFormat::Mvmp => {
             if args.stride.is_some() {
@@ -204,10 +205,13 @@ pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, s
             args.data.display()
         );
     }
-    let (ev, source, views) = match args.source {
+    let ((ev, source, views), staged) = match args.source {
         Source::Run(run_dir) => eval_run(args, run_dir, min_views, device, quiet)?,
-        Source::Predictions(dir) => eval_predictions(args, dir, &layout, min_views, device)?,
-        Source::MeanPose => eval_mean_pose(args, &layout, device)?,
+        Source::Predictions(dir) => (
+            eval_predictions(args, dir, &layout, min_views, device)?,
+            None,
+        ),
+        Source::MeanPose => (eval_mean_pose(args, &layout, device)?, None),
     };
     let header = json!({
         "source": source,
@@ -216,7 +220,28 @@ pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, s
         "views": views,
         "protocol": protocol(args.gate, args.joints),
     });
-    finish_report(&ev, header, "ground_truth", args.out)
+    finish_with_predictions(&ev, header, "ground_truth", args.out, staged)
+}
+
+/// [`finish_report`], then the saved predictions put in place: a report that cannot be written leaves
+/// no predictions behind, and predictions that cannot be put in place take the report away again.
+fn finish_with_predictions(
+    ev: &Evaluator,
+    header: serde_json::Value,
+    gt_key: &str,
+    out: Option<&Path>,
+    staged: Option<StagedDir>,
+) -> Result<(Metrics, serde_json::Value)> {
+    let report = finish_report(ev, header, gt_key, out)?;
+    if let Some(s) = staged
+        && let Err(e) = s.finish()
+    {
+        if let Some(out) = out {
+            let _ = std::fs::remove_file(out);
+        }
+        return Err(e.into());
+    }
+    Ok(report)
 }
 
 /// `--save-predictions` is refused rather than ignored where there is nothing to save: only a model's
@@ -233,6 +258,37 @@ fn check_save_predictions(args: &EvalArgs) -> Result<()> {
     Ok(())
 }
 
+/// The report and the saved predictions go beside the inputs, never over them: not into the dataset,
+/// not over a run's own files, not into the stored predictions being scored.
+fn check_outputs(args: &EvalArgs) -> Result<()> {
+    use crate::paths::not_over_input;
+    let mut inputs = vec![args.data.to_path_buf()];
+    match args.source {
+        Source::Run(run) => inputs.extend(
+            [
+                "train.toml",
+                "model.toml",
+                "state.json",
+                "model.bpk",
+                "metrics.jsonl",
+                "checkpoints",
+            ]
+            .map(|f| run.join(f)),
+        ),
+        Source::Predictions(dir) => inputs.push(dir.to_path_buf()),
+        Source::MeanPose => {}
+    }
+    for input in &inputs {
+        if let Some(out) = args.out {
+            not_over_input("--out", out, input)?;
+        }
+        if let Some(dir) = args.save_predictions {
+            not_over_input("--save-predictions", dir, input)?;
+        }
+    }
+    Ok(())
+}
+
 /// With `--save-predictions`, the staging directory every frame's files go to, moved into place once all
 /// frames are scored.
 fn stage_predictions(args: &EvalArgs) -> Result<Option<StagedDir>> {
@@ -245,15 +301,15 @@ fn stage_predictions(args: &EvalArgs) -> Result<Option<StagedDir>> {
 /// What one scoring gave: the evaluator, where the predictions came from, the views used.
 type Scored = (Evaluator, serde_json::Value, usize);
 
-/// A run's model on the split; with `--save-predictions`, every frame's files, put in place when all
-/// frames are scored.
+/// A run's model on the split; with `--save-predictions`, every frame's files, staged for the caller to
+/// put in place once the report is written.
 fn eval_run(
     args: &EvalArgs,
     run_dir: &Path,
     min_views: usize,
     device: &Device,
     quiet: bool,
-) -> Result<Scored> {
+) -> Result<(Scored, Option<StagedDir>)> {
     let (run, cfg, _) = RunDir::open(run_dir)?;
     let (pred, weights) = Predictor::from_run(run_dir, device)?;
     let views = args.views.unwrap_or(cfg.test_views.min(min_views));
@@ -270,10 +326,7 @@ fn eval_run(
         Ok(())
     })?;
     pb.finish();
-    if let Some(s) = staged {
-        s.finish()?;
-    }
-    Ok((ev, run_source(&run, &weights)?, views))
+    Ok(((ev, run_source(&run, &weights)?, views), staged))
 }
 
 /// Stored predictions (infer's layout) posed with the body model given or the dataset's.
@@ -889,9 +942,6 @@ fn eval_joint_dataset(
         },
     )?;
     pb.finish();
-    if let Some(s) = staged {
-        s.finish()?;
-    }
     let mut header = json!({
         "source": run_source(&run, &weights)?,
         "data": absolute(args.data),
@@ -905,5 +955,5 @@ fn eval_joint_dataset(
         "protocol": protocol(args.gate, ds.set),
     });
     header[ds.parts_key] = json!(ds.parts);
-    finish_report(&ev, header, "ground_truth_people", args.out)
+    finish_with_predictions(&ev, header, "ground_truth_people", args.out, staged)
 }

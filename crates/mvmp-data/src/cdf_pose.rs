@@ -66,10 +66,12 @@ pub fn read_variable(path: &Path, name: &str) -> Result<(Vec<f64>, Vec<usize>), 
         Err(e) => return Err(bad(format!("unsupported encoding: {e}"))),
     };
     let (data_type, dims, vxrs) = if let Some(z) = gdr.zvdr_vec.iter().find(|v| *v.name == name) {
-        let dims: Vec<usize> = z.size_z_dims.iter().map(|d| **d as usize).collect();
+        let dims = record_dims(z.size_z_dims.iter().map(|d| i64::from(**d)))
+            .map_err(|w| bad(format!("variable `{name}`: {w}")))?;
         (*z.data_type, dims, &z.vxr_vec)
     } else if let Some(r) = gdr.rvdr_vec.iter().find(|v| *v.name == name) {
-        let dims: Vec<usize> = gdr.size_r_dims.iter().map(|d| **d as usize).collect();
+        let dims = record_dims(gdr.size_r_dims.iter().map(|d| i64::from(**d)))
+            .map_err(|w| bad(format!("variable `{name}`: {w}")))?;
         (*r.data_type, dims, &r.vxr_vec)
     } else {
         let names: Vec<String> = gdr
@@ -110,6 +112,32 @@ pub fn read_variable(path: &Path, name: &str) -> Result<(Vec<f64>, Vec<usize>), 
     Ok((values, dims))
 }
 
+/// Most values a variable may hold over all its records (a Human3.6M pose sequence: a few thousand
+/// frames of 96).
+pub const MAX_VALUES: usize = 1 << 24;
+
+/// A record's dimensions as the file declares them: each at least 1, their product at most
+/// [`MAX_VALUES`].
+fn record_dims(dims: impl Iterator<Item = i64>) -> Result<Vec<usize>, String> {
+    let dims: Vec<i64> = dims.collect();
+    let ok: Option<Vec<usize>> = dims
+        .iter()
+        .map(|&d| usize::try_from(d).ok().filter(|&d| d >= 1))
+        .collect();
+    match ok {
+        Some(d)
+            if d.iter()
+                .try_fold(1usize, |a, &x| a.checked_mul(x))
+                .is_some_and(|n| n <= MAX_VALUES) =>
+        {
+            Ok(d)
+        }
+        _ => Err(format!(
+            "record dimensions {dims:?}: each must be at least 1 and their product at most {MAX_VALUES}"
+        )),
+    }
+}
+
 /// Where the element at row-major position `i` of an array of `dims` sits in column-major order.
 fn column_major_offset(mut i: usize, dims: &[usize]) -> usize {
     let mut index = vec![0; dims.len()];
@@ -136,6 +164,9 @@ fn collect(
             VariableIndexRecordChild::VXR(inner) => collect(inner, width, little, out)?,
             VariableIndexRecordChild::VVR(vvr) => {
                 for rec in &vvr.records {
+                    if out.len() + rec.data.len() > MAX_VALUES {
+                        return Err(format!("more than {MAX_VALUES} values"));
+                    }
                     for v in &rec.data {
                         out.push(match v {
                             CdfType::Real4(x) => **x as f64,
@@ -151,10 +182,18 @@ fn collect(
                         "a compressed block that is not GZIP (only GZIP is supported)".into(),
                     );
                 }
+                // Bounded, so that a small block cannot inflate into more than a variable may hold.
+                let cap = ((MAX_VALUES - out.len().min(MAX_VALUES)) * width) as u64;
                 let mut raw = Vec::new();
                 flate2::read::GzDecoder::new(&c.data[..])
+                    .take(cap + 1)
                     .read_to_end(&mut raw)
                     .map_err(|e| format!("a damaged GZIP block: {e}"))?;
+                if raw.len() as u64 > cap {
+                    return Err(format!(
+                        "a GZIP block that inflates beyond {MAX_VALUES} values"
+                    ));
+                }
                 if raw.len() % width != 0 {
                     return Err(format!(
                         "a decompressed block of {} bytes, not whole {width}-byte values",

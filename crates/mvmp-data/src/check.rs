@@ -97,6 +97,25 @@ fn jpeg_complete(bytes: &[u8]) -> bool {
     bytes[scan..].windows(2).any(marker(0xD9))
 }
 
+/// What is wrong with the image at `path` as a view of a camera of `size` (width, height): its header
+/// ([`view_header_problem`]), or with `deep` the whole image decoded.
+pub fn view_problem(path: &Path, size: (u32, u32), deep: bool) -> Option<String> {
+    if !deep {
+        return view_header_problem(path, size);
+    }
+    match open_image(path) {
+        Err(e) => Some(format!("unreadable image: {e}")),
+        Ok(img) if (img.width(), img.height()) != size => Some(format!(
+            "image is {} x {}, the camera says {} x {}",
+            img.width(),
+            img.height(),
+            size.0,
+            size.1
+        )),
+        Ok(_) => None,
+    }
+}
+
 /// What is wrong with the image at `path` as a view of a camera of `size` (width, height), reading its
 /// header only: missing, not an image, or another size.
 pub fn view_header_problem(path: &Path, size: (u32, u32)) -> Option<String> {

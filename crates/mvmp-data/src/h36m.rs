@@ -290,7 +290,13 @@ impl H36mSequence {
         }
         let full = read_cameras(&calib, subject)?;
         let mut cams = Vec::with_capacity(cameras.len());
-        for c in cameras {
+        for (i, c) in cameras.iter().enumerate() {
+            if cameras[..i].contains(c) {
+                return Err(DataError::file(
+                    &calib,
+                    format!("camera {c:?} is asked for twice: a rig's cameras are distinct"),
+                ));
+            }
             let cam = full.cameras.iter().find(|k| k.name == *c).ok_or_else(|| {
                 DataError::file(
                     &calib,
@@ -341,6 +347,12 @@ pub struct H36mReport {
 /// and for every pose row an image per camera; each problem names its file. Missing images are
 /// summarised per video directory (the first missing frame and the count), not listed one by one.
 pub fn check_tree(root: &Path, cameras: &[&str]) -> H36mReport {
+    check_tree_with(root, cameras, false)
+}
+
+/// [`check_tree`]; with `deep` every image is decoded whole (which finds files cut short after their
+/// header).
+pub fn check_tree_with(root: &Path, cameras: &[&str], deep: bool) -> H36mReport {
     let mut report = H36mReport::default();
     let subjects = match subject_dirs(root) {
         Ok(s) => s,
@@ -361,7 +373,7 @@ pub fn check_tree(root: &Path, cameras: &[&str]) -> H36mReport {
         match actions(root, &subject) {
             Ok(acts) => {
                 for action in acts {
-                    check_sequence(&mut report, root, &subject, &action, cameras);
+                    check_sequence(&mut report, root, &subject, &action, cameras, deep);
                 }
             }
             Err(e) => tree_problem(&mut report, &root.join(&subject), e.to_string()),
@@ -400,6 +412,7 @@ fn check_sequence(
     subject: &str,
     action: &str,
     cameras: &[&str],
+    deep: bool,
 ) {
     let seq = match H36mSequence::open(root, subject, action, cameras, 1) {
         Ok(s) => s,
@@ -428,7 +441,7 @@ fn check_sequence(
                 }
                 missing[c].1 += 1;
             } else if let Some(what) =
-                crate::check::view_header_problem(img, (cam.width, cam.height))
+                crate::check::view_problem(img, (cam.width, cam.height), deep)
             {
                 all = false;
                 if bad[c].1 == 0 {

@@ -50,7 +50,13 @@ pub fn read_calibration(path: &Path, names: &[&str]) -> Result<Rig, DataError> {
     let file: CalibFile = serde_json::from_str(&text)
         .map_err(|e| DataError::file(path, format!("not a Panoptic calibration: {e}")))?;
     let mut cams = Vec::with_capacity(names.len());
-    for &name in names {
+    for (i, &name) in names.iter().enumerate() {
+        if names[..i].contains(&name) {
+            return Err(DataError::file(
+                path,
+                format!("camera {name:?} is asked for twice: a rig's cameras are distinct"),
+            ));
+        }
         let c = file
             .cameras
             .iter()
@@ -350,6 +356,12 @@ pub struct PanopticReport {
 /// parsed and every image of the selected cameras must be an image of its camera's size (its header is
 /// read); each problem names its file.
 pub fn check_tree(root: &Path, cameras: &[&str]) -> PanopticReport {
+    check_tree_with(root, cameras, false)
+}
+
+/// [`check_tree`]; with `deep` every image is decoded whole (which finds files cut short after their
+/// header).
+pub fn check_tree_with(root: &Path, cameras: &[&str], deep: bool) -> PanopticReport {
     let mut report = PanopticReport::default();
     let is_seq = |d: &Path| {
         d.file_name()
@@ -400,8 +412,7 @@ pub fn check_tree(root: &Path, cameras: &[&str]) -> PanopticReport {
                     .push(crate::check::Problem::from_error(&f.bodies, &e)),
             }
             for (img, cam) in f.images.iter().zip(&seq.rig.cameras) {
-                if let Some(what) = crate::check::view_header_problem(img, (cam.width, cam.height))
-                {
+                if let Some(what) = crate::check::view_problem(img, (cam.width, cam.height), deep) {
                     report.problems.push(crate::check::Problem {
                         path: img.clone(),
                         what,

@@ -236,5 +236,7 @@ pub fn load_weights(model: &mut MvmpHmr, path: &Path) -> Result<(), InferError> 
             ),
         ));
     }
+    // Weights no training writes (NaN, infinite, absurdly large) would score and write meshes of NaN.
+    mvmp_io::checkpoint::check_finite(model, path)?;
     Ok(())
 }

@@ -51,13 +51,26 @@ pub fn state_checkpoint(root: &Path) -> Result<Option<String>, InferError> {
             format!("format {format:?} version {version:?}: expected {STATE_FORMAT:?} version 1"),
         ));
     }
-    if let Some(a) = v.get("average").and_then(|a| a.as_str()) {
-        return Ok(Some(a.to_string()));
+    let (key, file) = match (v.get("average"), v.get("checkpoint")) {
+        (Some(a), _) => ("average", a),
+        (None, Some(c)) => ("checkpoint", c),
+        (None, None) => return Err(InferError::file(&path, "key `checkpoint` is missing")),
+    };
+    match file.as_str() {
+        Some(f) if inside_run(f) => Ok(Some(f.to_string())),
+        _ => Err(InferError::file(
+            &path,
+            format!("key `{key}`: {file} is not a file inside the run directory"),
+        )),
     }
-    match v.get("checkpoint").and_then(|c| c.as_str()) {
-        Some(c) => Ok(Some(c.to_string())),
-        None => Err(InferError::file(&path, "key `checkpoint` is missing")),
-    }
+}
+
+/// Whether `file` names a file inside the run: a relative path of plain names (no `..`, no root).
+fn inside_run(file: &str) -> bool {
+    let f = Path::new(file);
+    f.components().next().is_some()
+        && f.components()
+            .all(|c| matches!(c, std::path::Component::Normal(_)))
 }
 
 /// The weights to predict with: the final weights, else the newest checkpoint's ([`state_checkpoint`]).

@@ -292,6 +292,20 @@ impl ModelConfig {
                 ),
             ));
         }
+        let mut seen = [false; NUM_JOINTS_WITH_LANDMARKS];
+        if let Some(j) = self
+            .heatmap_joints
+            .iter()
+            .find(|&&j| std::mem::replace(&mut seen[j], true))
+        {
+            return Err((
+                "heatmap_joints",
+                format!("{:?}: joint {j} is listed twice", self.heatmap_joints),
+            ));
+        }
+        if let Err(what) = mvmp_smplx::check_reference(&self.body_model) {
+            return Err(("body_model", what));
+        }
         if self.facing_bins != 0 && !(4..=MAX_FACING_BINS).contains(&self.facing_bins) {
             return Err((
                 "facing_bins",

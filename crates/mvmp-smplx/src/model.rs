@@ -52,6 +52,10 @@ struct Array {
     shape: Vec<usize>,
 }
 
+/// Most values one array of a body-model file may hold: about twice SMPL-X's largest (posedirs, 10475 x 3 x
+/// 486), so that a header declaring billions is refused before anything is allocated.
+pub const MAX_ARRAY_VALUES: usize = 1 << 25;
+
 fn read_array<R: Read + Seek>(
     npz: &mut npyz::npz::NpzArchive<R>,
     path: &Path,
@@ -79,6 +83,17 @@ fn read_array<R: Read + Seek>(
             expected: "a numeric array",
         });
     };
+    // The header's shape is checked before any value is read: the reader allocates what it declares.
+    let Some(n) = shape
+        .iter()
+        .try_fold(1usize, |a, &d| a.checked_mul(d))
+        .filter(|&n| n <= MAX_ARRAY_VALUES)
+    else {
+        return Err(bad(format!(
+            "has shape {shape:?}: more than {MAX_ARRAY_VALUES} values (SMPL-X's largest array, \
+             posedirs, holds 15.3 million)"
+        )));
+    };
     let read_err = |e: std::io::Error| bad(format!("truncated or corrupt data: {e}"));
     let data: Vec<f64> = match (ts.type_char(), ts.size_field()) {
         (TypeChar::Float, 8) => npy.into_vec::<f64>().map_err(read_err)?,
@@ -105,11 +120,6 @@ fn read_array<R: Read + Seek>(
                 expected: "float32/64 or int32/64",
             });
         }
-    };
-    let Some(n) = shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d)) else {
-        return Err(bad(format!(
-            "has shape {shape:?}, more values than memory holds"
-        )));
     };
     if data.len() != n {
         return Err(bad(format!(

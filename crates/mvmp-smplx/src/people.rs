@@ -95,6 +95,11 @@ pub struct StoredPerson {
 /// Most people one stored frame may hold (a model decodes at most 1000): they are posed at once.
 pub const MAX_STORED_PEOPLE: usize = 10_000;
 
+/// Most values one person has in one array (the full pose, 55 joints x 3, is the widest).
+const MAX_ROW: usize = 165;
+/// Most values one array of `people.npz` may hold.
+const MAX_ARRAY_VALUES: usize = MAX_STORED_PEOPLE * MAX_ROW;
+
 /// Read `people.npz`: the standard smplx keys (missing pose keys are zero; `betas` and `expression` may
 /// have up to 10 columns), optional `scores` (default 1). Any float dtype.
 pub fn read_people_npz(path: &Path) -> Result<Vec<StoredPerson>, SmplxError> {
@@ -177,6 +182,21 @@ fn read_array<R: std::io::Read + std::io::Seek>(
         return Ok(None);
     };
     let shape = arr.shape().to_vec();
+    // The header's shape is checked before any value is read (the reader allocates what it declares),
+    // and again against what was read, which the column-major reordering below indexes by.
+    let Some(count) = shape
+        .iter()
+        .try_fold(1usize, |a, &d| a.checked_mul(usize::try_from(d).ok()?))
+        .filter(|&c| c <= MAX_ARRAY_VALUES)
+    else {
+        return Err(npz_err(
+            path,
+            format!(
+                "key `{name}` has shape {shape:?}: more than {MAX_ARRAY_VALUES} values \
+                 ({MAX_STORED_PEOPLE} people of at most {MAX_ROW} values each)"
+            ),
+        ));
+    };
     let fortran = matches!(arr.order(), npyz::Order::Fortran);
     let data: Vec<f64> = match arr.dtype() {
         npyz::DType::Plain(t) if t.type_char() == npyz::TypeChar::Float && t.size_field() == 4 => {
@@ -193,6 +213,15 @@ fn read_array<R: std::io::Read + std::io::Seek>(
             )
         })?,
     };
+    if data.len() != count {
+        return Err(npz_err(
+            path,
+            format!(
+                "key `{name}` holds {} values; its shape {shape:?} needs {count}",
+                data.len()
+            ),
+        ));
+    }
     // numpy may store column-major arrays; rows are read in C order.
     let data = if fortran && shape.len() == 2 {
         let (r, c) = (shape[0] as usize, shape[1] as usize);

@@ -253,7 +253,13 @@ fn hand_means_are_not_applied() {
 /// A `.npy` of float64 whose header claims `shape` (written by hand: no writer makes such a header)
 /// followed by `values` zeros.
 fn npy_claiming(shape: &str, values: usize) -> Vec<u8> {
-    let mut h = format!("{{'descr': '<f8', 'fortran_order': False, 'shape': {shape}, }}");
+    npy_claiming_in(shape, values, false)
+}
+
+/// [`npy_claiming`] in C or Fortran (column-major) order.
+fn npy_claiming_in(shape: &str, values: usize, fortran: bool) -> Vec<u8> {
+    let order = if fortran { "True" } else { "False" };
+    let mut h = format!("{{'descr': '<f8', 'fortran_order': {order}, 'shape': {shape}, }}");
     while !(10 + h.len() + 1).is_multiple_of(64) {
         h.push(' ');
     }
@@ -312,6 +318,38 @@ fn a_people_file_whose_header_overflows_is_refused_naming_the_key() {
         msg.contains("people.npz") && msg.contains("transl"),
         "{msg}"
     );
+}
+
+/// Headers whose shape wraps in 64 bits or claims billions of values, in either order, are refused
+/// before any value is read or reordered (a column-major reorder once indexed past the values read).
+#[test]
+fn a_people_file_claiming_more_than_it_holds_is_refused_in_either_order() {
+    let dir = tempfile::tempdir().unwrap();
+    for (i, (shape, fortran)) in [
+        ("(9223372036854775809, 2)", true),
+        ("(9223372036854775809, 2)", false),
+        ("(4000000000, 3)", false),
+        ("(4000000000, 3)", true),
+        ("(2, 3)", true),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let path = dir.path().join(format!("people{i}.npz"));
+        let mut z = zip::ZipWriter::new(std::fs::File::create(&path).unwrap());
+        z.start_file("transl.npy", zip::write::FileOptions::default())
+            .unwrap();
+        // One value where the header claims more (the last case: 6 claimed, 1 held).
+        z.write_all(&npy_claiming_in(shape, 1, fortran)).unwrap();
+        z.finish().unwrap();
+        let msg = mvmp_smplx::people::read_people_npz(&path)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            msg.contains(&format!("people{i}.npz")) && msg.contains("transl"),
+            "{shape} fortran {fortran}: {msg}"
+        );
+    }
 }
 
 #[test]

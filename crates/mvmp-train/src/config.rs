@@ -176,6 +176,9 @@ pub const MAX_VIEWS: usize = 1000;
 pub const MAX_BATCH: usize = 1024;
 /// Most epochs (and warm-up steps) per stage: step counts stay far from overflowing.
 pub const MAX_EPOCHS: usize = 1_000_000;
+/// Most times one source's frames are drawn per epoch (`[[sources]] repeat`): an epoch's order holds
+/// every draw.
+pub const MAX_REPEAT: usize = 1_000;
 
 /// A training run's configuration.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -422,11 +425,27 @@ impl TrainConfig {
                     "0: each frame is drawn at least once per epoch",
                 );
             }
+            if let Some(r) = src.repeat.filter(|&r| r > MAX_REPEAT) {
+                return Err((
+                    format!("sources[{i}].repeat"),
+                    format!("{r}: at most {MAX_REPEAT} draws of each frame per epoch"),
+                ));
+            }
             if src.format == SourceFormat::Mvmp && (src.stride.is_some() || src.cameras.is_some()) {
                 return bad(
                     format!("sources[{i}]"),
                     "stride and cameras apply to panoptic and h36m sources; an mvmp source uses every frame",
                 );
+            }
+            let cams = src.cameras.as_deref().unwrap_or_default();
+            if let Some(c) = (1..cams.len()).find(|&k| cams[..k].contains(&cams[k])) {
+                return Err((
+                    format!("sources[{i}].cameras"),
+                    format!(
+                        "{:?} is listed twice: a rig's cameras are distinct",
+                        cams[c]
+                    ),
+                ));
             }
             if src.format == SourceFormat::Mvmp && src.pseudo_gt.is_some() {
                 return bad(

@@ -143,6 +143,9 @@ impl SynthConfig {
     /// Scene, frame and people counts, area, images and lighting: the offending key and why.
     fn check_scenes(&self) -> Result<(), (String, String)> {
         let bad = |key: &str, what: String| Err((key.to_string(), what));
+        if let Err(what) = mvmp_smplx::check_reference(&self.body_model) {
+            return bad("body_model", what);
+        }
         for (key, n) in [
             ("scenes", self.scenes),
             ("frames_per_scene", self.frames_per_scene),

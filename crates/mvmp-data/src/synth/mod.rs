@@ -432,9 +432,11 @@ pub fn generate(
         body_model: if cfg.body_model.starts_with("standin:") {
             cfg.body_model.clone()
         } else {
-            // Stored absolute so the dataset can be read from anywhere.
-            config_dir
-                .join(&cfg.body_model)
+            // Stored absolute so the dataset can be read from anywhere (a relative `--config` leaves
+            // `config_dir` relative too).
+            let joined = config_dir.join(&cfg.body_model);
+            std::path::absolute(&joined)
+                .unwrap_or(joined)
                 .to_string_lossy()
                 .into_owned()
         },
