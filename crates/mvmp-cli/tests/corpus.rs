@@ -1144,6 +1144,21 @@ fn no_malformed_image_rig_run_or_flag_gets_through() {
         }
         std::fs::write(w, good).unwrap();
     }
+    // Weights outside the run, as eval reads state.json (a run without its final weights).
+    let good_state = std::fs::read_to_string(run.join("state.json")).unwrap();
+    for outside in ["../outside.bpk", "/checkpoints/absolute.bpk"] {
+        let mut bad = state.clone();
+        bad["average"] = serde_json::json!(outside);
+        std::fs::write(run.join("state.json"), bad.to_string()).unwrap();
+        let names = |t: &str| t.contains("state.json") && t.contains("average");
+        check(
+            &save,
+            &format!("average = {outside} in state.json via eval"),
+            &names,
+            Some(p("pred")),
+        );
+    }
+    std::fs::write(run.join("state.json"), good_state).unwrap();
     let copy = p("resumed");
     let resume = owned(&["train", "--resume", &s(&copy), "--stop-after-steps", "2"]);
     // Beyond the run's epochs and steps (an overflow of the step count once), and weights outside the
@@ -1564,4 +1579,143 @@ fn no_malformed_checkpoint_gets_through_import() {
         }
     }
     all_refused(n, 17, &failures);
+}
+
+/// Flags whose values size an allocation, string references, lists with a repeated entry, and outputs
+/// over their own inputs: each refused naming the flag or the file and key, with nothing written.
+#[test]
+fn no_huge_flag_bad_reference_or_output_over_input_gets_through() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = |n: &str| dir.path().join(n);
+    let ds = synth_dataset(dir.path());
+    let mut failures = Vec::new();
+    let mut n = 0;
+    let mut check = |args: &[&str], names: &[&str], out: Option<PathBuf>| {
+        n += 1;
+        let has = |t: &str| names.iter().all(|w| t.contains(w));
+        failures.extend(verdict(&mvmp(args), &args.join(" "), has, out.as_deref()));
+    };
+    let huge = "18446744073709551615";
+    for bench in ["smplx", "model", "fusion"] {
+        check(&["bench", bench, "--iters", huge], &["--iters"], None);
+    }
+    check(
+        &["bench", "attention", "--tokens", "65536", "--tile", "65536"],
+        &["--tile"],
+        None,
+    );
+    check(
+        &[
+            "bench",
+            "attention",
+            "--tokens",
+            "65536",
+            "--plain-up-to",
+            "65536",
+        ],
+        &["--plain-up-to"],
+        None,
+    );
+    let model = |edit: &dyn Fn(String) -> String| {
+        let path = p("model.toml");
+        std::fs::write(&path, edit(small_model())).unwrap();
+        s(&path)
+    };
+    for (key, edit) in [
+        (
+            "heatmap_joints",
+            &(|m: String| m.replace("heatmap_joints = [0, 1,", "heatmap_joints = [1, 1,"))
+                as &dyn Fn(String) -> String,
+        ),
+        ("body_model", &|m: String| {
+            m.replace("body_model = \"standin:0\"", "body_model = \"standin:x\"")
+        }),
+    ] {
+        let cfg = model(edit);
+        check(
+            &["model", "summary", "--config", &cfg],
+            &["model.toml", key],
+            None,
+        );
+    }
+    std::fs::write(p("model.toml"), small_model()).unwrap();
+    let train = |extra: &str| {
+        let path = p("train.toml");
+        std::fs::write(&path, format!("data = {:?}\n{TRAIN}{extra}", s(&ds))).unwrap();
+        s(&path)
+    };
+    for (key, source) in [
+        (
+            "repeat",
+            "[[sources]]\nformat = \"mvmp\"\nroot = \"x\"\nrepeat = 1000000000000\n",
+        ),
+        (
+            "cameras",
+            "[[sources]]\nformat = \"panoptic\"\nroot = \"x\"\ncameras = [\"00_03\", \"00_03\"]\n",
+        ),
+    ] {
+        let cfg = train(source);
+        let out = p("run");
+        check(
+            &["train", "--config", &cfg, "--out", &s(&out)],
+            &["train.toml", key],
+            Some(out),
+        );
+    }
+    let report = p("report.json");
+    check(
+        &[
+            "eval",
+            "--baseline",
+            "mean-pose",
+            "--data",
+            &s(&ds),
+            "--split",
+            "all",
+            "--body-model",
+            "standin:x",
+            "--out",
+            &s(&report),
+        ],
+        &["--body-model", "standin:x"],
+        Some(report),
+    );
+    let index = ds.join("dataset.json");
+    let before = std::fs::read(&index).unwrap();
+    check(
+        &[
+            "eval",
+            "--baseline",
+            "mean-pose",
+            "--data",
+            &s(&ds),
+            "--split",
+            "all",
+            "--out",
+            &s(&index),
+        ],
+        &["--out", "dataset.json"],
+        None,
+    );
+    assert_eq!(
+        std::fs::read(&index).unwrap(),
+        before,
+        "dataset.json overwritten"
+    );
+    let params = p("params.json");
+    std::fs::write(&params, PARAMS).unwrap();
+    check(
+        &[
+            "body",
+            "render",
+            "--params",
+            &s(&params),
+            "--out",
+            &s(&params),
+        ],
+        &["--out", "params.json"],
+        None,
+    );
+    assert_eq!(std::fs::read_to_string(&params).unwrap(), PARAMS);
+    all_refused(n, 10, &failures);
 }

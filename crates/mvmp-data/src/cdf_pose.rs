@@ -216,7 +216,7 @@ fn collect(
 
 #[cfg(test)]
 mod tests {
-    use super::column_major_offset;
+    use super::{MAX_VALUES, column_major_offset, record_dims};
 
     #[test]
     fn column_major_offsets_by_hand() {
@@ -225,5 +225,23 @@ mod tests {
         assert_eq!(got, [0, 2, 4, 1, 3, 5]);
         // 1-D arrays are the same in both orders.
         assert_eq!(column_major_offset(4, &[7]), 4);
+    }
+
+    /// Dimensions a file declares: zero, negative or overflowing ones are refused before anything is
+    /// indexed by them; a Human3.6M pose record (96 values) is not.
+    #[test]
+    fn declared_dimensions_are_checked() {
+        assert_eq!(record_dims([96].into_iter()), Ok(vec![96]));
+        assert_eq!(record_dims([32, 3].into_iter()), Ok(vec![32, 3]));
+        for bad in [
+            vec![0],
+            vec![32, 0],
+            vec![-1],
+            vec![i64::from(i32::MIN)],
+            vec![1 << 20, 1 << 20],
+            vec![MAX_VALUES as i64 + 1],
+        ] {
+            assert!(record_dims(bad.clone().into_iter()).is_err(), "{bad:?}");
+        }
     }
 }
