@@ -248,6 +248,13 @@ impl Annotation {
             }
             out.extend(list.as_ref().and_then(|l| name_problem(key, l)));
         }
+        if self.people.len() > MAX_PEOPLE_PER_FRAME {
+            out.push(format!(
+                "key `people` lists {} people; at most {MAX_PEOPLE_PER_FRAME} per frame",
+                self.people.len()
+            ));
+            return out;
+        }
         // People are compared with the first only when its count is one the layout allows.
         let first = self
             .people
@@ -263,6 +270,10 @@ impl Annotation {
         out
     }
 }
+
+/// Most people one frame's annotation may hold (every pair's ids are compared, and each person is
+/// matched against every prediction).
+pub const MAX_PEOPLE_PER_FRAME: usize = 1_000;
 
 /// The joint counts a body layer outputs (with face landmarks, without, the LBS joints alone);
 /// downstream code indexes joints by these layouts.

@@ -21,6 +21,10 @@ pub const MAX_GRID_SIDE: usize = 4096;
 /// already 4 GiB.
 pub const MAX_VOXELS: usize = 1 << 25;
 
+/// Most metres a grid's centre lies from the origin, and most metres a side spans: the network computes
+/// positions in float32, where 1e300 is infinite and a kilometre-wide grid already loses millimetres.
+pub const MAX_EXTENT: f64 = 10_000.0;
+
 impl VoxelGrid {
     pub fn new(center: [f64; 3], size: [f64; 3], shape: [usize; 3]) -> Result<Self, GeomError> {
         let g = VoxelGrid {
@@ -34,15 +38,15 @@ impl VoxelGrid {
 
     pub fn validate(&self) -> Result<(), GeomError> {
         for a in 0..3 {
-            if !self.center[a].is_finite() {
+            if !(self.center[a].is_finite() && self.center[a].abs() <= MAX_EXTENT) {
                 return Err(GeomError::InvalidGrid(format!(
-                    "center[{a}] = {} is not finite",
+                    "center[{a}] = {}: expected a finite coordinate within {MAX_EXTENT} m",
                     self.center[a]
                 )));
             }
-            if !(self.size[a].is_finite() && self.size[a] > 0.0) {
+            if !(self.size[a].is_finite() && self.size[a] > 0.0 && self.size[a] <= MAX_EXTENT) {
                 return Err(GeomError::InvalidGrid(format!(
-                    "size[{a}] = {} must be positive",
+                    "size[{a}] = {}: expected a positive size up to {MAX_EXTENT} m",
                     self.size[a]
                 )));
             }

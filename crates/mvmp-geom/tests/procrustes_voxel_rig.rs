@@ -162,3 +162,31 @@ fn rig_round_trip_and_errors() {
     let e = Rig::read(&dir.path().join("missing.json")).unwrap_err();
     assert!(matches!(e, GeomError::Io { .. }) && e.to_string().contains("missing.json"));
 }
+
+/// A grid the float32 network could not place: centres and sides beyond `MAX_EXTENT` (1e300 is
+/// finite in float64 and infinite in float32), as well as non-finite and non-positive ones.
+#[test]
+fn grids_beyond_float32_reach_are_refused() {
+    let good = VoxelGrid {
+        center: [0.0, 0.0, 1.0],
+        size: [8.0, 8.0, 2.0],
+        shape: [32, 32, 8],
+    };
+    assert!(good.validate().is_ok());
+    for (center, size) in [
+        ([1e300, 0.0, 1.0], [8.0, 8.0, 2.0]),
+        ([0.0, -2e4, 1.0], [8.0, 8.0, 2.0]),
+        ([0.0, 0.0, f64::NAN], [8.0, 8.0, 2.0]),
+        ([0.0, 0.0, 1.0], [8.0, 1e300, 2.0]),
+        ([0.0, 0.0, 1.0], [8.0, 8.0, 0.0]),
+        ([0.0, 0.0, 1.0], [f64::INFINITY, 8.0, 2.0]),
+    ] {
+        let grid = VoxelGrid {
+            center,
+            size,
+            ..good.clone()
+        };
+        let e = grid.validate().unwrap_err().to_string();
+        assert!(e.contains("center") || e.contains("size"), "{e}");
+    }
+}
