@@ -258,32 +258,32 @@ fn check_save_predictions(args: &EvalArgs) -> Result<()> {
     Ok(())
 }
 
-/// The report and the saved predictions go beside the inputs, never over them: not into the dataset,
-/// not over a run's own files, not into the stored predictions being scored.
+/// The report and the saved predictions go beside the inputs, never over them: `--out` replaces only a
+/// file that is itself an evaluation report (a rerun's), never a dataset's, a run's or any other file;
+/// `--save-predictions` never goes over a run's own files.
 fn check_outputs(args: &EvalArgs) -> Result<()> {
-    use crate::paths::not_over_input;
-    let mut inputs = vec![args.data.to_path_buf()];
-    match args.source {
-        Source::Run(run) => inputs.extend(
-            [
-                "train.toml",
-                "model.toml",
-                "state.json",
-                "model.bpk",
-                "metrics.jsonl",
-                "checkpoints",
-            ]
-            .map(|f| run.join(f)),
-        ),
-        Source::Predictions(dir) => inputs.push(dir.to_path_buf()),
-        Source::MeanPose => {}
-    }
-    for input in &inputs {
-        if let Some(out) = args.out {
-            not_over_input("--out", out, input)?;
+    if let Some(out) = args.out.filter(|o| o.is_file()) {
+        let report = std::fs::read_to_string(out)
+            .ok()
+            .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+            .is_some_and(|v| v["format"] == "mvmp-eval-report");
+        if !report {
+            bail!(
+                "--out {}: the file exists and is not an evaluation report; refusing to overwrite it",
+                out.display()
+            );
         }
-        if let Some(dir) = args.save_predictions {
-            not_over_input("--save-predictions", dir, input)?;
+    }
+    if let (Some(dir), Source::Run(run)) = (args.save_predictions, &args.source) {
+        for f in [
+            "train.toml",
+            "model.toml",
+            "state.json",
+            "model.bpk",
+            "metrics.jsonl",
+            "checkpoints",
+        ] {
+            crate::paths::not_over_input("--save-predictions", dir, &run.join(f))?;
         }
     }
     Ok(())

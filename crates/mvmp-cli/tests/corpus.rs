@@ -1694,7 +1694,7 @@ fn no_huge_flag_bad_reference_or_output_over_input_gets_through() {
             "--out",
             &s(&index),
         ],
-        &["--out", "dataset.json"],
+        &["--out", "dataset.json", "not an evaluation report"],
         None,
     );
     assert_eq!(

@@ -184,7 +184,7 @@ fn grids_beyond_float32_reach_are_refused() {
         let grid = VoxelGrid {
             center,
             size,
-            ..good.clone()
+            ..good
         };
         let e = grid.validate().unwrap_err().to_string();
         assert!(e.contains("center") || e.contains("size"), "{e}");
