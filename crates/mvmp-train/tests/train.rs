@@ -1460,8 +1460,10 @@ fn source_configs_are_checked() {
     std::fs::write(dir.path().join("m.toml"), {
         let mut m = model_config();
         m.primary_joint = mvmp_model::config::PrimaryJoint::Spine;
-        m.heatmap_joints
-            .push(mvmp_model::config::PrimaryJoint::Spine.joint());
+        let spine = mvmp_model::config::PrimaryJoint::Spine.joint();
+        if !m.heatmap_joints.contains(&spine) {
+            m.heatmap_joints.push(spine);
+        }
         toml::to_string(&m).unwrap()
     })
     .unwrap();
