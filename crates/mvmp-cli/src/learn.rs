@@ -62,11 +62,11 @@ const VARIANTS: [Variant; 8] = [
     },
 ];
 
-/// Seconds per step of the tiny config on 2 cores (`mvmp bench train --steps 8`: stage 1 0.54-0.55 s,
-/// stage 2 1.02-1.07 s with the fused training passes, loading included), plus validation: what sizes
-/// the schedule to the time given.
-const STAGE1_STEP_S: f64 = 0.55;
-const STAGE2_STEP_S: f64 = 1.05;
+/// Seconds per step of the tiny config on 2 cores (`mvmp bench train --steps 10` on a 2-core Intel Xeon
+/// with AVX-512: stage 1 0.50-0.52 s, stage 2 0.80-0.82 s with the fused training passes, loading
+/// included), plus validation: what sizes the schedule to the time given.
+const STAGE1_STEP_S: f64 = 0.51;
+const STAGE2_STEP_S: f64 = 0.81;
 const VALIDATION_SHARE: f64 = 0.15;
 /// Every variant trains the same schedule, so that a variant slower per step (deformable fusion) or a
 /// machine busy with something else does not cut one variant's schedule short and not another's. This
