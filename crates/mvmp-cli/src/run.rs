@@ -263,8 +263,11 @@ fn check_save_predictions(args: &EvalArgs) -> Result<()> {
 /// `--save-predictions` never goes over a run's own files.
 fn check_outputs(args: &EvalArgs) -> Result<()> {
     if let Some(out) = args.out.filter(|o| o.is_file()) {
-        let report = std::fs::read_to_string(out)
-            .ok()
+        // A report is a few kilobytes per scene; anything far larger is not one and is not read.
+        let small = std::fs::metadata(out).is_ok_and(|m| m.len() <= 64 << 20);
+        let report = small
+            .then(|| std::fs::read_to_string(out).ok())
+            .flatten()
             .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
             .is_some_and(|v| v["format"] == "mvmp-eval-report");
         if !report {

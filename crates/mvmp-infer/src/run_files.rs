@@ -51,7 +51,8 @@ pub fn state_checkpoint(root: &Path) -> Result<Option<String>, InferError> {
             format!("format {format:?} version {version:?}: expected {STATE_FORMAT:?} version 1"),
         ));
     }
-    let (key, file) = match (v.get("average"), v.get("checkpoint")) {
+    let present = |key: &str| v.get(key).filter(|f| !f.is_null());
+    let (key, file) = match (present("average"), present("checkpoint")) {
         (Some(a), _) => ("average", a),
         (None, Some(c)) => ("checkpoint", c),
         (None, None) => return Err(InferError::file(&path, "key `checkpoint` is missing")),

@@ -197,6 +197,9 @@ pub(crate) fn input_gradient(dy: &[f32], w: &[f32], g: &Geometry) -> Vec<f32> {
     }
     let p = d * h * wd;
     let mut dx = vec![0f32; b * ci * p];
+    if dx.is_empty() {
+        return dx;
+    }
     let rows = (TILE / wd.max(1)).max(1);
     let tiles: Vec<(usize, usize, usize)> = (0..b)
         .flat_map(|bi| {
