@@ -1662,38 +1662,32 @@ fn no_huge_flag_bad_reference_or_output_over_input_gets_through() {
             Some(out),
         );
     }
-    let report = p("report.json");
-    check(
-        &[
+    let data = s(&ds);
+    let mean_pose = |extra: &[&str]| {
+        let mut a = owned(&[
             "eval",
             "--baseline",
             "mean-pose",
             "--data",
-            &s(&ds),
+            &data,
             "--split",
             "all",
-            "--body-model",
-            "standin:x",
-            "--out",
-            &s(&report),
-        ],
+        ]);
+        a.extend(owned(extra));
+        a
+    };
+    let report = p("report.json");
+    let bad_body = mean_pose(&["--body-model", "standin:x", "--out", &s(&report)]);
+    check(
+        &bad_body.iter().map(String::as_str).collect::<Vec<_>>(),
         &["--body-model", "standin:x"],
         Some(report),
     );
     let index = ds.join("dataset.json");
     let before = std::fs::read(&index).unwrap();
+    let over_index = mean_pose(&["--out", &s(&index)]);
     check(
-        &[
-            "eval",
-            "--baseline",
-            "mean-pose",
-            "--data",
-            &s(&ds),
-            "--split",
-            "all",
-            "--out",
-            &s(&index),
-        ],
+        &over_index.iter().map(String::as_str).collect::<Vec<_>>(),
         &["--out", "dataset.json", "not an evaluation report"],
         None,
     );
