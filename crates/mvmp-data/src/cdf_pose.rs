@@ -1,10 +1,14 @@
 //! The `Pose` variable of Human3.6M's NASA CDF pose files (`D3_Positions/<action>.cdf`): 32 joints x
 //! (x, y, z) per frame. The files are parsed by the `cdf` crate; this module finds the variable (a
 //! zVariable or an rVariable), gathers its records from the index tree (plain or GZIP-compressed blocks),
-//! puts column-major arrays into row-major order and returns one row of values per frame.
+//! puts column-major arrays into row-major order and returns one row of values per frame. The file's
+//! structure is checked first ([`guard`]), so that the decoder never sizes a buffer beyond the file.
+mod guard;
+
 use std::io::Read;
 use std::path::Path;
 
+use cdf::decode::Decodable;
 use cdf::record::vxr::{VariableIndexRecord, VariableIndexRecordChild};
 use cdf::repr::Endian;
 use cdf::types::CdfType;
@@ -48,16 +52,15 @@ pub fn read_variable(path: &Path, name: &str) -> Result<(Vec<f64>, Vec<usize>), 
         ));
     }
     let bad = |what: String| DataError::file(path, what);
+    let bytes = std::fs::read(path).map_err(|e| DataError::io(path, e))?;
+    // The decoder allocates what the file declares before reading it, and a failed allocation aborts
+    // the process: the structure is checked first, on the very bytes then decoded. The check refuses
+    // files compressed as a whole, which the decoder cannot read.
+    guard::check(&bytes).map_err(|w| bad(format!("not a readable CDF file: {w}")))?;
     // The decoder indexes into buffers it reads; a damaged file must not take the process down.
-    let decoded = quietly(|| cdf::cdf::Cdf::read_cdf_file(path))
+    let decoded = quietly(|| decode(bytes))
         .map_err(|_| bad("not a readable CDF file (the decoder failed on its structure)".into()))?
         .map_err(|e| bad(format!("not a readable CDF file: {e}")))?;
-    if decoded.is_compressed {
-        return Err(bad(
-            "the whole file is compressed; decompress it first (CDF tools: `cdfconvert -compression cdf:none`)"
-                .into(),
-        ));
-    }
     let cdr = &decoded.cdr;
     let gdr = &cdr.gdr;
     let little = match cdr.encoding.get_endian() {
@@ -110,6 +113,12 @@ pub fn read_variable(path: &Path, name: &str) -> Result<(Vec<f64>, Vec<usize>), 
         }
     }
     Ok((values, dims))
+}
+
+/// The `cdf` crate's decoding of a whole file held in memory.
+fn decode(bytes: Vec<u8>) -> Result<cdf::cdf::Cdf, cdf::error::CdfError> {
+    let mut decoder = cdf::decode::Decoder::new(std::io::Cursor::new(bytes))?;
+    cdf::cdf::Cdf::decode_be(&mut decoder)
 }
 
 /// Most values a variable may hold over all its records (a Human3.6M pose sequence: a few thousand
