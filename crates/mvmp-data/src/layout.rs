@@ -145,7 +145,11 @@ pub fn name_problem(key: &str, names: &[String]) -> Option<String> {
                 "key `{key}[{i}]` = {name:?} is not a name in its directory"
             ));
         }
-        if let Some(j) = names[..i].iter().position(|n| n == name) {
+        // Compared as paths: `a` and `a/` (or `a/.`) are the same entry.
+        if let Some(j) = names[..i]
+            .iter()
+            .position(|n| Path::new(n) == Path::new(name))
+        {
             return Some(format!("key `{key}[{i}]` = {name:?} repeats `{key}[{j}]`"));
         }
     }

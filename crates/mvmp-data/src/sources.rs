@@ -144,7 +144,8 @@ fn check_split_names(root: &Path, names: &[String], what: &str) -> Result<(), Da
                 format!("split: {what} {name:?} is not a directory name under the root"),
             ));
         }
-        if names[..i].contains(name) {
+        // Compared as paths: `a` and `a/` name the same directory.
+        if names[..i].iter().any(|n| Path::new(n) == Path::new(name)) {
             return Err(DataError::file(
                 root,
                 format!("split: {what} {name:?} is listed twice"),
@@ -369,5 +370,27 @@ impl Dataset<FrameSample> for TrainingSet {
 
     fn len(&self) -> usize {
         self.total()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn split_names_are_plain_and_distinct_as_paths() {
+        let root = Path::new("/data");
+        let names = |v: &[&str]| v.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+        assert!(check_split_names(root, &names(&["a", "b"]), "sequence").is_ok());
+        for bad in [&["a", "a/"][..], &["a/", "a"], &["a", "a/."]] {
+            let e = check_split_names(root, &names(bad), "sequence").unwrap_err();
+            assert!(e.to_string().contains("listed twice"), "{bad:?}: {e}");
+        }
+        for bad in [&["../a"][..], &["a/b"], &["/a"], &[]] {
+            assert!(
+                check_split_names(root, &names(bad), "subject").is_err(),
+                "{bad:?}"
+            );
+        }
     }
 }
