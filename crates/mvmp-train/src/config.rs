@@ -212,6 +212,12 @@ pub struct TrainConfig {
     /// Validation frames per epoch (the first N of the test split; 0 = all).
     #[serde(default)]
     pub val_frames: usize,
+    /// Training frames per epoch (0, the default: the whole training set). Fewer: the epochs of both
+    /// stages take successive frames of one shuffled pass over the set after another, so a set larger
+    /// than the schedule is seen frame by frame before any frame repeats, and each epoch still ends in a
+    /// validation and a checkpoint.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub epoch_frames: usize,
     /// Diagnostics: at the first step of every epoch, the gradient norm of each top-level module under
     /// each loss term alone (a `grad_terms` line in metrics.jsonl). Each term costs one more forward and
     /// backward of that step.
@@ -236,6 +242,9 @@ pub struct TrainConfig {
 
 fn one() -> usize {
     1
+}
+fn is_zero(n: &usize) -> bool {
+    *n == 0
 }
 fn three() -> usize {
     3
@@ -398,6 +407,12 @@ impl TrainConfig {
             return bad(
                 "stage2.detection_lr".into(),
                 "set with freeze_detection = true, which trains detection at no rate".into(),
+            );
+        }
+        if self.epoch_frames > MAX_EPOCHS {
+            return bad(
+                "epoch_frames".into(),
+                format!("{}: expected at most {MAX_EPOCHS}", self.epoch_frames),
             );
         }
         if self.stage1.epochs + self.stage2.epochs == 0 {

@@ -128,6 +128,35 @@ pub enum Outcome {
     },
 }
 
+/// The frames of an epoch of `count` frames starting `start` frames into a sequence of shuffled passes
+/// over the `n` training frames (`epoch_frames`): every frame once per pass, each pass in its own order
+/// (depends on the seed and the pass only).
+pub fn pass_frames(seed: u64, start: usize, count: usize, n: usize) -> Vec<usize> {
+    let mut out = Vec::with_capacity(count);
+    let mut p = start;
+    while out.len() < count && n > 0 {
+        let pass = p / n;
+        let mut rng = ChaCha8Rng::seed_from_u64(
+            seed ^ ((3u64 << 32) | pass as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+        );
+        let mut order: Vec<usize> = (0..n).collect();
+        order.shuffle(&mut rng);
+        let take = (count - out.len()).min(n - p % n);
+        out.extend_from_slice(&order[p % n..p % n + take]);
+        p += take;
+    }
+    out
+}
+
+/// Steps of an epoch over `total` training frames: `epoch_frames` of them, or all.
+fn epoch_steps(cfg: &TrainConfig, total: usize) -> usize {
+    let frames = match cfg.epoch_frames {
+        0 => total,
+        e => e,
+    };
+    frames.div_ceil(cfg.batch_size)
+}
+
 /// Stage-and-epoch key of the data order and view draws.
 fn epoch_key(stage: Stage, epoch: usize) -> u64 {
     ((stage.number() as u64) << 32) | epoch as u64
@@ -515,7 +544,7 @@ impl<'a> Trainer<'a> {
         model = model.with_body(body.clone());
         let batcher = gt_batcher(&data, &body, &model.body_layer(&ad), model_cfg, &run.root)?;
         if let Some(s) = &state {
-            check_cursor(run, cfg, s, data.total().div_ceil(cfg.batch_size))?;
+            check_cursor(run, cfg, s, epoch_steps(cfg, data.total()))?;
         }
         run.truncate_log(cursor.global)?;
         run.remove_stale_temporaries()?;
@@ -543,7 +572,22 @@ impl<'a> Trainer<'a> {
     }
 
     fn steps_per_epoch(&self) -> usize {
-        self.data.total().div_ceil(self.cfg.batch_size)
+        epoch_steps(self.cfg, self.data.total())
+    }
+
+    /// The training frames of an epoch, in order.
+    fn frame_order(&self, stage: Stage, epoch: usize) -> Vec<usize> {
+        let n = self.data.total();
+        let e = self.cfg.epoch_frames;
+        if e == 0 {
+            return epoch_order(self.cfg.seed, stage, epoch, n);
+        }
+        let before: usize = Stage::ALL
+            .iter()
+            .filter(|&&st| st < stage)
+            .map(|&st| self.cfg.stage(st).epochs)
+            .sum();
+        pass_frames(self.cfg.seed, (before + epoch) * e, e, n)
     }
 
     /// Both stages from the cursor on, then the final weights.
@@ -674,7 +718,7 @@ impl<'a> Trainer<'a> {
     ) -> Result<(MvmpHmr, Option<Outcome>), TrainError> {
         let Cursor { stage, epoch, .. } = self.cursor;
         self.data.set_epoch(epoch_key(stage, epoch));
-        let order = epoch_order(self.cfg.seed, stage, epoch, self.data.total());
+        let order = self.frame_order(stage, epoch);
         let skip = self.cursor.step_in_epoch;
         for (bi, chunk) in order.chunks(self.cfg.batch_size).enumerate().skip(skip) {
             let rec;
@@ -1067,6 +1111,25 @@ fn stage2_weights(w: &LossWeights, sc: &StageConfig) -> LossWeights {
 mod tests {
     use super::*;
     use burn::nn::LinearConfig;
+
+    /// Epochs smaller than the set take successive frames of shuffled passes: every frame once per pass
+    /// before any repeats, passes in different orders, an epoch straddling two passes included.
+    #[test]
+    fn short_epochs_see_every_frame_once_a_pass() {
+        let (n, e) = (10, 4);
+        let frames: Vec<usize> = (0..5).flat_map(|g| pass_frames(7, g * e, e, n)).collect();
+        assert_eq!(frames.len(), 20);
+        for pass in frames.chunks(n) {
+            let mut sorted = pass.to_vec();
+            sorted.sort();
+            assert_eq!(sorted, (0..n).collect::<Vec<_>>());
+        }
+        assert_ne!(frames[..n], frames[n..]);
+        assert_eq!(pass_frames(7, 8, 4, n), frames[8..12]);
+        // An epoch longer than the set runs on into the next pass.
+        assert_eq!(pass_frames(7, 0, 20, n), frames);
+        assert!(pass_frames(7, 0, 3, 0).is_empty());
+    }
 
     /// Clipping scales every gradient by one factor, so that their joint norm is the bound: the ratio
     /// between two layers' gradients stays what it was (burn's own clipping bounds each apart).
