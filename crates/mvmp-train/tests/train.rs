@@ -411,6 +411,57 @@ fn an_interrupted_run_resumes_to_the_same_weights_and_log() {
     );
 }
 
+/// `epoch_frames` shorter than the set: every epoch has that many steps, each validated, and a run
+/// stopped inside one resumes to the same losses and weights.
+#[test]
+fn short_epochs_train_and_resume_like_whole_ones() {
+    let dir = tempfile::tempdir().unwrap();
+    let edit = |s: String| {
+        s.replace(
+            "keep_checkpoints = 2\n",
+            "keep_checkpoints = 2\nepoch_frames = 3\n",
+        )
+        .replacen("epochs = 1", "epochs = 2", 1)
+    };
+    let (run_a, cfg, model) = new_run(dir.path(), "a", &edit);
+    assert_eq!(cfg.epoch_frames, 3);
+    let out = mvmp_train::train(&run_a, &cfg, &model, &options(None), &mut Quiet).unwrap();
+    assert_eq!(out, Outcome::Finished);
+    let (run_b, cfg_b, model_b) = new_run(dir.path(), "b", &edit);
+    let stopped = mvmp_train::train(&run_b, &cfg_b, &model_b, &options(Some(4)), &mut Quiet);
+    assert!(
+        matches!(stopped, Ok(Outcome::Interrupted { global_step: 4, .. })),
+        "{stopped:?}"
+    );
+    let (run_b, cfg_b, model_b) = RunDir::open(&run_b.root).unwrap();
+    let out = mvmp_train::train(&run_b, &cfg_b, &model_b, &options(None), &mut Quiet).unwrap();
+    assert_eq!(out, Outcome::Finished);
+    let lines = |r: &RunDir, kind: &str| -> Vec<serde_json::Value> {
+        std::fs::read_to_string(r.metrics_path())
+            .unwrap()
+            .lines()
+            .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+            .filter(|v| v["kind"] == kind)
+            .collect()
+    };
+    let (la, lb) = (lines(&run_a, "step"), lines(&run_b, "step"));
+    // 2 + 1 epochs of 3 frames (the set has 4).
+    assert_eq!(la.len(), 9);
+    assert_eq!(la.len(), lb.len());
+    for (a, b) in la.iter().zip(&lb) {
+        let (x, y) = (a["total"].as_f64().unwrap(), b["total"].as_f64().unwrap());
+        assert!((x - y).abs() <= 1e-5 * x.abs().max(1.0), "{a} vs {b}");
+    }
+    assert_eq!(lines(&run_a, "val").len(), 3);
+    let (wa, wb) = (load(&run_a.root, &model), load(&run_b.root, &model));
+    let max = wa
+        .iter()
+        .zip(&wb)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0f32, f32::max);
+    assert!(max <= 1e-6, "resumed weights differ by up to {max}");
+}
+
 /// With `average_decay`, stage 2 ends on the average of its weights, not on the last step's, and a run
 /// interrupted in the middle of the stage resumes to the same average.
 #[test]
