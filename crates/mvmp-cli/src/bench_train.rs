@@ -109,13 +109,16 @@ fn time_stage(
     device: &Device,
 ) -> Result<(String, f64)> {
     let mut c = cfg.clone();
-    // Only this stage trains, and validation (at epoch ends) reads one frame.
-    let other = if stage == Stage::Detection {
-        &mut c.stage2
+    // Only this stage trains, one epoch of exactly the steps timed whatever the set's size (frames
+    // repeat when the set is smaller), and validation at its end reads one frame.
+    let (this, other) = if stage == Stage::Detection {
+        (&mut c.stage1, &mut c.stage2)
     } else {
-        &mut c.stage1
+        (&mut c.stage2, &mut c.stage1)
     };
+    this.epochs = 1;
     other.epochs = 0;
+    c.epoch_frames = (WARM_UP + args.steps) * c.batch_size;
     c.val_frames = 1;
     let run_dir = tempfile::tempdir_in(tmp).context("creating a temporary run directory")?;
     let run = RunDir::create(&run_dir.path().join("run"), &c, model, None)?;
