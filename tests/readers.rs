@@ -979,6 +979,40 @@ impl Lie {
     }
 }
 
+/// A copy of the npz `base` named `name` in a new directory with one of its `arrays` (picked by
+/// `which`) replaced as `lie` says: the directory, the file, the array's key, the shape its header
+/// claims, the values it holds and a description of the case.
+struct LiedNpz {
+    _dir: tempfile::TempDir,
+    path: PathBuf,
+    key: String,
+    shape: Vec<u64>,
+    written: Vec<f64>,
+    case: String,
+}
+
+fn lied_npz(base: &Path, name: &str, arrays: &[NpzArray], which: Index, lie: &Lie) -> LiedNpz {
+    let (key, own, values) = &arrays[which.index(arrays.len())];
+    let (bytes, shape, written) = lie.npy(own, values);
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join(name);
+    npz_replacing(base, &path, key, &bytes);
+    let (descr, _) = DTYPES[lie.dtype];
+    let held = written.len();
+    let case = format!(
+        "{key}: {descr}, fortran {}, shape {shape:?}, {held} values",
+        lie.fortran
+    );
+    LiedNpz {
+        _dir: dir,
+        path,
+        key: key.clone(),
+        shape,
+        written,
+        case,
+    }
+}
+
 /// The values the header's shape claims, where the file holds that many (its product not overflowing;
 /// values after the claimed ones are ignored, as numpy does).
 fn claimed(shape: &[u64], written: &[f64]) -> Option<usize> {
@@ -1154,14 +1188,9 @@ proptest! {
                 .collect();
             (dir, path, arrays)
         });
-        let (key, own, values) = &arrays[which.index(arrays.len())];
-        let (bytes, shape, written) = lie.npy(own, values);
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("SMPLX_NEUTRAL.npz");
-        npz_replacing(base, &path, key, &bytes);
-        let (descr, _) = DTYPES[lie.dtype];
-        let held = written.len();
-        let case = format!("{key}: {descr}, fortran {}, shape {shape:?}, {held} values", lie.fortran);
+        let lied = lied_npz(base, "SMPLX_NEUTRAL.npz", arrays, which, &lie);
+        let LiedNpz { path, shape, written, case, .. } = &lied;
+        let key = &lied.key;
         if let Ok(m) = BodyModel::load(&path) {
             let n = claimed(&shape, &written);
             prop_assert!(n.is_some(), "{case}");
@@ -1194,14 +1223,9 @@ proptest! {
             let arrays = npz_arrays(&path);
             (dir, path, arrays)
         });
-        let (key, own, values) = &arrays[which.index(arrays.len())];
-        let (bytes, shape, written) = lie.npy(own, values);
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("people.npz");
-        npz_replacing(base, &path, key, &bytes);
-        let (descr, _) = DTYPES[lie.dtype];
-        let held = written.len();
-        let case = format!("{key}: {descr}, fortran {}, shape {shape:?}, {held} values", lie.fortran);
+        let lied = lied_npz(base, "people.npz", arrays, which, &lie);
+        let LiedNpz { path, shape, written, case, .. } = &lied;
+        let key = &lied.key;
         if let Ok(people) = mvmp::smplx::people::read_people_npz(&path) {
             let n = claimed(&shape, &written);
             prop_assert!(n.is_some(), "{case}");

@@ -215,6 +215,16 @@ fn load(run: &Path, cfg: &ModelConfig) -> Vec<f32> {
     weights(&m)
 }
 
+/// The largest difference between two runs' final weights (they must hold as many).
+fn weight_gap(a: &RunDir, b: &RunDir, cfg: &ModelConfig) -> f32 {
+    let (wa, wb) = (load(&a.root, cfg), load(&b.root, cfg));
+    assert_eq!(wa.len(), wb.len());
+    wa.iter()
+        .zip(&wb)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0f32, f32::max)
+}
+
 #[test]
 fn a_few_steps_on_one_batch_lower_the_loss() {
     let ad = Device::flex().autodiff();
@@ -342,13 +352,7 @@ fn an_interrupted_run_resumes_to_the_same_weights_and_log() {
             "{a:?} vs {b:?}"
         );
     }
-    let (wa, wb) = (load(&run_a.root, &model), load(&run_b.root, &model));
-    assert_eq!(wa.len(), wb.len());
-    let max = wa
-        .iter()
-        .zip(&wb)
-        .map(|(a, b)| (a - b).abs())
-        .fold(0f32, f32::max);
+    let max = weight_gap(&run_a, &run_b, &model);
     assert!(max <= 1e-6, "resumed weights differ by up to {max}");
     // Validation ran every epoch of both stages.
     let log = std::fs::read_to_string(run_a.metrics_path()).unwrap();
@@ -453,12 +457,7 @@ fn short_epochs_train_and_resume_like_whole_ones() {
         assert!((x - y).abs() <= 1e-5 * x.abs().max(1.0), "{a} vs {b}");
     }
     assert_eq!(lines(&run_a, "val").len(), 3);
-    let (wa, wb) = (load(&run_a.root, &model), load(&run_b.root, &model));
-    let max = wa
-        .iter()
-        .zip(&wb)
-        .map(|(a, b)| (a - b).abs())
-        .fold(0f32, f32::max);
+    let max = weight_gap(&run_a, &run_b, &model);
     assert!(max <= 1e-6, "resumed weights differ by up to {max}");
 }
 
@@ -486,18 +485,14 @@ fn a_weight_average_ends_the_run_and_survives_a_resume() {
     let (run_b, cfg_b, model_b) = RunDir::open(&run_b.root).unwrap();
     let out = mvmp_train::train(&run_b, &cfg_b, &model_b, &options(None), &mut Quiet).unwrap();
     assert_eq!(out, Outcome::Finished);
-    let (wa, wb) = (load(&run_a.root, &model), load(&run_b.root, &model));
-    let max = wa
-        .iter()
-        .zip(&wb)
-        .map(|(a, b)| (a - b).abs())
-        .fold(0f32, f32::max);
+    let max = weight_gap(&run_a, &run_b, &model);
     assert!(max <= 1e-6, "resumed averages differ by up to {max}");
     // The final weights are not the last step's.
     let ckpts = run_a.root.join("checkpoints");
     let last = ckpts.join("step0000008-stage2-epoch001.bpk");
     let mut raw = mvmp_train::seeded_init(&model, &Device::flex(), 0);
     load_weights(&mut raw, &last).unwrap();
+    let wa = load(&run_a.root, &model);
     let gap = weights(&raw)
         .iter()
         .zip(&wa)
