@@ -117,6 +117,12 @@ pub struct ModelConfig {
     /// label one bin wide), read as the mean of the bins' directions under their softmax.
     #[serde(skip_serializing_if = "is_zero")]
     pub facing_bins: usize,
+    /// A flip test for the facing head outside training: it also reads every view mirrored left to
+    /// right, and its maps, mirrored back with each heading's angle to the camera negated, are averaged
+    /// with the plain ones. It costs one more pass of HRNet and the head per view at inference; training
+    /// is unchanged. false (the default) reads each view once.
+    #[serde(skip_serializing_if = "is_false")]
+    pub facing_flip: bool,
     /// Body model: `standin:SEED` or a path to an SMPLX_*.npz.
     pub body_model: String,
     /// Side of the score tiles of the ViT's and the decoder's attention: autodiff keeps each row's
@@ -131,6 +137,10 @@ pub struct ModelConfig {
 
 fn is_zero(n: &usize) -> bool {
     *n == 0
+}
+
+fn is_false(b: &bool) -> bool {
+    !*b
 }
 
 /// Most heading bins of a facing head (`facing_bins`).
@@ -181,6 +191,7 @@ impl Default for ModelConfig {
             },
             facing: false,
             facing_bins: 0,
+            facing_flip: false,
             body_model: "standin:0".into(),
             attention_tile: mvmp_kernels::DEFAULT_BLOCK,
             block_recompute: false,
@@ -322,6 +333,12 @@ impl ModelConfig {
                     "{}: set without a facing head (facing = false)",
                     self.facing_bins
                 ),
+            ));
+        }
+        if self.facing_flip && !self.facing {
+            return Err((
+                "facing_flip",
+                "true: set without a facing head (facing = false)".into(),
             ));
         }
         if !self.heatmap_joints.contains(&self.primary_joint.joint()) {

@@ -11,7 +11,7 @@ use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::{GroupNorm, GroupNormConfig, PaddingConfig2d};
 use burn::tensor::activation::softmax;
 use burn::tensor::ops::{GridSampleOptions, GridSamplePaddingMode, InterpolateMode};
-use burn::tensor::{Bool, Device, Tensor, TensorData};
+use burn::tensor::{Bool, Device, Int, Tensor, TensorData};
 use mvmp_kernels::conv::conv2d;
 use mvmp_kernels::gelu::gelu;
 
@@ -255,6 +255,23 @@ pub fn heading_vectors(maps: Tensor<5>) -> Tensor<5> {
     let dirs = bin_directions(c, &maps.device());
     let p = softmax(maps, 2).swap_dims(2, 4).reshape([b * v * w * h, c]);
     p.matmul(dirs).reshape([b, v, w, h, 2]).swap_dims(2, 4)
+}
+
+/// Facing maps `[N, C, h, w]` of a view mirrored left to right as maps of the view itself: a mirror
+/// negates each heading's angle to the camera (exactly when the camera has no roll, so that its mirror
+/// plane is vertical), so the sine changes sign (`C` = 2) or bin `k` becomes bin `(C - k) mod C`.
+pub fn mirror_headings(maps: Tensor<4>) -> Tensor<4> {
+    let c = maps.dims()[1];
+    let device = maps.device();
+    if c == 2 {
+        let sign = Tensor::<1>::from_data(TensorData::new(vec![1.0f32, -1.0], [2]), &device);
+        return maps * sign.reshape([1, 2, 1, 1]);
+    }
+    let order: Vec<i64> = (0..c).map(|k| ((c - k) % c) as i64).collect();
+    maps.select(
+        1,
+        Tensor::<1, Int>::from_data(TensorData::new(order, [c]), &device),
+    )
 }
 
 /// The von Mises label over `n` heading bins of relative heading vectors `[B, V, 2, h, w]` (unit):

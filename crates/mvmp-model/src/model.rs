@@ -18,7 +18,7 @@ use burn::tensor::{Bool, Device, Tensor, TensorData};
 
 use crate::ModelConfig;
 use crate::body::BodyLayers;
-use crate::facing::{FacingHead, facing_readout, turn_to_heading};
+use crate::facing::{FacingHead, facing_readout, mirror_headings, turn_to_heading};
 use mvmp_backbone::vit::PATCH;
 use mvmp_backbone::{HRNet, ViT};
 use mvmp_decoder::{Decoder, DecoderConfig, QueryInputs};
@@ -242,7 +242,10 @@ impl MvmpHmr {
         let [_, j, hh, hw] = hm.dims();
         let heatmaps = hm.reshape([b, v, j, hh, hw]);
         let facing = self.facing.as_ref().map(|f| {
-            let maps = f.forward(images, x);
+            let mut maps = f.forward(images.clone(), x);
+            if self.config.facing_flip && !images.is_autodiff() {
+                maps = (maps + self.mirrored_facing(f, images)) / 2.0;
+            }
             let c = maps.dims()[1];
             maps.reshape([b, v, c, hh, hw])
         });
@@ -256,6 +259,14 @@ impl MvmpHmr {
             facing,
         };
         (det, hvol)
+    }
+
+    /// The facing head's maps `[N, C, h, w]` of `images` `[N, 3, S, S]` mirrored left to right, mirrored
+    /// back and read as maps of the images themselves ([`mirror_headings`]).
+    fn mirrored_facing(&self, head: &FacingHead, images: Tensor<4>) -> Tensor<4> {
+        let mirrored = images.flip([3]);
+        let x = self.hrnet.features(mirrored.clone());
+        mirror_headings(head.forward(mirrored, x).flip([3]))
     }
 
     /// Forward. `grids`: one [`RigGrids`] per batch item. `roots`: decode at these roots `[B, K, 3]` with

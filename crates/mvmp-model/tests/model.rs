@@ -466,6 +466,70 @@ fn chest_view_weights_drop_the_views_another_person_stands_in() {
     assert_eq!(w, vec![1.0, 1.0]);
 }
 
+/// The facing head's flip test makes its heading maps mirror-equivariant: the maps of a view mirrored
+/// left to right, mirrored back with the sine negated, are the view's own (exactly, as the mean of a map
+/// and its mirror image is), for regressed maps and for heading bins; the plain head's are not, and in
+/// training (autodiff) the maps are the plain ones.
+#[test]
+fn the_facing_flip_test_makes_the_heading_maps_mirror_equivariant() {
+    use mvmp_model::facing::heading_vectors;
+    for bins in [0, 8] {
+        let mut cfg = small_config();
+        cfg.facing = true;
+        cfg.facing_bins = bins;
+        cfg.facing_flip = true;
+        cfg.validate().unwrap();
+        let d = Device::flex();
+        let net = cfg.init(&d);
+        let mut plain_net = net.clone();
+        plain_net.config.facing_flip = false;
+        let cams = rig();
+        let lbs: Vec<Letterbox> = cams
+            .iter()
+            .map(|c| Letterbox::new(c.width, c.height, 64).unwrap())
+            .collect();
+        let grids = vec![RigGrids::new(&cfg, &cams, &lbs, &d)];
+        let sign = Tensor::<1>::from_data(TensorData::new(vec![1.0f32, -1.0], [2]), &d);
+        // The largest difference between a view's heading maps and its mirror image's read back.
+        let asymmetry = |net: &mvmp_model::MvmpHmr| {
+            let vectors = |x: Tensor<5>| heading_vectors(net.detect(x, &grids).facing.unwrap());
+            let plain = vectors(images(&d));
+            let mirrored =
+                vectors(images(&d).flip([4])).flip([4]) * sign.clone().reshape([1, 1, 2, 1, 1]);
+            (plain - mirrored).abs().max().into_scalar::<f32>()
+        };
+        let (flipped, plain) = (asymmetry(&net), asymmetry(&plain_net));
+        assert!(flipped < 1e-5, "bins {bins}: {flipped}");
+        assert!(plain > 1e-3, "bins {bins}: {plain}");
+        // Training reads each view once.
+        let a = Device::flex().autodiff();
+        let train = cfg.init(&a);
+        let mut train_plain = train.clone();
+        train_plain.config.facing_flip = false;
+        let facing =
+            |n: &mvmp_model::MvmpHmr| n.detect(images(&a), &grids_on(&cfg, &a)).facing.unwrap();
+        let diff = (facing(&train) - facing(&train_plain))
+            .abs()
+            .max()
+            .into_scalar::<f32>();
+        assert_eq!(diff, 0.0, "bins {bins}");
+    }
+    let mut bad = small_config();
+    bad.facing = false;
+    bad.facing_flip = true;
+    let e = bad.validate().unwrap_err().to_string();
+    assert!(e.contains("facing_flip"), "{e}");
+}
+
+fn grids_on(cfg: &ModelConfig, d: &Device) -> Vec<RigGrids> {
+    let cams = rig();
+    let lbs: Vec<Letterbox> = cams
+        .iter()
+        .map(|c| Letterbox::new(c.width, c.height, 64).unwrap())
+        .collect();
+    vec![RigGrids::new(cfg, &cams, &lbs, d)]
+}
+
 #[test]
 fn heading_bins_read_as_directions_and_label_as_von_mises() {
     use mvmp_model::facing::{bin_angle, bin_labels, heading_vectors};
