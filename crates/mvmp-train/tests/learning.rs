@@ -46,6 +46,9 @@ fn model_config() -> ModelConfig {
     c.decoder.pool = 2;
     c.rootnet_width = 0.25;
     c.rootnet_norm = VolumeNorm::Group;
+    // The flip test reads mirrored views, which a facing head that has learned two frames by appearance
+    // reads wrong: with it the training-frame MPJPE was 60.4 mm (PA-MPJPE 8.5), without it 6.6.
+    c.facing_flip = false;
     c
 }
 
