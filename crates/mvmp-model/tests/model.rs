@@ -62,6 +62,16 @@ fn rig() -> Vec<Camera> {
         .collect()
 }
 
+/// The sampling grids of [`rig`] for 64 px inputs, one batch item.
+fn grids_on(cfg: &ModelConfig, d: &Device) -> Vec<RigGrids> {
+    let cams = rig();
+    let lbs: Vec<Letterbox> = cams
+        .iter()
+        .map(|c| Letterbox::new(c.width, c.height, 64).unwrap())
+        .collect();
+    vec![RigGrids::new(cfg, &cams, &lbs, d)]
+}
+
 fn images(d: &Device) -> Tensor<5> {
     let v: Vec<f32> = (0..2 * 3 * 64 * 64)
         .map(|i| ((i * 31) % 97) as f32 / 97.0 - 0.5)
@@ -85,12 +95,7 @@ fn forward_shapes_with_detected_and_given_roots() {
 fn forward_shapes(cfg: ModelConfig) {
     let d = Device::flex();
     let net = cfg.init(&d).with_body(Arc::new(standin_model(0)));
-    let cams = rig();
-    let lbs: Vec<Letterbox> = cams
-        .iter()
-        .map(|c| Letterbox::new(c.width, c.height, 64).unwrap())
-        .collect();
-    let grids = vec![RigGrids::new(&cfg, &cams, &lbs, &d)];
+    let grids = grids_on(&cfg, &d);
     let out = net.forward(images(&d), &grids, None);
     assert_eq!(out.heatmaps.dims(), [1, 2, 17, 16, 16]);
     assert_eq!(out.likelihood.dims(), [1, 1, 16, 16, 4]);
@@ -112,12 +117,7 @@ fn a_loss_reaches_every_trainable_parameter() {
     let d = Device::flex().autodiff();
     let cfg = small_config();
     let net = cfg.init(&d).with_body(Arc::new(standin_model(0)));
-    let cams = rig();
-    let lbs: Vec<Letterbox> = cams
-        .iter()
-        .map(|c| Letterbox::new(c.width, c.height, 64).unwrap())
-        .collect();
-    let grids = vec![RigGrids::new(&cfg, &cams, &lbs, &d)];
+    let grids = grids_on(&cfg, &d);
     let roots = Tensor::<3>::from_data(
         TensorData::new(vec![0.5f32, 0.2, 0.9, -1.0, 1.0, 1.0], [1, 2, 3]),
         &d,
@@ -405,12 +405,7 @@ fn a_downsampled_hrnet_reads_the_pooled_input() {
     cfg.validate().unwrap();
     let d = Device::flex();
     let net = cfg.init(&d);
-    let cams = rig();
-    let lbs: Vec<Letterbox> = cams
-        .iter()
-        .map(|c| Letterbox::new(c.width, c.height, 64).unwrap())
-        .collect();
-    let grids = vec![RigGrids::new(&cfg, &cams, &lbs, &d)];
+    let grids = grids_on(&cfg, &d);
     assert_eq!(grids[0].heatmaps.map_hw, [8, 8]);
     assert_eq!(grids[0].heatmaps.stride, 8.0);
     let det = net.detect(images(&d), &grids);
@@ -483,12 +478,7 @@ fn the_facing_flip_test_makes_the_heading_maps_mirror_equivariant() {
         let net = cfg.init(&d);
         let mut plain_net = net.clone();
         plain_net.config.facing_flip = false;
-        let cams = rig();
-        let lbs: Vec<Letterbox> = cams
-            .iter()
-            .map(|c| Letterbox::new(c.width, c.height, 64).unwrap())
-            .collect();
-        let grids = vec![RigGrids::new(&cfg, &cams, &lbs, &d)];
+        let grids = grids_on(&cfg, &d);
         let sign = Tensor::<1>::from_data(TensorData::new(vec![1.0f32, -1.0], [2]), &d);
         // The largest difference between a view's heading maps and its mirror image's read back.
         let asymmetry = |net: &mvmp_model::MvmpHmr| {
@@ -506,8 +496,8 @@ fn the_facing_flip_test_makes_the_heading_maps_mirror_equivariant() {
         let train = cfg.init(&a);
         let mut train_plain = train.clone();
         train_plain.config.facing_flip = false;
-        let facing =
-            |n: &mvmp_model::MvmpHmr| n.detect(images(&a), &grids_on(&cfg, &a)).facing.unwrap();
+        let train_grids = grids_on(&cfg, &a);
+        let facing = |n: &mvmp_model::MvmpHmr| n.detect(images(&a), &train_grids).facing.unwrap();
         let diff = (facing(&train) - facing(&train_plain))
             .abs()
             .max()
@@ -519,15 +509,6 @@ fn the_facing_flip_test_makes_the_heading_maps_mirror_equivariant() {
     bad.facing_flip = true;
     let e = bad.validate().unwrap_err().to_string();
     assert!(e.contains("facing_flip"), "{e}");
-}
-
-fn grids_on(cfg: &ModelConfig, d: &Device) -> Vec<RigGrids> {
-    let cams = rig();
-    let lbs: Vec<Letterbox> = cams
-        .iter()
-        .map(|c| Letterbox::new(c.width, c.height, 64).unwrap())
-        .collect();
-    vec![RigGrids::new(cfg, &cams, &lbs, d)]
 }
 
 #[test]
