@@ -70,9 +70,13 @@ pub fn bench_train(args: &BenchTrainArgs, device: &Device) -> Result<()> {
         let mut times = Vec::new();
         for &fused in paths {
             set_fused_passes(fused);
-            let timed = time_stage(stage, &cfg, &model, tmp.path(), args, device);
+            let timed = time_stage(stage, &cfg, &model, tmp.path(), args.steps, device);
             set_fused_passes(true);
-            let (line, s_per_step) = timed?;
+            let (mut line, s_per_step, peak) = timed?;
+            line += &match args.host {
+                true => format!("  {:>8.0}", peak as f64 / (1 << 20) as f64),
+                false => format!("  {:>8}", "-"),
+            };
             let path = if fused { "fused" } else { "tensor-ops" };
             println!("{:>5}  {path:<10} {line}", stage.number());
             times.push(s_per_step);
@@ -98,16 +102,32 @@ fn set_fused_passes(on: bool) {
     mvmp_kernels::gelu::set_parallel_gelu(on);
 }
 
-/// One stage trained alone for the warm-up and timed steps: its table line (without the stage and the
-/// path) and its median seconds per step.
+/// Median seconds per step of each stage of `cfg` on `device`, from `steps` timed steps after the
+/// warm-up (runs in a temporary directory under `tmp`).
+pub fn step_seconds(
+    cfg: &TrainConfig,
+    model: &mvmp_model::ModelConfig,
+    tmp: &Path,
+    steps: usize,
+    device: &Device,
+) -> Result<[f64; 2]> {
+    let mut out = [0.0; 2];
+    for (i, stage) in Stage::ALL.into_iter().enumerate() {
+        out[i] = time_stage(stage, cfg, model, tmp, steps, device)?.1;
+    }
+    Ok(out)
+}
+
+/// One stage trained alone for the warm-up and `steps` timed steps: its table line (without the stage,
+/// the path and the peak), its median seconds per step and the peak of host memory allocated, bytes.
 fn time_stage(
     stage: Stage,
     cfg: &TrainConfig,
     model: &mvmp_model::ModelConfig,
     tmp: &Path,
-    args: &BenchTrainArgs,
+    steps: usize,
     device: &Device,
-) -> Result<(String, f64)> {
+) -> Result<(String, f64, usize)> {
     let mut c = cfg.clone();
     // Only this stage trains, one epoch of exactly the steps timed whatever the set's size (frames
     // repeat when the set is smaller), and validation at its end reads one frame.
@@ -118,7 +138,7 @@ fn time_stage(
     };
     this.epochs = 1;
     other.epochs = 0;
-    c.epoch_frames = (WARM_UP + args.steps) * c.batch_size;
+    c.epoch_frames = (WARM_UP + steps) * c.batch_size;
     c.val_frames = 1;
     let run_dir = tempfile::tempdir_in(tmp).context("creating a temporary run directory")?;
     let run = RunDir::create(&run_dir.path().join("run"), &c, model, None)?;
@@ -126,19 +146,15 @@ fn time_stage(
     let opts = TrainOptions {
         device: device.clone(),
         stop: Default::default(),
-        stop_after_steps: Some((WARM_UP + args.steps) as u64),
+        stop_after_steps: Some((WARM_UP + steps) as u64),
         stop_after_time: None,
     };
-    eprintln!("stage {}: {} steps", stage.number(), WARM_UP + args.steps);
+    eprintln!("stage {}: {} steps", stage.number(), WARM_UP + steps);
     let base = crate::GLOBAL.reset_peak();
     mvmp_train::train(&run, &c, &m, &opts, &mut mvmp_train::Quiet)?;
     let peak = crate::GLOBAL.peak().saturating_sub(base);
-    let peak = match args.host {
-        true => format!("{:.0}", peak as f64 / (1 << 20) as f64),
-        false => "-".into(),
-    };
     let (line, s_per_step) = row(&run.metrics_path())?;
-    Ok((format!("{line}  {peak:>8}"), s_per_step))
+    Ok((line, s_per_step, peak))
 }
 
 /// The demo's configs and synthetic set (with `scenes` scenes) under `dir`: (training config, dataset).

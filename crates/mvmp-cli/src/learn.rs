@@ -62,12 +62,15 @@ const VARIANTS: [Variant; 8] = [
     },
 ];
 
-/// Seconds per step of the tiny config on 2 cores (`mvmp bench train --steps 10` on a 2-core Intel Xeon
-/// with AVX-512: stage 1 0.50-0.52 s, stage 2 0.80-0.82 s with the fused training passes, loading
-/// included), plus validation: what sizes the schedule to the time given.
-const STAGE1_STEP_S: f64 = 0.51;
-const STAGE2_STEP_S: f64 = 0.81;
+/// Timed steps per stage when the benchmark measures this machine's step times before it sizes the
+/// schedule (after `bench_train`'s warm-up steps).
+const CALIBRATION_STEPS: usize = 6;
+/// The part of the training time that is not steps (validation after every epoch).
 const VALIDATION_SHARE: f64 = 0.15;
+/// Stage 1's part of the steps' time. The demo gives stage 1 one epoch and stage 2 four, about 14% and
+/// 86% of its training time: more stage-2 epochs lowered its held-out MPJPE at every step from 2 to 4
+/// (189.0 / 174.1 / 161.0 mm for seed 0), while its stage-1 recall had reached 0.90-0.95 after one.
+const STAGE1_SHARE: f64 = 0.15;
 /// Every variant trains the same schedule, so that a variant slower per step (deformable fusion) or a
 /// machine busy with something else does not cut one variant's schedule short and not another's. This
 /// many times the time given stops a variant that is far slower; the table shows its fewer steps.
@@ -101,18 +104,14 @@ fn select(list: Option<&str>) -> Result<Vec<&'static Variant>> {
         .collect()
 }
 
-/// Epochs of each stage that fill `minutes` at the nominal step times: 40% stage 1, 60% stage 2.
-fn epochs(minutes: f64, train_frames: usize) -> (usize, usize) {
+/// Epochs of each stage that fill `minutes` at `step_s` seconds per step of stage 1 and 2: stage 1
+/// [`STAGE1_SHARE`] of the steps' time (at least one epoch), stage 2 what is left (at least one).
+fn epochs(minutes: f64, train_frames: usize, step_s: [f64; 2]) -> (usize, usize) {
     let seconds = minutes * 60.0 * (1.0 - VALIDATION_SHARE);
-    let e = |share: f64, step: f64| {
-        ((seconds * share / step) / train_frames as f64)
-            .round()
-            .max(1.0)
-    };
-    (
-        e(0.4, STAGE1_STEP_S) as usize,
-        e(0.6, STAGE2_STEP_S) as usize,
-    )
+    let epoch_s = step_s.map(|s| s * train_frames as f64);
+    let e1 = (seconds * STAGE1_SHARE / epoch_s[0]).round().max(1.0);
+    let e2 = ((seconds - e1 * epoch_s[0]) / epoch_s[1]).round().max(1.0);
+    (e1 as usize, e2 as usize)
 }
 
 /// The figures of one trained variant.
@@ -167,15 +166,17 @@ fn bench_into(args: &LearnArgs, device: &Device) -> Result<()> {
         .iter()
         .map(|&s| layout.scenes[s].index.frames.len())
         .sum::<usize>();
-    let (e1, e2) = epochs(args.minutes, train_frames);
+    let (base_train, base_model) = TrainConfig::read(&cfg_dir.join("train.toml"))?;
+    let step_s = calibrate(&base_train, &base_model, &data, device)?;
+    let (e1, e2) = epochs(args.minutes, train_frames, step_s);
     eprintln!(
-        "each variant: {e1} + {e2} epochs of {train_frames} frames (about {} min for the full model), \
-         stopped at {} min",
+        "each variant: {e1} + {e2} epochs of {train_frames} frames (about {} min for the full model at \
+         {:.3} and {:.3} s per step, measured here), stopped at {} min",
         args.minutes,
+        step_s[0],
+        step_s[1],
         args.minutes * TIME_GUARD
     );
-
-    let (base_train, base_model) = TrainConfig::read(&cfg_dir.join("train.toml"))?;
     let mut rows = Vec::new();
     let mut curves = Vec::new();
     for v in variants {
@@ -206,7 +207,7 @@ fn bench_into(args: &LearnArgs, device: &Device) -> Result<()> {
         "stage 2 recall_500",
     );
     write_png(&picture, &out.join("curves.png"))?;
-    let report = report(&rows, args, train_frames, (e1, e2));
+    let report = report(&rows, args, train_frames, (e1, e2), step_s);
     write_atomic(&out.join("learning.md"), report.as_bytes())?;
     print!("{report}");
     eprintln!(
@@ -215,6 +216,23 @@ fn bench_into(args: &LearnArgs, device: &Device) -> Result<()> {
         out.join("curves.png").display()
     );
     Ok(())
+}
+
+/// This machine's seconds per step of each stage of the full model on the benchmark's set: the
+/// schedule is sized from them, so that `--minutes` holds on fast and slow machines alike.
+fn calibrate(
+    train: &TrainConfig,
+    model: &ModelConfig,
+    data: &Path,
+    device: &Device,
+) -> Result<[f64; 2]> {
+    let mut cfg = train.clone();
+    let data =
+        std::fs::canonicalize(data).with_context(|| format!("resolving {}", data.display()))?;
+    cfg.data = Some(data.to_string_lossy().into_owned());
+    let tmp = tempfile::tempdir().context("creating a temporary directory")?;
+    eprintln!("measuring this machine's step times ({CALIBRATION_STEPS} steps per stage)");
+    crate::bench_train::step_seconds(&cfg, model, tmp.path(), CALIBRATION_STEPS, device)
 }
 
 /// Train one variant on the benchmark's schedule (at most [`TIME_GUARD`] times the time given), then
@@ -285,16 +303,25 @@ fn verdict(each: &[Option<Option<bool>>]) -> &'static str {
     }
 }
 
-fn report(rows: &[Row], args: &LearnArgs, frames: usize, (e1, e2): (usize, usize)) -> String {
+fn report(
+    rows: &[Row],
+    args: &LearnArgs,
+    frames: usize,
+    (e1, e2): (usize, usize),
+    step_s: [f64; 2],
+) -> String {
     let mut s = format!(
         "# Learning benchmark\n\n`mvmp bench learn --minutes {} --scenes {}`: the tiny model on a synthetic set of {} \
          one-frame scenes ({frames} for training, the rest held out). Every variant trains the same schedule, \
-         {e1} + {e2} epochs (sized so that the full model takes about {} minutes; a variant is stopped at {} \
-         minutes), then is scored on the held-out scenes. Errors in mm.\n\n```text\n",
+         {e1} + {e2} epochs (sized so that the full model takes about {} minutes at the {:.3} and {:.3} s \
+         per step of stage 1 and 2 measured on this machine; a variant is stopped at {} minutes), then is \
+         scored on the held-out scenes. Errors in mm.\n\n```text\n",
         args.minutes,
         args.scenes,
         args.scenes,
         args.minutes,
+        step_s[0],
+        step_s[1],
         args.minutes * TIME_GUARD
     );
     let named: Vec<(String, Metrics)> = rows
@@ -336,7 +363,19 @@ fn report(rows: &[Row], args: &LearnArgs, frames: usize, (e1, e2): (usize, usize
 
 #[cfg(test)]
 mod tests {
-    use super::verdict;
+    use super::{epochs, verdict};
+
+    #[test]
+    fn the_schedule_fills_the_time_at_the_measured_step_times() {
+        // 11 minutes less validation: 561 s. Stage 1: 15% is 84.2 s, a third of one 288 s epoch of 576
+        // frames at 0.5 s, so one epoch (the least); stage 2: (561 - 288) / (576 x 0.25) = 1.9, so 2.
+        assert_eq!(epochs(11.0, 576, [0.5, 0.25]), (1, 2));
+        // 40 minutes, 100 frames at 0.1 and 0.2 s: stage 1 306 / 10 = 30.6 -> 31 epochs, stage 2
+        // (2040 - 310) / 20 = 86.5 -> 87 (rounded half away from zero).
+        assert_eq!(epochs(40.0, 100, [0.1, 0.2]), (31, 87));
+        // Far too little time still trains one epoch of each.
+        assert_eq!(epochs(0.1, 1000, [1.0, 1.0]), (1, 1));
+    }
 
     #[test]
     fn a_direction_reproduces_only_beyond_the_noise() {
