@@ -82,6 +82,16 @@ pub struct LearnArgs<'a> {
     pub scenes: usize,
     /// Comma-separated variant names (default: all).
     pub variants: Option<&'a str>,
+    /// The training seeds every variant runs with (each a run of its own).
+    pub seeds: &'a [u64],
+}
+
+/// The name of one variant's run with one seed: the variant's own when the benchmark runs one seed.
+fn label(name: &str, seed: u64, seeds: &[u64]) -> String {
+    match seeds {
+        [_] => name.to_string(),
+        _ => format!("{name}-s{seed}"),
+    }
 }
 
 fn select(list: Option<&str>) -> Result<Vec<&'static Variant>> {
@@ -114,9 +124,12 @@ fn epochs(minutes: f64, train_frames: usize, step_s: [f64; 2]) -> (usize, usize)
     (e1 as usize, e2 as usize)
 }
 
-/// The figures of one trained variant.
+/// The figures of one trained variant with one seed.
 struct Row {
     name: &'static str,
+    seed: u64,
+    /// The run's name ([`label`]).
+    run: String,
     metrics: Metrics,
     steps: u64,
     minutes: f64,
@@ -151,6 +164,11 @@ pub fn bench_learn(args: &LearnArgs, device: &Device) -> Result<()> {
 fn bench_into(args: &LearnArgs, device: &Device) -> Result<()> {
     let out = args.out;
     let variants = select(args.variants)?;
+    for (i, seed) in args.seeds.iter().enumerate() {
+        if args.seeds[..i].contains(seed) {
+            bail!("--seeds: seed {seed} is given twice");
+        }
+    }
     let cfg_dir = out.join("configs");
     std::fs::create_dir_all(&cfg_dir).with_context(|| format!("creating {}", cfg_dir.display()))?;
     write_demo_configs(&cfg_dir, args.scenes)?;
@@ -180,25 +198,23 @@ fn bench_into(args: &LearnArgs, device: &Device) -> Result<()> {
     let mut rows = Vec::new();
     let mut curves = Vec::new();
     for v in variants {
-        let (mut t, mut m) = (base_train.clone(), base_model.clone());
-        t.stage1.epochs = e1;
-        t.stage2.epochs = e2;
-        (v.edit)(&mut t, &mut m);
-        let dir = cfg_dir.join(v.name);
-        std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
-        write_atomic(&dir.join("model.toml"), toml::to_string(&m)?.as_bytes())?;
-        t.model = "model.toml".into();
-        write_atomic(&dir.join("train.toml"), toml::to_string(&t)?.as_bytes())?;
-        rows.push(train_and_score(
-            v.name,
-            &dir,
-            &data,
-            out,
-            args.minutes,
-            device,
-        )?);
-        let log = std::fs::read_to_string(out.join("runs").join(v.name).join("metrics.jsonl"))?;
-        curves.push((v.name.to_string(), Curves::from_log(&log)));
+        for &seed in args.seeds {
+            let (mut t, mut m) = (base_train.clone(), base_model.clone());
+            t.stage1.epochs = e1;
+            t.stage2.epochs = e2;
+            t.seed = seed;
+            (v.edit)(&mut t, &mut m);
+            let run = label(v.name, seed, args.seeds);
+            let dir = cfg_dir.join(&run);
+            std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+            write_atomic(&dir.join("model.toml"), toml::to_string(&m)?.as_bytes())?;
+            t.model = "model.toml".into();
+            write_atomic(&dir.join("train.toml"), toml::to_string(&t)?.as_bytes())?;
+            let row = train_and_score(v.name, seed, &run, &dir, &data, args, device)?;
+            rows.push(row);
+            let log = std::fs::read_to_string(out.join("runs").join(&run).join("metrics.jsonl"))?;
+            curves.push((run, Curves::from_log(&log)));
+        }
     }
     let picture = Curves::compare(
         &curves,
@@ -239,14 +255,16 @@ fn calibrate(
 /// score it on the held-out scenes.
 fn train_and_score(
     name: &'static str,
+    seed: u64,
+    run: &str,
     cfg_dir: &Path,
     data: &Path,
-    out: &Path,
-    minutes: f64,
+    args: &LearnArgs,
     device: &Device,
 ) -> Result<Row> {
-    let run_dir = out.join("runs").join(name);
-    eprintln!("[{name}] training -> {}", run_dir.display());
+    let (out, minutes) = (args.out, args.minutes);
+    let run_dir = out.join("runs").join(run);
+    eprintln!("[{run}] training -> {}", run_dir.display());
     let t0 = std::time::Instant::now();
     crate::train::train(
         crate::train::TrainArgs {
@@ -262,13 +280,15 @@ fn train_and_score(
         &mut crate::train::BarMonitor::new(true),
     )?;
     let trained = t0.elapsed().as_secs_f64() / 60.0;
-    let (run, _, _) = mvmp_train::RunDir::open(&run_dir)?;
-    let steps = run.state()?.map_or(0, |s| s.global_step);
+    let (opened, _, _) = mvmp_train::RunDir::open(&run_dir)?;
+    let steps = opened.state()?.map_or(0, |s| s.global_step);
     let report = run_dir.join("eval-test.json");
-    let args = EvalArgs::held_out(Source::Run(&run_dir), data, &report);
-    let (metrics, _) = eval(&args, device, true)?;
+    let eval_args = EvalArgs::held_out(Source::Run(&run_dir), data, &report);
+    let (metrics, _) = eval(&eval_args, device, true)?;
     Ok(Row {
         name,
+        seed,
+        run: run.to_string(),
         metrics,
         steps,
         minutes: trained,
@@ -280,12 +300,63 @@ fn train_and_score(
 /// moved one seed by 17.6 mm (README, The two commands).
 const NOISE_MM: f64 = 20.0;
 
-/// How `a`'s MPJPE compares with `b`'s: lower by more than [`NOISE_MM`] (`Some(Some(true))`), higher by
-/// more (`Some(Some(false))`), within it (`Some(None)`); `None` when either is missing or unscored.
+/// A variant's MPJPE averaged over its seeds; `None` when it did not run or a seed found no one.
+fn mean_mpjpe(rows: &[Row], name: &str) -> Option<f64> {
+    let each: Option<Vec<f64>> = rows
+        .iter()
+        .filter(|r| r.name == name)
+        .map(|r| r.metrics.mpjpe_mm)
+        .collect();
+    let each = each.filter(|e| !e.is_empty())?;
+    Some(each.iter().sum::<f64>() / each.len() as f64)
+}
+
+/// How `a`'s MPJPE (the mean over seeds) compares with `b`'s: lower by more than [`NOISE_MM`]
+/// (`Some(Some(true))`), higher by more (`Some(Some(false))`), within it (`Some(None)`); `None` when
+/// either is missing or unscored.
 fn lower(rows: &[Row], a: &str, b: &str) -> Option<Option<bool>> {
-    let mpjpe = |n: &str| rows.iter().find(|r| r.name == n)?.metrics.mpjpe_mm;
-    let d = mpjpe(b)? - mpjpe(a)?;
+    let d = mean_mpjpe(rows, b)? - mean_mpjpe(rows, a)?;
     Some((d.abs() > NOISE_MM).then_some(d > 0.0))
+}
+
+/// Each variant over its seeds: mean MPJPE, PVE, PA-PVE and recall, and the seeds' MPJPE range.
+fn seed_summary(rows: &[Row]) -> String {
+    let mut s = format!(
+        "{:<20} {:>6} {:>9} {:>15} {:>9} {:>9} {:>8}\n",
+        "", "seeds", "MPJPE", "MPJPE range", "PVE", "PA-PVE", "recall"
+    );
+    let mut names: Vec<&str> = rows.iter().map(|r| r.name).collect();
+    names.dedup();
+    for name in names {
+        let mine: Vec<&Row> = rows.iter().filter(|r| r.name == name).collect();
+        let mean = |f: &dyn Fn(&Metrics) -> Option<f64>| -> String {
+            let v: Option<Vec<f64>> = mine.iter().map(|r| f(&r.metrics)).collect();
+            v.map_or("-".into(), |v| {
+                format!("{:.1}", v.iter().sum::<f64>() / v.len() as f64)
+            })
+        };
+        let mpjpe: Vec<f64> = mine.iter().filter_map(|r| r.metrics.mpjpe_mm).collect();
+        let range = match mpjpe.len() == mine.len() {
+            true => {
+                let lo = mpjpe.iter().copied().fold(f64::INFINITY, f64::min);
+                let hi = mpjpe.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+                format!("{lo:.1}-{hi:.1}")
+            }
+            false => "-".into(),
+        };
+        let recall: Option<Vec<f64>> = mine.iter().map(|r| r.metrics.recall_500).collect();
+        let recall = recall.map_or("-".into(), |v| {
+            format!("{:.3}", v.iter().sum::<f64>() / v.len() as f64)
+        });
+        s += &format!(
+            "{name:<20} {:>6} {:>9} {range:>15} {:>9} {:>9} {recall:>8}\n",
+            mine.len(),
+            mean(&|m| m.mpjpe_mm),
+            mean(&|m| m.pve_mm),
+            mean(&|m| m.pa_pve_mm),
+        );
+    }
+    s
 }
 
 /// One direction's verdict over its pairs: every pair must go the paper's way by more than the noise.
@@ -326,15 +397,25 @@ fn report(
     );
     let named: Vec<(String, Metrics)> = rows
         .iter()
-        .map(|r| (r.name.to_string(), r.metrics.clone()))
+        .map(|r| (r.run.clone(), r.metrics.clone()))
         .collect();
     s += &table(&named);
-    s += "```\n\n| variant | steps | minutes |\n|---|---|---|\n";
+    if args.seeds.len() > 1 {
+        s += &format!(
+            "```\n\nOver the seeds {:?} (means; the range is the seeds' lowest and highest MPJPE):\n\n```text\n",
+            args.seeds
+        );
+        s += &seed_summary(rows);
+    }
+    s += "```\n\n| variant | seed | steps | minutes |\n|---|---|---|---|\n";
     for r in rows {
-        s += &format!("| {} | {} | {:.1} |\n", r.name, r.steps, r.minutes);
+        s += &format!(
+            "| {} | {} | {} | {:.1} |\n",
+            r.name, r.seed, r.steps, r.minutes
+        );
     }
     s += &format!(
-        "\nThe paper's directions (MPJPE; differences within {NOISE_MM} mm are noise):\n\n"
+        "\nThe paper's directions (MPJPE, the mean over seeds; differences within {NOISE_MM} mm are noise):\n\n"
     );
     for (what, pairs) in [
         (
@@ -363,7 +444,66 @@ fn report(
 
 #[cfg(test)]
 mod tests {
-    use super::{epochs, verdict};
+    use super::{Row, epochs, lower, seed_summary, verdict};
+    use mvmp_eval::Metrics;
+
+    fn row(name: &'static str, seed: u64, mpjpe: Option<f64>) -> Row {
+        let metrics = Metrics {
+            mpjpe_mm: mpjpe,
+            pve_mm: mpjpe.map(|m| m - 30.0),
+            pa_pve_mm: Some(70.0),
+            root_mm: None,
+            rr_mpjpe_mm: None,
+            pa_mpjpe_mm: None,
+            recall_500: Some(0.9 + seed as f64 * 0.02),
+            ap: Default::default(),
+            matched: 1,
+            ground_truth: 1,
+            predictions: 1,
+        };
+        Row {
+            name,
+            seed,
+            run: format!("{name}-s{seed}"),
+            metrics,
+            steps: 10,
+            minutes: 1.0,
+        }
+    }
+
+    #[test]
+    fn directions_compare_the_means_over_seeds() {
+        let rows = [
+            row("full", 0, Some(150.0)),
+            row("full", 1, Some(170.0)),
+            row("fusion_max", 0, Some(185.0)),
+            row("fusion_max", 1, Some(195.0)),
+            row("voxelsmplx", 0, Some(140.0)),
+            row("voxelsmplx", 1, Some(190.0)),
+            row("no_density", 0, Some(100.0)),
+            row("no_density", 1, None),
+        ];
+        // Means 160 against 190: 30 mm, beyond the 20 mm noise.
+        assert_eq!(lower(&rows, "full", "fusion_max"), Some(Some(true)));
+        // Means 160 and 165: within it, although seed 0 alone goes the other way by 10.
+        assert_eq!(lower(&rows, "full", "voxelsmplx"), Some(None));
+        // A seed that found no one leaves the variant unscored, not scored on the other seed.
+        assert_eq!(lower(&rows, "full", "no_density"), None);
+        assert_eq!(lower(&rows, "full", "root_head"), None);
+        let summary = seed_summary(&rows);
+        let full = summary.lines().find(|l| l.starts_with("full")).unwrap();
+        for cell in ["2", "160.0", "150.0-170.0", "130.0", "70.0", "0.910"] {
+            assert!(
+                full.split_whitespace().any(|c| c == cell),
+                "{cell} not in {full}"
+            );
+        }
+        let nd = summary
+            .lines()
+            .find(|l| l.starts_with("no_density"))
+            .unwrap();
+        assert_eq!(nd.split_whitespace().nth(2), Some("-"), "{nd}");
+    }
 
     #[test]
     fn the_schedule_fills_the_time_at_the_measured_step_times() {

@@ -407,6 +407,10 @@ enum BenchCommand {
         /// no_orientation, no_density, root_head, root_spine.
         #[arg(long)]
         variants: Option<String>,
+        /// Comma-separated training seeds: every variant trains once with each (one run per variant and
+        /// seed), and the report adds each variant's mean and spread over them.
+        #[arg(long, value_delimiter = ',', default_value = "0")]
+        seeds: Vec<u64>,
         #[arg(long, default_value = "out/learn")]
         out: PathBuf,
     },
@@ -696,6 +700,7 @@ fn bench_command(cmd: BenchCommand, device: &Device, host: bool) -> anyhow::Resu
             minutes,
             scenes,
             variants,
+            seeds,
             out,
         } => learn::bench_learn(
             &learn::LearnArgs {
@@ -703,6 +708,7 @@ fn bench_command(cmd: BenchCommand, device: &Device, host: bool) -> anyhow::Resu
                 minutes,
                 scenes,
                 variants: variants.as_deref(),
+                seeds: &seeds,
             },
             device,
         ),

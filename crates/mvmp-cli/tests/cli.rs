@@ -1247,8 +1247,9 @@ fn the_attention_benchmark_shows_the_tiled_memory_growing_slower() {
     assert!(stderr(&o).contains("--tokens"), "{}", stderr(&o));
 }
 
-/// The learning benchmark end to end at a tiny scale: two variants trained for a few seconds each, the
-/// report with its table and directions, the comparison picture; an unknown variant is named.
+/// The learning benchmark end to end at a tiny scale: two variants with two seeds each, trained for a
+/// few seconds, the report with its tables and directions, the comparison picture; an unknown variant
+/// and a repeated seed are named.
 #[test]
 fn the_learning_benchmark_compares_variants() {
     let dir = tempfile::tempdir().unwrap();
@@ -1262,21 +1263,42 @@ fn the_learning_benchmark_compares_variants() {
         "3",
         "--variants",
         "full,no_density",
+        "--seeds",
+        "3,5",
         "--out",
         out.to_str().unwrap(),
     ]);
     assert!(o.status.success(), "{}", stderr(&o));
     let report = std::fs::read_to_string(out.join("learning.md")).unwrap();
     for needle in [
-        "| full |",
-        "| no_density |",
+        "| full | 3 |",
+        "| no_density | 5 |",
+        "Over the seeds [3, 5]",
         "the density loss lowers MPJPE",
         "curves.png",
     ] {
         assert!(report.contains(needle), "{needle:?} not in {report}");
     }
     assert!(out.join("curves.png").metadata().unwrap().len() > 1000);
-    assert!(out.join("runs/no_density/eval-test.json").exists());
+    for run in ["full-s3", "full-s5", "no_density-s3", "no_density-s5"] {
+        assert!(out.join("runs").join(run).join("eval-test.json").exists());
+        let train =
+            std::fs::read_to_string(out.join("configs").join(run).join("train.toml")).unwrap();
+        let seed = &run[run.len() - 1..];
+        assert!(train.contains(&format!("seed = {seed}")), "{train}");
+    }
+    expect_error(
+        &[
+            "bench",
+            "learn",
+            "--seeds",
+            "1,2,1",
+            "--out",
+            dir.path().join("y").to_str().unwrap(),
+        ],
+        &["--seeds", "seed 1 is given twice"],
+    );
+    assert!(!dir.path().join("y").exists());
     expect_error(
         &[
             "bench",
