@@ -268,6 +268,11 @@ struct EvalCli {
     /// the run's).
     #[arg(long)]
     pseudo_gt: Option<PathBuf>,
+    /// Diagnostic: replace the fused image-feature volume with zeros before the decoder, to measure
+    /// what the predictions owe to the images' features beyond detection, the heading and the root's
+    /// height (with --run; the report records it).
+    #[arg(long)]
+    zero_volume: bool,
 }
 
 #[derive(Subcommand)]
@@ -634,6 +639,7 @@ fn eval_command(e: EvalCli, device: &Device) -> anyhow::Result<()> {
         split_name: &e.split,
         stride: e.stride,
         pseudo_gt: e.pseudo_gt.as_deref(),
+        zero_volume: e.zero_volume,
     };
     let (m, _) = run::eval(&args, device, false)?;
     print!(

@@ -97,6 +97,8 @@ pub struct EvalArgs<'a> {
     pub stride: Option<usize>,
     /// SMPL-X pseudo-ground-truth meshes for Panoptic and Human3.6M (`DIR/<sequence>/<frame>/people.npz`).
     pub pseudo_gt: Option<&'a Path>,
+    /// The fused image-feature volume zeroed before the decoder (a diagnostic; runs only).
+    pub zero_volume: bool,
 }
 
 impl<'a> EvalArgs<'a> {
@@ -118,6 +120,7 @@ impl<'a> EvalArgs<'a> {
             split_name: "test",
             stride: None,
             pseudo_gt: None,
+            zero_volume: false,
         }
     }
 
@@ -170,6 +173,9 @@ pub fn error_parts(m: &Metrics) -> Option<String> {
 
 /// Run an evaluation; returns the overall figures and the report.
 pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, serde_json::Value)> {
+    if args.zero_volume && !matches!(args.source, Source::Run(_)) {
+        bail!("--zero-volume applies to a run's weights (--run), not to predictions or a baseline");
+    }
     check_save_predictions(args)?;
     check_outputs(args)?;
     match args.format {
@@ -314,7 +320,8 @@ fn eval_run(
     quiet: bool,
 ) -> Result<(Scored, Option<StagedDir>)> {
     let (run, cfg, _) = RunDir::open(run_dir)?;
-    let (pred, weights) = Predictor::from_run(run_dir, device)?;
+    let (mut pred, weights) = Predictor::from_run(run_dir, device)?;
+    pred.model.zero_volume = args.zero_volume;
     let views = args.views.unwrap_or(cfg.test_views.min(min_views));
     let opts = args.options(views);
     let mut pb = LazyBar::new("eval", quiet);
@@ -329,7 +336,10 @@ fn eval_run(
         Ok(())
     })?;
     pb.finish();
-    Ok(((ev, run_source(&run, &weights)?, views), staged))
+    Ok((
+        (ev, run_source(&run, &weights, args.zero_volume)?, views),
+        staged,
+    ))
 }
 
 /// Stored predictions (infer's layout) posed with the body model given or the dataset's.
@@ -391,14 +401,19 @@ fn eval_mean_pose(
     ))
 }
 
-/// Where a run's figures came from: the run, its weights and the hashes of both.
-fn run_source(run: &RunDir, weights: &Path) -> Result<serde_json::Value> {
-    Ok(json!({
+/// Where a run's figures came from: the run, its weights and the hashes of both, and the diagnostic
+/// that changed the model's inputs, if any.
+fn run_source(run: &RunDir, weights: &Path, zero_volume: bool) -> Result<serde_json::Value> {
+    let mut source = json!({
         "run": run.root.display().to_string(),
         "checkpoint": weights.display().to_string(),
         "checkpoint_sha256": file_hash(weights)?,
         "config_sha256": run.config_hash()?,
-    }))
+    });
+    if zero_volume {
+        source["ablation"] = json!("the fused image-feature volume zeroed before the decoder");
+    }
+    Ok(source)
 }
 
 fn absolute(p: &Path) -> String {
@@ -914,7 +929,8 @@ fn eval_joint_dataset(
     }
     let cameras = &ds.cameras[..views];
     let (run, _, _) = RunDir::open(run_dir)?;
-    let (pred, weights) = Predictor::from_run(&run.root, device)?;
+    let (mut pred, weights) = Predictor::from_run(&run.root, device)?;
+    pred.model.zero_volume = args.zero_volume;
     let pseudo = pseudo_gt(args, &pred, device)?;
     let seqs = (ds.open)(args.data, &ds.parts, cameras, stride)?;
     if seqs.iter().all(|s| s.is_empty()) {
@@ -946,7 +962,7 @@ fn eval_joint_dataset(
     )?;
     pb.finish();
     let mut header = json!({
-        "source": run_source(&run, &weights)?,
+        "source": run_source(&run, &weights, args.zero_volume)?,
         "data": absolute(args.data),
         "dataset": ds.name,
         "split": ds.split_label,

@@ -803,6 +803,38 @@ fn train_eval_infer_end_to_end() {
         assert!(r.get(k).is_some(), "{k}");
     }
     assert_eq!(r["predictions"], 2, "two kept roots in the one test frame");
+    assert!(r["source"].get("ablation").is_none(), "{r}");
+    // The diagnostic that zeroes the image-feature volume is recorded in its report, and refused for
+    // predictions, whose model is not at hand.
+    let o = mvmp(&[
+        "eval",
+        "--run",
+        &p("run"),
+        "--data",
+        &p("ds"),
+        "--zero-volume",
+        "--out",
+        &p("zero.json"),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let z: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(p("zero.json")).unwrap()).unwrap();
+    assert!(
+        z["source"]["ablation"].as_str().unwrap().contains("zeroed"),
+        "{z}"
+    );
+    assert_eq!(z["ground_truth"], r["ground_truth"]);
+    expect_error(
+        &[
+            "eval",
+            "--predictions",
+            &p("pred"),
+            "--data",
+            &p("ds"),
+            "--zero-volume",
+        ],
+        &["--zero-volume", "--run"],
+    );
     // Scoring the saved predictions gives the same figures under the same protocol.
     let o = mvmp(&[
         "eval",

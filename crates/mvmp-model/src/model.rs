@@ -52,6 +52,11 @@ pub struct MvmpHmr {
     /// weights: `body_model` in the config names it).
     #[module(skip)]
     pub body: Option<BodyLayers>,
+    /// A diagnostic for inference (false unless set): the fused image-feature volume replaced by zeros
+    /// before the decoder, so that what the predictions owe to the images' features beyond detection,
+    /// the heading and the root's height can be measured (`mvmp eval --zero-volume`).
+    #[module(skip)]
+    pub zero_volume: bool,
 }
 
 /// Sampling grids of one rig: for the ViT feature maps (stride 14) and the HRNet heatmaps (stride 4).
@@ -170,6 +175,7 @@ impl ModelConfig {
                 .then(|| FacingHead::new(self.hrnet_config().width, self.facing_bins, device)),
             config: self.clone(),
             body: None,
+            zero_volume: false,
         }
     }
 }
@@ -319,6 +325,10 @@ impl MvmpHmr {
         let volume = match &self.deformable {
             Some(d) => d.forward(feats, &fgrids),
             None => fuse_views(feats, &fgrids, cfg.fusion),
+        };
+        let volume = match self.zero_volume {
+            true => volume.zeros_like(),
+            false => volume,
         };
         let (
             Detection {

@@ -112,6 +112,45 @@ fn forward_shapes(cfg: ModelConfig) {
     assert_eq!(out.transl.dims(), [1, 2, 3]);
 }
 
+/// `zero_volume` hands the decoder the volume a silent feature reduction (zero weights and bias) makes:
+/// zeros; without it the decoder's output depends on the features.
+#[test]
+fn zero_volume_hands_the_decoder_a_zero_feature_volume() {
+    let d = Device::flex();
+    let cfg = small_config();
+    let net = cfg.init(&d).with_body(Arc::new(standin_model(0)));
+    let grids = grids_on(&cfg, &d);
+    let rot6d = |n: &mvmp_model::MvmpHmr| {
+        let roots = Tensor::<3>::from_data(
+            TensorData::new(vec![0.5f32, 0.2, 0.9, -1.0, 1.0, 1.0], [1, 2, 3]),
+            &d,
+        );
+        let present = Tensor::<2, Bool>::from_data(TensorData::new(vec![true, true], [1, 2]), &d);
+        let out = n.forward(images(&d), &grids, Some((roots, present)));
+        out.rot6d.into_data().try_to_vec::<f32>().unwrap()
+    };
+    let plain = rot6d(&net);
+    let mut zeroed = net.clone();
+    zeroed.zero_volume = true;
+    let ablated = rot6d(&zeroed);
+    let mut silent = net.clone();
+    silent.reduce.weight = silent.reduce.weight.map(|w| w.zeros_like());
+    silent.reduce.bias = silent.reduce.bias.map(|b| b.map(|b| b.zeros_like()));
+    let reference = rot6d(&silent);
+    let gap = |a: &[f32], b: &[f32]| {
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f32::max)
+    };
+    assert!(
+        gap(&ablated, &reference) < 1e-6,
+        "{}",
+        gap(&ablated, &reference)
+    );
+    assert!(gap(&plain, &ablated) > 1e-4, "{}", gap(&plain, &ablated));
+}
+
 #[test]
 fn a_loss_reaches_every_trainable_parameter() {
     let d = Device::flex().autodiff();
