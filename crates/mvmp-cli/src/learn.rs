@@ -300,15 +300,22 @@ fn train_and_score(
 /// moved one seed by 17.6 mm (README, The two commands).
 const NOISE_MM: f64 = 20.0;
 
-/// A variant's MPJPE averaged over its seeds; `None` when it did not run or a seed found no one.
-fn mean_mpjpe(rows: &[Row], name: &str) -> Option<f64> {
-    let each: Option<Vec<f64>> = rows
-        .iter()
-        .filter(|r| r.name == name)
-        .map(|r| r.metrics.mpjpe_mm)
-        .collect();
+/// The rows of one variant, one per seed.
+fn seeds_of<'r>(rows: &'r [Row], name: &str) -> Vec<&'r Row> {
+    rows.iter().filter(|r| r.name == name).collect()
+}
+
+/// The mean of one figure over `rows`; `None` when there are none or one of them lacks it (a seed
+/// that found no one leaves the variant unscored, not scored on the others).
+fn mean_of(rows: &[&Row], figure: impl Fn(&Metrics) -> Option<f64>) -> Option<f64> {
+    let each: Option<Vec<f64>> = rows.iter().map(|r| figure(&r.metrics)).collect();
     let each = each.filter(|e| !e.is_empty())?;
     Some(each.iter().sum::<f64>() / each.len() as f64)
+}
+
+/// A variant's MPJPE averaged over its seeds.
+fn mean_mpjpe(rows: &[Row], name: &str) -> Option<f64> {
+    mean_of(&seeds_of(rows, name), |m| m.mpjpe_mm)
 }
 
 /// How `a`'s MPJPE (the mean over seeds) compares with `b`'s: lower by more than [`NOISE_MM`]
@@ -328,32 +335,23 @@ fn seed_summary(rows: &[Row]) -> String {
     let mut names: Vec<&str> = rows.iter().map(|r| r.name).collect();
     names.dedup();
     for name in names {
-        let mine: Vec<&Row> = rows.iter().filter(|r| r.name == name).collect();
-        let mean = |f: &dyn Fn(&Metrics) -> Option<f64>| -> String {
-            let v: Option<Vec<f64>> = mine.iter().map(|r| f(&r.metrics)).collect();
-            v.map_or("-".into(), |v| {
-                format!("{:.1}", v.iter().sum::<f64>() / v.len() as f64)
-            })
+        let mine = seeds_of(rows, name);
+        let mean = |figure: fn(&Metrics) -> Option<f64>, digits: usize| {
+            mean_of(&mine, figure).map_or("-".into(), |v| format!("{v:.digits$}"))
         };
-        let mpjpe: Vec<f64> = mine.iter().filter_map(|r| r.metrics.mpjpe_mm).collect();
-        let range = match mpjpe.len() == mine.len() {
-            true => {
-                let lo = mpjpe.iter().copied().fold(f64::INFINITY, f64::min);
-                let hi = mpjpe.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-                format!("{lo:.1}-{hi:.1}")
-            }
-            false => "-".into(),
-        };
-        let recall: Option<Vec<f64>> = mine.iter().map(|r| r.metrics.recall_500).collect();
-        let recall = recall.map_or("-".into(), |v| {
-            format!("{:.3}", v.iter().sum::<f64>() / v.len() as f64)
+        let mpjpe: Option<Vec<f64>> = mine.iter().map(|r| r.metrics.mpjpe_mm).collect();
+        let range = mpjpe.map_or("-".into(), |v| {
+            let lo = v.iter().copied().fold(f64::INFINITY, f64::min);
+            let hi = v.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+            format!("{lo:.1}-{hi:.1}")
         });
         s += &format!(
-            "{name:<20} {:>6} {:>9} {range:>15} {:>9} {:>9} {recall:>8}\n",
+            "{name:<20} {:>6} {:>9} {range:>15} {:>9} {:>9} {:>8}\n",
             mine.len(),
-            mean(&|m| m.mpjpe_mm),
-            mean(&|m| m.pve_mm),
-            mean(&|m| m.pa_pve_mm),
+            mean(|m| m.mpjpe_mm, 1),
+            mean(|m| m.pve_mm, 1),
+            mean(|m| m.pa_pve_mm, 1),
+            mean(|m| m.recall_500, 3),
         );
     }
     s

@@ -804,21 +804,19 @@ fn train_eval_infer_end_to_end() {
     }
     assert_eq!(r["predictions"], 2, "two kept roots in the one test frame");
     assert!(r["source"].get("ablation").is_none(), "{r}");
+    // `eval --data ds ARGS --out REPORT`, which must succeed: its report.
+    let scored = |args: &[&str], report: &str| -> serde_json::Value {
+        let ds = p("ds");
+        let mut all = vec!["eval", "--data", &ds];
+        all.extend_from_slice(args);
+        all.extend_from_slice(&["--out", report]);
+        let o = mvmp(&all);
+        assert!(o.status.success(), "{}", stderr(&o));
+        serde_json::from_str(&std::fs::read_to_string(report).unwrap()).unwrap()
+    };
     // The diagnostic that zeroes the image-feature volume is recorded in its report, and refused for
     // predictions, whose model is not at hand.
-    let o = mvmp(&[
-        "eval",
-        "--run",
-        &p("run"),
-        "--data",
-        &p("ds"),
-        "--zero-volume",
-        "--out",
-        &p("zero.json"),
-    ]);
-    assert!(o.status.success(), "{}", stderr(&o));
-    let z: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(p("zero.json")).unwrap()).unwrap();
+    let z = scored(&["--run", &p("run"), "--zero-volume"], &p("zero.json"));
     assert!(
         z["source"]["ablation"].as_str().unwrap().contains("zeroed"),
         "{z}"
@@ -836,18 +834,7 @@ fn train_eval_infer_end_to_end() {
         &["--zero-volume", "--run"],
     );
     // Scoring the saved predictions gives the same figures under the same protocol.
-    let o = mvmp(&[
-        "eval",
-        "--predictions",
-        &p("pred"),
-        "--data",
-        &p("ds"),
-        "--out",
-        &p("again.json"),
-    ]);
-    assert!(o.status.success(), "{}", stderr(&o));
-    let r2: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(p("again.json")).unwrap()).unwrap();
+    let r2 = scored(&["--predictions", &p("pred")], &p("again.json"));
     for k in ["mpjpe_mm", "pve_mm", "recall_500"] {
         let (a, b) = (r[k].as_f64(), r2[k].as_f64());
         assert!(
