@@ -448,6 +448,11 @@ pub struct LossWeights {
     pub heatmap_2d_stage2: f32,
     /// Width of the 2D heatmap targets in heatmap pixels (HRNet: 2).
     pub heatmap_sigma: f32,
+    /// Weight of the 2D joint heatmap term on the ViT's reduced features, read by a model's
+    /// `vit_heatmaps` head in stage 2 (the paper: 0; its ViT comes pretrained on 2D pose).
+    pub vit_heatmap: f32,
+    /// Width of those targets in feature-map pixels (one pixel is a ViT patch).
+    pub vit_heatmap_sigma: f32,
     /// Weight of [`facing_loss`] in both stages, for a model with a facing head (not one of the five).
     pub facing: f32,
     /// The frame of the 3D mesh and density terms (the paper: the world).
@@ -478,6 +483,8 @@ impl Default for LossWeights {
             heatmap_2d: 1.0,
             heatmap_2d_stage2: 0.0,
             heatmap_sigma: 2.0,
+            vit_heatmap: 0.0,
+            vit_heatmap_sigma: 1.0,
             facing: 0.1,
             mesh_frame: MeshFrame::World,
             translation: 0.0,
@@ -502,6 +509,7 @@ impl LossWeights {
             ("density", self.density),
             ("heatmap_2d", self.heatmap_2d),
             ("heatmap_2d_stage2", self.heatmap_2d_stage2),
+            ("vit_heatmap", self.vit_heatmap),
             ("detection_offset", self.detection_offset),
             ("detection_positive", self.detection_positive),
             ("facing", self.facing),
@@ -525,11 +533,13 @@ impl LossWeights {
                 self.detection_sigma
             ));
         }
-        if !(self.heatmap_sigma.is_finite() && self.heatmap_sigma > 0.0) {
-            return Err(format!(
-                "loss.heatmap_sigma = {}: must be positive",
-                self.heatmap_sigma
-            ));
+        for (k, v) in [
+            ("heatmap_sigma", self.heatmap_sigma),
+            ("vit_heatmap_sigma", self.vit_heatmap_sigma),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(format!("loss.{k} = {v}: must be positive"));
+            }
         }
         if self.density_grid == 0 || self.density_grid > MAX_DENSITY_GRID {
             return Err(format!(
@@ -560,6 +570,8 @@ pub struct LossTerms {
     pub heatmap_2d: Option<Tensor<1>>,
     /// The facing head's term, for a model with one.
     pub facing: Option<Tensor<1>>,
+    /// The 2D joint heatmap term on the ViT's features, for a model with a `vit_heatmaps` head.
+    pub vit_heatmap: Option<Tensor<1>>,
 }
 
 impl LossTerms {
@@ -579,6 +591,7 @@ impl LossTerms {
             ("density", &self.density),
             ("heatmap_2d", &self.heatmap_2d),
             ("facing", &self.facing),
+            ("vit_heatmap", &self.vit_heatmap),
         ]
         .into_iter()
         .filter_map(|(n, t)| t.clone().map(|t| (n, t)))

@@ -123,6 +123,12 @@ pub struct ModelConfig {
     /// is unchanged. false (the default) reads each view once.
     #[serde(skip_serializing_if = "is_false")]
     pub facing_flip: bool,
+    /// A 1 x 1 head on the reduced ViT features (`C_f` channels, before fusion) that predicts the 2D
+    /// heatmaps of `heatmap_joints`, trained by the loss's `vit_heatmap` term in stage 2. It gives the
+    /// ViT a signal of its own, as the paper's ViTPose backbone has from its 2D pose pretraining
+    /// (docs/architecture.md, The image features go unread). Inference does not run it.
+    #[serde(skip_serializing_if = "is_false")]
+    pub vit_heatmaps: bool,
     /// Body model: `standin:SEED` or a path to an SMPLX_*.npz.
     pub body_model: String,
     /// Side of the score tiles of the ViT's and the decoder's attention: autodiff keeps each row's
@@ -192,6 +198,7 @@ impl Default for ModelConfig {
             facing: false,
             facing_bins: 0,
             facing_flip: false,
+            vit_heatmaps: false,
             body_model: "standin:0".into(),
             attention_tile: mvmp_kernels::DEFAULT_BLOCK,
             block_recompute: false,

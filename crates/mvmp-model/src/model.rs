@@ -44,6 +44,9 @@ pub struct MvmpHmr {
     pub deformable: Option<DeformableFusion>,
     /// Present when the config asks for a facing head (`facing`).
     pub facing: Option<FacingHead>,
+    /// Present when the config asks for 2D joint heatmaps from the ViT's features (`vit_heatmaps`):
+    /// `C_f` -> one map per heatmap joint.
+    pub vit_joints: Option<Conv2d>,
     /// The config the network was built from: the forward reads its grid, fusion mode, people cap,
     /// threshold and root placement from here (not saved with the weights).
     #[module(skip)]
@@ -123,6 +126,9 @@ pub struct MvmpOutput {
     pub heatmaps: Tensor<5>,
     /// `[B, V, 2, S/4, S/4]` with a facing head (see [`Detection::facing`]).
     pub facing: Option<Tensor<5>>,
+    /// `[B, V, J, S/14, S/14]`: the heatmap joints read from the ViT's features, in training and with
+    /// a `vit_heatmaps` head only.
+    pub vit_heatmaps: Option<Tensor<5>>,
     /// `[B, 1, X, Y, Z]` and `[B, 3, X, Y, Z]`
     pub likelihood: Tensor<5>,
     pub offset: Tensor<5>,
@@ -173,6 +179,10 @@ impl ModelConfig {
             facing: self
                 .facing
                 .then(|| FacingHead::new(self.hrnet_config().width, self.facing_bins, device)),
+            vit_joints: self.vit_heatmaps.then(|| {
+                Conv2dConfig::new([self.feature_channels, self.heatmap_joints.len()], [1, 1])
+                    .init(device)
+            }),
             config: self.clone(),
             body: None,
             zero_volume: false,
@@ -320,6 +330,14 @@ impl MvmpHmr {
         let x = images.clone().reshape([b * v, 3, s, s]);
         let feats = self.view_features(x); // [B*V, Cf, h, w]
         let [_, cf, h, w] = feats.dims();
+        let vit_heatmaps = match &self.vit_joints {
+            Some(head) if feats.is_autodiff() => {
+                let maps = mvmp_kernels::conv::conv2d(head, feats.clone());
+                let j = maps.dims()[1];
+                Some(maps.reshape([b, v, j, h, w]))
+            }
+            _ => None,
+        };
         let feats = feats.reshape([b, v, cf, h, w]);
         let fgrids: Vec<SamplingGrid> = grids.iter().map(|g| g.features.clone()).collect();
         let volume = match &self.deformable {
@@ -382,6 +400,7 @@ impl MvmpHmr {
         MvmpOutput {
             heatmaps,
             facing,
+            vit_heatmaps,
             likelihood,
             offset,
             detections,

@@ -243,6 +243,10 @@ pub fn summarize(cfg: &ModelConfig, views: usize, device: &Device) -> Summary {
     if let Some(f) = &net.facing {
         rows.insert(3, ("facing", count(f), v * facing_macs(cfg)));
     }
+    // Trained in stage 2 and stored with the weights; inference does not run it.
+    if let Some(h) = &net.vit_joints {
+        rows.insert(2, ("vit_joints", count(h), 0.0));
+    }
     let rows = rows
         .into_iter()
         .map(|(name, (params, stored_bytes), macs)| Row {

@@ -151,6 +151,28 @@ fn zero_volume_hands_the_decoder_a_zero_feature_volume() {
     assert!(gap(&plain, &ablated) > 1e-4, "{}", gap(&plain, &ablated));
 }
 
+/// A `vit_heatmaps` head maps the reduced ViT features to one map per heatmap joint at the patch grid,
+/// in training; inference does not run it.
+#[test]
+fn a_vit_heatmap_head_runs_in_training_only() {
+    let mut cfg = small_config();
+    cfg.vit_heatmaps = true;
+    cfg.validate().unwrap();
+    let body = Arc::new(standin_model(0));
+    let forward = |d: &Device| {
+        let net = cfg.init(d).with_body(body.clone());
+        let roots = Tensor::<3>::from_data(TensorData::new(vec![0.5f32, 0.2, 0.9], [1, 1, 3]), d);
+        let present = Tensor::<2, Bool>::from_data(TensorData::new(vec![true], [1, 1]), d);
+        net.forward(images(d), &grids_on(&cfg, d), Some((roots, present)))
+    };
+    let maps = forward(&Device::flex().autodiff()).vit_heatmaps.unwrap();
+    let side = cfg.image_size as usize / mvmp_backbone::vit::PATCH;
+    let [b, v, j, h, w] = maps.dims();
+    assert_eq!([b, j, h, w], [1, cfg.heatmap_joints.len(), side, side]);
+    assert_eq!(v, images(&Device::flex()).dims()[1]);
+    assert!(forward(&Device::flex()).vit_heatmaps.is_none());
+}
+
 #[test]
 fn a_loss_reaches_every_trainable_parameter() {
     let d = Device::flex().autodiff();

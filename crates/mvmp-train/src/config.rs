@@ -281,6 +281,7 @@ impl TrainConfig {
                 ),
             });
         }
+        check_vit_heatmaps(path, &model_path, &model, &cfg.loss)?;
         Ok((cfg, model))
     }
 
@@ -526,6 +527,33 @@ impl TrainConfig {
             Stage::Whole => &self.stage2,
         }
     }
+}
+
+/// A `vit_heatmaps` head and the `vit_heatmap` loss go together: the head without its loss is an
+/// untrained layer, the loss without the head has nothing to read.
+fn check_vit_heatmaps(
+    path: &Path,
+    model_path: &Path,
+    model: &ModelConfig,
+    loss: &LossWeights,
+) -> Result<(), TrainError> {
+    let what = match (model.vit_heatmaps, loss.vit_heatmap > 0.0) {
+        (true, false) => format!(
+            "0, but the model ({}) has a ViT heatmap head (`vit_heatmaps = true`), which only this loss trains",
+            model_path.display()
+        ),
+        (false, true) => format!(
+            "{}, but the model ({}) has no ViT heatmap head (`vit_heatmaps = false`) for it to train",
+            loss.vit_heatmap,
+            model_path.display()
+        ),
+        _ => return Ok(()),
+    };
+    Err(TrainError::Config {
+        path: path.into(),
+        key: "loss.vit_heatmap".into(),
+        what,
+    })
 }
 
 #[cfg(test)]

@@ -51,6 +51,9 @@ pub fn module_grad_norms(model: &MvmpHmr, grads: &Gradients) -> Vec<(&'static st
     if let Some(f) = &model.facing {
         out.push(("facing", norm(f, grads)));
     }
+    if let Some(h) = &model.vit_joints {
+        out.push(("vit_joints", norm(h, grads)));
+    }
     out
 }
 

@@ -187,7 +187,21 @@ pub fn heatmap_term(
     sigma: f32,
     device: &Device,
 ) -> Tensor<1> {
-    let [b, v, j, h, w] = det.heatmaps.dims();
+    let stride = cfg.heatmap_stride() as f32;
+    joint_heatmap_term(det.heatmaps.clone(), stride, gt, cfg, sigma, device)
+}
+
+/// The heatmap loss of maps `[B, V, J, h, w]` of the heatmap joints, `stride` network pixels per map
+/// pixel, against Gaussians of width `sigma` (map pixels) at the visible ground-truth joints.
+pub fn joint_heatmap_term(
+    maps: Tensor<5>,
+    stride: f32,
+    gt: &HostGt,
+    cfg: &ModelConfig,
+    sigma: f32,
+    device: &Device,
+) -> Tensor<1> {
+    let [b, v, j, h, w] = maps.dims();
     let mut target = Vec::with_capacity(b * v * j * h * w);
     for bi in 0..b {
         for vi in 0..v {
@@ -201,7 +215,7 @@ pub fn heatmap_term(
                         (vis > 0.5).then_some([u, vv])
                     })
                     .collect();
-                let one = heatmap_target(&pts, [h, w], cfg.heatmap_stride() as f32, sigma);
+                let one = heatmap_target(&pts, [h, w], stride, sigma);
                 for (m, x) in map.iter_mut().zip(one) {
                     *m = m.max(x);
                 }
@@ -225,7 +239,7 @@ pub fn heatmap_term(
         }
     }
     heatmap_loss(
-        det.heatmaps.clone(),
+        maps,
         target,
         Tensor::from_data(TensorData::new(weight, [b, v, j]), device),
     )
@@ -409,6 +423,23 @@ fn heatmap_2d_term(
     (weight > 0.0).then(|| heatmap_term(det, gt, cfg, weights.heatmap_sigma, device) * weight)
 }
 
+/// The ViT features' heatmap term at its weight (`None` at 0 or for a model without the head).
+fn vit_heatmap_term(
+    out: &MvmpOutput,
+    gt: &HostGt,
+    cfg: &ModelConfig,
+    weights: &LossWeights,
+    device: &Device,
+) -> Option<Tensor<1>> {
+    let maps = out
+        .vit_heatmaps
+        .clone()
+        .filter(|_| weights.vit_heatmap > 0.0)?;
+    let stride = mvmp_backbone::vit::PATCH as f32;
+    let sigma = weights.vit_heatmap_sigma;
+    Some(joint_heatmap_term(maps, stride, gt, cfg, sigma, device) * weights.vit_heatmap)
+}
+
 /// The facing term at its weight (`None` at 0 or for a model without a facing head).
 fn facing_weighted(
     det: &Detection,
@@ -547,6 +578,7 @@ pub fn stage2_loss(
         }),
         heatmap_2d: heatmap_2d_term(&det, &gt, cfg, weights, weights.heatmap_2d_stage2, device),
         facing: facing_weighted(&det, &gt, batch, weights, device),
+        vit_heatmap: vit_heatmap_term(&out, &gt, cfg, weights, device),
     };
     finish(terms.named(), queries, diag, device)
 }

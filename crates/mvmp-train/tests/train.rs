@@ -298,6 +298,68 @@ fn a_binned_facing_head_learns_in_stage_one() {
     assert!(terms[9] < 0.8 * terms[0], "{terms:?}");
 }
 
+/// A ViT heatmap head gives the ViT a gradient of its own in stage 2: its term alone reaches the ViT and
+/// the feature reduction (and not the decoder), and falls over a few steps on one batch.
+#[test]
+fn a_vit_heatmap_head_trains_the_vit_in_stage_two() {
+    let ad = Device::flex().autodiff();
+    let mut cfg = model_config();
+    cfg.vit_heatmaps = true;
+    let ds =
+        FrameDataset::open(dataset(), Split::Train, ViewChoice::Fixed(vec![0, 1]), 64).unwrap();
+    let body = ds.layout().unwrap().body_model().unwrap();
+    let mut model = mvmp_train::seeded_init(&cfg, &ad, 1).with_body(Arc::new(body.clone()));
+    let batch = FrameBatcher::with_vertices(body).batch(vec![ds.load(0).unwrap()], &ad);
+    let weights = mvmp_losses::LossWeights {
+        vit_heatmap: 100.0,
+        ..Default::default()
+    };
+    let term = |m: &MvmpHmr| {
+        let l = stage2_loss(m, &batch, &Stage2::at_true_roots(&weights), &ad);
+        l.terms
+            .into_iter()
+            .find(|t| t.0 == "vit_heatmap")
+            .unwrap()
+            .1
+    };
+    let norms = mvmp_train::diagnostics::module_grad_norms(&model, &term(&model).backward());
+    let norm = |name: &str| norms.iter().find(|n| n.0 == name).unwrap().1;
+    assert!(norm("vit") > 0.0 && norm("reduce") > 0.0, "{norms:?}");
+    assert_eq!(norm("decoder"), 0.0, "{norms:?}");
+    let mut optim = AdamConfig::new().init();
+    let mut values = Vec::new();
+    for _ in 0..10 {
+        let t = term(&model);
+        values.push(t.clone().into_scalar::<f32>());
+        model = optim.step(
+            1e-3,
+            model.clone(),
+            GradientsParams::from_grads(t.backward(), &model),
+        );
+    }
+    assert!(values[9] < 0.8 * values[0], "{values:?}");
+    // The head without its loss would stay untrained: refused, naming the key.
+    let dir = tempfile::tempdir().unwrap();
+    let path = write_configs(dir.path(), &|s| s);
+    std::fs::write(
+        dir.path().join("model.toml"),
+        toml::to_string(&cfg).unwrap(),
+    )
+    .unwrap();
+    let e = TrainConfig::read(&path).unwrap_err().to_string();
+    assert!(
+        e.contains("loss.vit_heatmap") && e.contains("vit_heatmaps = true"),
+        "{e}"
+    );
+    let with_loss = write_configs(dir.path(), &|s| format!("{s}[loss]\nvit_heatmap = 1.0\n"));
+    std::fs::write(
+        dir.path().join("model.toml"),
+        toml::to_string(&cfg).unwrap(),
+    )
+    .unwrap();
+    TrainConfig::read(&with_loss).unwrap();
+}
+
 #[test]
 fn an_interrupted_run_resumes_to_the_same_weights_and_log() {
     let dir = tempfile::tempdir().unwrap();
@@ -693,6 +755,15 @@ fn bad_configs_name_the_key() {
                 "[stage2]\ndetection_lr = 1e-4\nfreeze_detection = true\n",
             ),
             "stage2.detection_lr",
+        ),
+        // The model (tiny.toml's) has no ViT heatmap head for this loss to train.
+        (
+            ("[stage1]", "[loss]\nvit_heatmap = 10.0\n[stage1]"),
+            "loss.vit_heatmap",
+        ),
+        (
+            ("[stage1]", "[loss]\nvit_heatmap_sigma = 0.0\n[stage1]"),
+            "loss.vit_heatmap_sigma",
         ),
         (("test_views = 3", "test_views = 1000000"), "test_views"),
         (("train_views = 2", "train_views = 0"), "train_views"),
