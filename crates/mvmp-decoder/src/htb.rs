@@ -44,6 +44,18 @@ pub struct DecoderOptions {
     pub query_lattice: [usize; 3],
     /// Metres from the lattice's first point to its last along each axis (ignored where it has one).
     pub query_span: [f64; 3],
+    /// Turn the query lattice about the vertical with each person's heading (the facing head's
+    /// reading), so that its x axis points where the person faces and its y axis to their left: a
+    /// raised left hand then falls on the same lattice points whichever way its owner faces. false (a
+    /// lattice along the world's axes) makes the map from the samples to the body pose depend on the
+    /// heading. Needs a heading (`facing = true`) and more than one lattice point.
+    pub heading_lattice: bool,
+    /// The query's (normalised) volume sample also reaches the heads directly: projected by
+    /// `sample_proj` and added after the final norm, as the height features are. Through the query
+    /// path it shares the residual stream with everything the blocks add for every person alike, and
+    /// the trained decoder read none of it (docs/architecture.md, The image features go unread).
+    /// false (the paper) has the query path alone.
+    pub sample_skip: bool,
     /// Each heatmap joint's centroid near the root, from the joint heatmap volume (the RootNet's input),
     /// joins the query ([`QueryInputs::joints`]; the model sets [`DecoderConfig::joint_channels`] to its
     /// heatmap joints). false (the paper) reads the feature volume alone.
@@ -85,6 +97,8 @@ impl Default for DecoderOptions {
             query_norm: false,
             query_lattice: [1, 1, 1],
             query_span: [0.0; 3],
+            heading_lattice: false,
+            sample_skip: false,
             query_joints: false,
             joint_lattice: [5, 5, 8],
             joint_span: [1.0, 1.0, 1.75],
@@ -240,6 +254,8 @@ pub struct Decoder {
     pub heading_proj: Option<Linear>,
     /// Present with [`DecoderOptions::height_features`].
     pub height_proj: Option<Linear>,
+    /// Present with [`DecoderOptions::sample_skip`].
+    pub sample_proj: Option<Linear>,
     /// Present with [`DecoderOptions::query_norm`].
     pub query_norm: Option<LayerNorm>,
     /// Present with joint centroids ([`DecoderConfig::joint_channels`] > 0): they are layer-normalised
@@ -248,6 +264,9 @@ pub struct Decoder {
     /// Offsets from the root of the query's sample points (see [`DecoderOptions::query_lattice`]).
     #[module(skip)]
     pub lattice: Vec<[f32; 3]>,
+    /// See [`DecoderOptions::heading_lattice`].
+    #[module(skip)]
+    pub heading_lattice: bool,
     /// Offsets from the root over which joint centroids are taken (see [`DecoderOptions::joint_lattice`]).
     #[module(skip)]
     pub joint_lattice: Vec<[f32; 3]>,
@@ -398,6 +417,9 @@ impl DecoderConfig {
             expr_head: Head::new(d, NUM_EXPRESSION, device),
             offset_head: Head::new(d, 3, device),
             heading_proj: self.heading.then(|| LinearConfig::new(2, d).init(device)),
+            sample_proj: o
+                .sample_skip
+                .then(|| LinearConfig::new(self.sample_width(), d).init(device)),
             height_proj: (o.height_features > 0)
                 .then(|| LinearConfig::new(o.height_features, d).init(device)),
             query_norm: o
@@ -406,6 +428,7 @@ impl DecoderConfig {
             joint_norm: (self.joint_channels > 0)
                 .then(|| LayerNormConfig::new(3 * self.joint_channels).init(device)),
             lattice: lattice_offsets(o.query_lattice, o.query_span),
+            heading_lattice: o.heading_lattice,
             joint_lattice: lattice_offsets(o.joint_lattice, o.joint_span),
             joint_half: o.joint_span.map(|s| (s / 2.0).max(1e-3) as f32),
             mean: constant(mean_params(device)),
@@ -474,6 +497,34 @@ impl Decoder {
         let s = sample_at(volume, roots, &self.lattice, grid);
         let [_, _, l, c] = s.dims();
         s.reshape([b, k, l * c])
+    }
+
+    /// [`Decoder::sample_lattice`] with the lattice turned about the vertical so that its x axis points
+    /// along each person's heading `[B, K, 2]` (a horizontal unit vector) and its y axis to their left.
+    pub fn sample_lattice_turned(
+        &self,
+        volume: Tensor<5>,
+        roots: Tensor<3>,
+        heading: Tensor<3>,
+        grid: &VoxelGrid,
+    ) -> Tensor<3> {
+        let [b, k, _] = roots.dims();
+        let (l, c) = (self.lattice.len(), volume.dims()[1]);
+        let device = roots.device();
+        let axis = |a: usize| {
+            let v: Vec<f32> = self.lattice.iter().map(|o| o[a]).collect();
+            Tensor::<1>::from_data(TensorData::new(v, [l]), &device).reshape([1, 1, l])
+        };
+        let (ox, oy, oz) = (axis(0), axis(1), axis(2));
+        let hx = heading.clone().narrow(2, 0, 1); // [B, K, 1]
+        let hy = heading.narrow(2, 1, 1);
+        // Forward (hx, hy), left (-hy, hx).
+        let wx = ox.clone() * hx.clone() - oy.clone() * hy.clone();
+        let wy = ox * hy + oy * hx;
+        let wz = oz.repeat_dim(0, b).repeat_dim(1, k);
+        let offsets = Tensor::stack::<4>(vec![wx, wy, wz], 3); // [B, K, L, 3]
+        let points = roots.reshape([b, k, 1, 3]) + offsets;
+        trilinear_sample(volume, points.reshape([b, k * l, 3]), grid).reshape([b, k, l * c])
     }
 
     /// Each joint's centroid in the box around each root, from a joint heatmap volume `[B, E, X, Y, Z]`:
@@ -558,10 +609,19 @@ impl Decoder {
         let k = roots.dims()[1];
         let device = volume.device();
         let QueryInputs { heading, joints } = inputs;
-        let mut sampled = self.sample_lattice(volume.clone(), roots.clone(), grid); // [B, K, L * C]
+        let mut sampled = match &heading {
+            Some(h) if self.heading_lattice && self.lattice.len() > 1 => {
+                self.sample_lattice_turned(volume.clone(), roots.clone(), h.clone(), grid)
+            }
+            _ => self.sample_lattice(volume.clone(), roots.clone(), grid),
+        }; // [B, K, L * C]
         if let Some(norm) = &self.query_norm {
             sampled = norm.forward(sampled);
         }
+        let skip = self
+            .sample_proj
+            .as_ref()
+            .map(|p| p.forward(sampled.clone()));
         if let Some(j) = joints {
             let mut centroids = self.joint_centroids(j, roots.clone(), grid); // [B, K, E * 3]
             // Raw, the centroids (a few tenths of the box) never steered the heads: in the learning
@@ -610,6 +670,9 @@ impl Decoder {
             }
         }
         let mut q = self.norm.forward(q);
+        if let Some(skip) = skip {
+            q = q + skip;
+        }
         if let Some(proj) = &self.height_proj {
             q = q + proj.forward(height_features(roots.clone(), proj.weight.dims()[0]));
         }

@@ -88,6 +88,55 @@ fn the_query_lattice_samples_the_volume_around_each_root() {
     }
 }
 
+/// A lattice turned with the heading: its x axis points where the person faces and its y axis to their
+/// left, so on a linear field each sample is the field at the root plus the offset turned by the
+/// heading's angle (hand-derived: facing +y, the lattice's +x is the world's +y and its +y the world's
+/// -x); facing +x it is the plain lattice.
+#[test]
+fn a_heading_lattice_turns_with_each_person() {
+    let d = Device::flex();
+    let g = VoxelGrid::new([0.5, -1.0, 1.0], [4.0, 3.0, 2.0], [8, 6, 4]).unwrap();
+    let f = |p: [f64; 3]| 2.0 * p[0] + 3.0 * p[1] - p[2] + 1.0;
+    let field: Vec<f32> = g.centers().iter().map(|c| f(*c) as f32).collect();
+    let vol = Tensor::<5>::from_data(TensorData::new(field, [1, 1, 8, 6, 4]), &d);
+    let dec = DecoderConfig::new(1)
+        .with_options(DecoderOptions {
+            dim: 8,
+            heads: 2,
+            query_lattice: [2, 2, 2],
+            query_span: [0.8, 0.6, 0.5],
+            heading_lattice: true,
+            ..Default::default()
+        })
+        .init(&d);
+    // Every point stays inside the voxel centres, where the field is exact.
+    let roots = [[0.3, -0.8, 1.0], [1.1, -0.9, 0.9], [0.6, -0.5, 1.1]];
+    let flat: Vec<f32> = roots.iter().flatten().map(|&x| x as f32).collect();
+    let roots_t = Tensor::<3>::from_data(TensorData::new(flat, [1, 3, 3]), &d);
+    let angle = 0.7f64;
+    let headings = [[1.0, 0.0], [0.0, 1.0], [angle.cos(), angle.sin()]];
+    let flat: Vec<f32> = headings.iter().flatten().map(|&x| x as f32).collect();
+    let heading = Tensor::<3>::from_data(TensorData::new(flat, [1, 3, 2]), &d);
+    let turned = vals(dec.sample_lattice_turned(vol.clone(), roots_t.clone(), heading, &g));
+    let plain = vals(dec.sample_lattice(vol, roots_t, &g));
+    for l in 0..8 {
+        assert!((turned[l] - plain[l]).abs() < 1e-5, "facing +x, point {l}");
+        let [ox, oy, oz] = dec.lattice[l].map(f64::from);
+        let by_hand = [roots[1][0] - oy, roots[1][1] + ox, roots[1][2] + oz];
+        assert!(
+            (turned[8 + l] as f64 - f(by_hand)).abs() < 1e-4,
+            "facing +y, point {l}"
+        );
+        let (c, s) = (angle.cos(), angle.sin());
+        let r = roots[2];
+        let p = [r[0] + c * ox - s * oy, r[1] + s * ox + c * oy, r[2] + oz];
+        assert!(
+            (turned[16 + l] as f64 - f(p)).abs() < 1e-4,
+            "turned, point {l}"
+        );
+    }
+}
+
 /// A joint's centroid in the box around a root, by hand: a likelihood that is 1 in one voxel of the
 /// box and 0 elsewhere puts the centroid of the lattice points around that voxel (weights: the squared
 /// trilinear sample) at the voxel's offset; a joint absent from the box gives 0.
@@ -437,4 +486,49 @@ fn height_features_are_gaussian_bumps_of_the_root_height() {
         assert!((f[i] - w).abs() < 1e-5, "{f:?}");
     }
     assert!(f[6] < 1e-3, "{f:?}");
+}
+
+/// With `sample_skip` the projected volume sample joins the heads' input after the final norm: a skip
+/// whose projection is all zeros gives exactly the decoder without it (the same other weights), and with
+/// its own weights the output follows the sample.
+#[test]
+fn a_sample_skip_adds_the_projected_sample_to_the_heads_input() {
+    let d = Device::flex();
+    let dec = DecoderConfig::new(8)
+        .with_options(DecoderOptions {
+            dim: 32,
+            heads: 4,
+            query_norm: true,
+            query_lattice: [3, 2, 2],
+            query_span: [0.5, 0.5, 1.0],
+            sample_skip: true,
+            ..Default::default()
+        })
+        .init(&d);
+    let (vol, roots, present, g) = inputs(&d, [1.5, 1.5, 1.0]);
+    let run = |dec: &Decoder| {
+        vals(
+            dec.forward(vol.clone(), &g, roots.clone(), present.clone())
+                .rot6d,
+        )
+    };
+    let mut silent = dec.clone();
+    let proj = silent.sample_proj.take().unwrap();
+    let without = run(&silent);
+    silent.sample_proj = Some(burn::nn::Linear {
+        weight: proj.weight.clone().map(|w| w.zeros_like()),
+        bias: proj.bias.clone().map(|b| b.map(|b| b.zeros_like())),
+    });
+    let gap = |a: &[f32], b: &[f32]| {
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f32::max)
+    };
+    assert!(gap(&run(&silent), &without) < 1e-6);
+    assert!(
+        gap(&run(&dec), &without) > 1e-5,
+        "{}",
+        gap(&run(&dec), &without)
+    );
 }

@@ -436,6 +436,12 @@ impl ModelConfig {
             d.joint_lattice,
             d.joint_span,
         )?;
+        if d.heading_lattice && !(self.facing && d.query_lattice.iter().product::<usize>() > 1) {
+            return Err((
+                "decoder.heading_lattice",
+                "true: the lattice turns with the facing head's heading, so it needs `facing = true` and a query_lattice of more than one point".into(),
+            ));
+        }
         // Each feature is one input of `height_proj`: a count past this only sizes an allocation.
         if d.height_features > MAX_HEIGHT_FEATURES {
             return Err((

@@ -204,7 +204,10 @@ fn decoder_macs(cfg: &ModelConfig, z: &Sizes) -> f64 {
     } else {
         0.0
     };
-    let query_macs = k * (lattice * z.cf + joints + mvmp_decoder::queries::PARAM_DIM as f64) * d;
+    // With `sample_skip` the lattice's samples are projected a second time, onto the heads' input.
+    let skip = if cfg.decoder.sample_skip { 2.0 } else { 1.0 };
+    let query_macs =
+        k * (skip * lattice * z.cf + joints + mvmp_decoder::queries::PARAM_DIM as f64) * d;
     tokens * z.cf * d
         + query_macs
         + if cfg.decoder.use_htb {

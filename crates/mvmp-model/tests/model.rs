@@ -288,7 +288,7 @@ type Edit = fn(&mut ModelConfig);
 
 #[test]
 fn unusable_people_caps_thresholds_and_lattices_name_the_key() {
-    let cases: [(&str, Edit); 9] = [
+    let cases: [(&str, Edit); 11] = [
         ("max_people", |c| c.max_people = 100_000_000),
         ("max_people", |c| c.max_people = 0),
         ("root_threshold", |c| c.root_threshold = f32::NAN),
@@ -305,6 +305,16 @@ fn unusable_people_caps_thresholds_and_lattices_name_the_key() {
         }),
         ("decoder.query_span", |c| {
             c.decoder.query_span = [-1.0, 1.0, 1.0]
+        }),
+        // A lattice to turn, but no facing head to turn it with (the default config has none).
+        ("decoder.heading_lattice", |c| {
+            c.decoder.query_lattice = [3, 3, 8];
+            c.decoder.heading_lattice = true;
+        }),
+        // A facing head, but one point: nothing to turn.
+        ("decoder.heading_lattice", |c| {
+            c.facing = true;
+            c.decoder.heading_lattice = true;
         }),
     ];
     for (key, edit) in cases {
