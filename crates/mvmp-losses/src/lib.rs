@@ -449,7 +449,7 @@ pub struct LossWeights {
     /// Width of the 2D heatmap targets in heatmap pixels (HRNet: 2).
     pub heatmap_sigma: f32,
     /// Weight of the 2D joint heatmap term on the ViT's reduced features, read by a model's
-    /// `vit_heatmaps` head in stage 2 (the paper: 0; its ViT comes pretrained on 2D pose).
+    /// `vit_heatmaps` head in both stages (the paper: 0; its ViT comes pretrained on 2D pose).
     pub vit_heatmap: f32,
     /// Width of those targets in feature-map pixels (one pixel is a ViT patch).
     pub vit_heatmap_sigma: f32,

@@ -124,7 +124,7 @@ pub struct ModelConfig {
     #[serde(skip_serializing_if = "is_false")]
     pub facing_flip: bool,
     /// A 1 x 1 head on the reduced ViT features (`C_f` channels, before fusion) that predicts the 2D
-    /// heatmaps of `heatmap_joints`, trained by the loss's `vit_heatmap` term in stage 2. It gives the
+    /// heatmaps of `heatmap_joints`, trained by the loss's `vit_heatmap` term in both stages. It gives the
     /// ViT a signal of its own, as the paper's ViTPose backbone has from its 2D pose pretraining
     /// (docs/architecture.md, The image features go unread). Inference does not run it.
     #[serde(skip_serializing_if = "is_false")]

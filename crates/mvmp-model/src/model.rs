@@ -239,6 +239,24 @@ impl MvmpHmr {
         out.swap_dims(1, 2).reshape([n, cf, h, w])
     }
 
+    /// The `vit_heatmaps` head's maps `[B, V, J, h, w]` of per-view features `[B*V, Cf, h, w]` (`None`
+    /// without the head).
+    fn joint_maps(&self, feats: Tensor<4>, [b, v]: [usize; 2]) -> Option<Tensor<5>> {
+        let head = self.vit_joints.as_ref()?;
+        let maps = mvmp_kernels::conv::conv2d(head, feats);
+        let [_, j, h, w] = maps.dims();
+        Some(maps.reshape([b, v, j, h, w]))
+    }
+
+    /// The `vit_heatmaps` head's maps `[B, V, J, S/14, S/14]` of images `[B, V, 3, S, S]`: the ViT and
+    /// the head alone (stage 1 trains them so beside detection; `None` without the head).
+    pub fn vit_joint_maps(&self, images: Tensor<5>) -> Option<Tensor<5>> {
+        self.vit_joints.as_ref()?;
+        let [b, v, _, s, _] = images.dims();
+        let feats = self.view_features(images.reshape([b * v, 3, s, s]));
+        self.joint_maps(feats, [b, v])
+    }
+
     /// The detection branch alone: HRNet heatmaps, their mean fusion and the RootNet.
     pub fn detect(&self, images: Tensor<5>, grids: &[RigGrids]) -> Detection {
         self.detect_with_volume(images, grids).0
@@ -330,13 +348,9 @@ impl MvmpHmr {
         let x = images.clone().reshape([b * v, 3, s, s]);
         let feats = self.view_features(x); // [B*V, Cf, h, w]
         let [_, cf, h, w] = feats.dims();
-        let vit_heatmaps = match &self.vit_joints {
-            Some(head) if feats.is_autodiff() => {
-                let maps = mvmp_kernels::conv::conv2d(head, feats.clone());
-                let j = maps.dims()[1];
-                Some(maps.reshape([b, v, j, h, w]))
-            }
-            _ => None,
+        let vit_heatmaps = match feats.is_autodiff() {
+            true => self.joint_maps(feats.clone(), [b, v]),
+            false => None,
         };
         let feats = feats.reshape([b, v, cf, h, w]);
         let fgrids: Vec<SamplingGrid> = grids.iter().map(|g| g.features.clone()).collect();

@@ -406,6 +406,10 @@ pub fn stage1_loss(
         detection: (weights.detection > 0.0).then(|| d * weights.detection),
         heatmap_2d: heatmap_2d_term(&det, &gt, cfg, weights, weights.heatmap_2d, device),
         facing: facing_weighted(&det, &gt, batch, weights, device),
+        vit_heatmap: (weights.vit_heatmap > 0.0)
+            .then(|| model.vit_joint_maps(batch.images.clone()))
+            .flatten()
+            .map(|maps| vit_heatmap_weighted(maps, &gt, cfg, weights, device)),
         ..Default::default()
     };
     finish(terms.named(), 0, diag, device)
@@ -435,9 +439,20 @@ fn vit_heatmap_term(
         .vit_heatmaps
         .clone()
         .filter(|_| weights.vit_heatmap > 0.0)?;
+    Some(vit_heatmap_weighted(maps, gt, cfg, weights, device))
+}
+
+/// The heatmap term of the ViT head's maps `[B, V, J, h, w]` (one pixel a patch) at its weight.
+fn vit_heatmap_weighted(
+    maps: Tensor<5>,
+    gt: &HostGt,
+    cfg: &ModelConfig,
+    weights: &LossWeights,
+    device: &Device,
+) -> Tensor<1> {
     let stride = mvmp_backbone::vit::PATCH as f32;
     let sigma = weights.vit_heatmap_sigma;
-    Some(joint_heatmap_term(maps, stride, gt, cfg, sigma, device) * weights.vit_heatmap)
+    joint_heatmap_term(maps, stride, gt, cfg, sigma, device) * weights.vit_heatmap
 }
 
 /// The facing term at its weight (`None` at 0 or for a model without a facing head).

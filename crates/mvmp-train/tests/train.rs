@@ -298,10 +298,11 @@ fn a_binned_facing_head_learns_in_stage_one() {
     assert!(terms[9] < 0.8 * terms[0], "{terms:?}");
 }
 
-/// A ViT heatmap head gives the ViT a gradient of its own in stage 2: its term alone reaches the ViT and
-/// the feature reduction (and not the decoder), and falls over a few steps on one batch.
+/// A ViT heatmap head gives the ViT a gradient of its own: in stage 2 its term alone reaches the ViT and
+/// the feature reduction (and not the decoder) and falls over a few steps on one batch; stage 1 has it
+/// too, reaching the ViT and not HRNet.
 #[test]
-fn a_vit_heatmap_head_trains_the_vit_in_stage_two() {
+fn a_vit_heatmap_head_trains_the_vit_in_both_stages() {
     let ad = Device::flex().autodiff();
     let mut cfg = model_config();
     cfg.vit_heatmaps = true;
@@ -338,6 +339,18 @@ fn a_vit_heatmap_head_trains_the_vit_in_stage_two() {
         );
     }
     assert!(values[9] < 0.8 * values[0], "{values:?}");
+    // Stage 1 trains the ViT and the head beside detection, as a pretraining.
+    let l = stage1_loss(&model, &batch, &weights, &ad);
+    let t = l
+        .terms
+        .into_iter()
+        .find(|t| t.0 == "vit_heatmap")
+        .unwrap()
+        .1;
+    let norms = mvmp_train::diagnostics::module_grad_norms(&model, &t.backward());
+    let norm = |name: &str| norms.iter().find(|n| n.0 == name).unwrap().1;
+    assert!(norm("vit") > 0.0 && norm("vit_joints") > 0.0, "{norms:?}");
+    assert_eq!(norm("hrnet"), 0.0, "{norms:?}");
     // The head without its loss would stay untrained: refused, naming the key.
     let dir = tempfile::tempdir().unwrap();
     let path = write_configs(dir.path(), &|s| s);
