@@ -56,6 +56,12 @@ pub struct DecoderOptions {
     /// the trained decoder read none of it (docs/architecture.md, The image features go unread).
     /// false (the paper) has the query path alone.
     pub sample_skip: bool,
+    /// Standardise each channel of the volume over its voxels (per scene: zero mean, unit variance)
+    /// before the queries sample it and the tokens are made. What sets one person's features apart
+    /// can be a small part of a channel whose level is the same everywhere; a small input moves the
+    /// weights that read it slowly under Adam (docs/architecture.md, What the decoder is given).
+    /// false (the paper) reads the volume as fused.
+    pub volume_norm: bool,
     /// Each heatmap joint's centroid near the root, from the joint heatmap volume (the RootNet's input),
     /// joins the query ([`QueryInputs::joints`]; the model sets [`DecoderConfig::joint_channels`] to its
     /// heatmap joints). false (the paper) reads the feature volume alone.
@@ -99,6 +105,7 @@ impl Default for DecoderOptions {
             query_span: [0.0; 3],
             heading_lattice: false,
             sample_skip: false,
+            volume_norm: false,
             query_joints: false,
             joint_lattice: [5, 5, 8],
             joint_span: [1.0, 1.0, 1.75],
@@ -256,6 +263,9 @@ pub struct Decoder {
     pub height_proj: Option<Linear>,
     /// Present with [`DecoderOptions::sample_skip`].
     pub sample_proj: Option<Linear>,
+    /// See [`DecoderOptions::volume_norm`].
+    #[module(skip)]
+    pub volume_norm: bool,
     /// Present with [`DecoderOptions::query_norm`].
     pub query_norm: Option<LayerNorm>,
     /// Present with joint centroids ([`DecoderConfig::joint_channels`] > 0): they are layer-normalised
@@ -429,6 +439,7 @@ impl DecoderConfig {
                 .then(|| LayerNormConfig::new(3 * self.joint_channels).init(device)),
             lattice: lattice_offsets(o.query_lattice, o.query_span),
             heading_lattice: o.heading_lattice,
+            volume_norm: o.volume_norm,
             joint_lattice: lattice_offsets(o.joint_lattice, o.joint_span),
             joint_half: o.joint_span.map(|s| (s / 2.0).max(1e-3) as f32),
             mean: constant(mean_params(device)),
@@ -442,6 +453,21 @@ impl DecoderConfig {
     fn sample_width(&self) -> usize {
         self.volume_channels * self.options.query_lattice.iter().product::<usize>()
     }
+}
+
+/// Each channel of `volume` `[B, C, X, Y, Z]` less its mean over the voxels, divided by their standard
+/// deviation (at least 1e-3 of it, so that a constant channel stays finite).
+pub fn standardise_channels(volume: Tensor<5>) -> Tensor<5> {
+    let [b, c, nx, ny, nz] = volume.dims();
+    let flat = volume.reshape([b, c, nx * ny * nz]);
+    let centred = flat.clone() - flat.mean_dim(2);
+    let std = centred
+        .clone()
+        .powi_scalar(2)
+        .mean_dim(2)
+        .sqrt()
+        .clamp_min(1e-3);
+    (centred / std).reshape([b, c, nx, ny, nz])
 }
 
 /// The offsets from a root of a lattice of `shape` points spanning `span` metres per axis, centred on
@@ -608,6 +634,10 @@ impl Decoder {
         let [b, c, nx, ny, nz] = volume.dims();
         let k = roots.dims()[1];
         let device = volume.device();
+        let volume = match self.volume_norm {
+            true => standardise_channels(volume),
+            false => volume,
+        };
         let QueryInputs { heading, joints } = inputs;
         let mut sampled = match &heading {
             Some(h) if self.heading_lattice && self.lattice.len() > 1 => {

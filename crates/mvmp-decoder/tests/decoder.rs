@@ -532,3 +532,48 @@ fn a_sample_skip_adds_the_projected_sample_to_the_heads_input() {
         gap(&run(&dec), &without)
     );
 }
+
+/// With `volume_norm` each channel is standardised over the volume, so the decoder reads a channel the
+/// same whatever its level and scale: every channel moved by its own shift and positive scale leaves the
+/// output unchanged, which it does not without the option.
+#[test]
+fn a_standardised_volume_reads_every_channel_the_same_at_any_level_and_scale() {
+    let d = Device::flex();
+    let options = |volume_norm| DecoderOptions {
+        dim: 32,
+        heads: 4,
+        pool: 2,
+        query_norm: true,
+        query_lattice: [3, 2, 2],
+        query_span: [0.5, 0.5, 1.0],
+        volume_norm,
+        ..Default::default()
+    };
+    let (vol, roots, present, g) = inputs(&d, [1.5, 1.5, 1.0]);
+    let shift: Vec<f32> = (0..8).map(|c| c as f32 * 0.7 - 2.0).collect();
+    let scale: Vec<f32> = (0..8).map(|c| 0.05 + c as f32 * 0.9).collect();
+    let moved = vol.clone()
+        * Tensor::<1>::from_data(TensorData::new(scale, [8]), &d).reshape([1, 8, 1, 1, 1])
+        + Tensor::<1>::from_data(TensorData::new(shift, [8]), &d).reshape([1, 8, 1, 1, 1]);
+    for (norm, invariant) in [(true, true), (false, false)] {
+        let dec = DecoderConfig::new(8).with_options(options(norm)).init(&d);
+        let run = |v: Tensor<5>| vals(dec.forward(v, &g, roots.clone(), present.clone()).rot6d);
+        let (a, b) = (run(vol.clone()), run(moved.clone()));
+        let gap = a
+            .iter()
+            .zip(&b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f32::max);
+        assert_eq!(gap < 1e-6, invariant, "volume_norm {norm}: {gap}");
+    }
+    // The standardised channels: zero mean and unit variance over the voxels, by direct computation.
+    let s = vals(standardise_channels(moved));
+    for ch in s.chunks(256) {
+        let mean = ch.iter().sum::<f32>() / 256.0;
+        let var = ch.iter().map(|x| (x - mean).powi(2)).sum::<f32>() / 256.0;
+        assert!(
+            mean.abs() < 1e-5 && (var - 1.0).abs() < 1e-4,
+            "{mean} {var}"
+        );
+    }
+}
