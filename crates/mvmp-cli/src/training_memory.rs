@@ -131,7 +131,11 @@ fn probe(cfg: &ModelConfig, shape: Shape, stage: Stage, body: &BodyModel) -> Res
         .map(|_| sample(cfg, shape.views, shape.people))
         .collect::<Result<Vec<_>>>()?;
     let batch = FrameBatcher::with_vertices(body.clone()).batch(items, &device);
-    let w = LossWeights::default();
+    // A model with a ViT heatmap head trains it, and the ViT, in both stages (its term is on with it).
+    let w = LossWeights {
+        vit_heatmap: if cfg.vit_heatmaps { 1.0 } else { 0.0 },
+        ..Default::default()
+    };
     let base = GLOBAL.reset_peak();
     let loss = match stage {
         Stage::Detection => mvmp_train::step::stage1_loss(&net, &batch, &w, &device),
@@ -282,14 +286,23 @@ pub fn estimate(cfg: &ModelConfig, shape: Shape) -> Result<Estimate> {
 }
 
 /// Bytes of the weights `stage` trains (Adam keeps two moments of each): stage 1 trains detection (HRNet,
-/// the facing head, the RootNet), stage 2 everything.
+/// the facing head, the RootNet) and, with a ViT heatmap head, the ViT and the head; stage 2 everything.
 fn stage_trainable(cfg: &ModelConfig, stage: Stage) -> f64 {
     let net = cfg.init(&Device::flex().autodiff());
     match stage {
         Stage::Detection => {
+            let vit = match &net.vit_joints {
+                Some(head) => {
+                    parameter_bytes(&net.vit).1
+                        + parameter_bytes(&net.reduce).1
+                        + parameter_bytes(head).1
+                }
+                None => 0.0,
+            };
             parameter_bytes(&net.hrnet).1
                 + parameter_bytes(&net.rootnet).1
                 + net.facing.as_ref().map_or(0.0, |f| parameter_bytes(f).1)
+                + vit
         }
         Stage::Whole => parameter_bytes(&net).1,
     }

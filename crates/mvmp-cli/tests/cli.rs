@@ -1381,6 +1381,29 @@ fn the_training_memory_estimate_grows_from_weights_to_stage_two() {
     // Stage 2 adds the ViT, the decoder, the body layer's forward and the mesh losses to stage 1.
     assert!(weights > 0.0 && s1 > weights && s2 > s1, "{out}");
     assert_eq!(out.matches("probe:").count(), 6, "{out}");
+    // With a ViT heatmap head stage 1 trains the ViT too: its Adam state and activations join stage 1.
+    let dir = tempfile::tempdir().unwrap();
+    let tiny = std::fs::read_to_string(config("model/tiny.toml")).unwrap();
+    let with_head = dir.path().join("tiny-vit-heatmaps.toml");
+    std::fs::write(&with_head, format!("vit_heatmaps = true\n{tiny}")).unwrap();
+    let args = [
+        "model",
+        "summary",
+        "--views",
+        "2",
+        "--training",
+        "--people",
+        "2",
+    ];
+    let o = mvmp(&[&args[..], &["--config", with_head.to_str().unwrap()]].concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let head_out = String::from_utf8_lossy(&o.stdout).to_string();
+    let s1_head = head_out
+        .lines()
+        .find(|l| l.trim_start().starts_with("stage 1: peak"))
+        .and_then(|l| l.split_whitespace().rev().nth(1)?.parse::<f64>().ok())
+        .unwrap_or_else(|| panic!("stage 1: peak missing from {head_out}"));
+    assert!(s1_head > s1, "{s1_head} vs {s1}: {head_out}");
     let o = mvmp(&[
         "model",
         "summary",
