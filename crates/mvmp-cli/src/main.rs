@@ -138,7 +138,7 @@ enum Command {
         #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
         seed: u64,
     },
-    /// Train MVMP-HMR (stage 1: HRNet + RootNet; stage 2: the whole model), or resume a run.
+    /// Train MVMP-HMR (stage 1: detection; stage 2: the whole model), or resume a run.
     Train {
         /// Training config (TOML), e.g. configs/train/tiny.toml.
         #[arg(long)]

@@ -43,7 +43,7 @@ impl Stage {
     /// What the stage trains, for progress lines.
     pub fn trains(self) -> &'static str {
         match self {
-            Stage::Detection => "HRNet + RootNet",
+            Stage::Detection => "detection",
             Stage::Whole => "whole model",
         }
     }

@@ -1,5 +1,6 @@
-//! The training loop: stage 1 (HRNet + RootNet), then stage 2 (the whole model), with checkpoints every
-//! epoch and on interruption, validation every epoch, exact resume and a stop on non-finite losses.
+//! The training loop: stage 1 (detection: HRNet, the RootNet and the heads trained with them), then
+//! stage 2 (the whole model), with checkpoints every epoch and on interruption, validation every epoch,
+//! exact resume and a stop on non-finite losses.
 use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
