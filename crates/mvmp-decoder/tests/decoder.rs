@@ -42,15 +42,27 @@ fn trilinear_sampling_reproduces_a_linear_field() {
     }
 }
 
+/// The linear field both lattice tests sample: exact at any point inside the voxel centres.
+fn f(p: [f64; 3]) -> f64 {
+    2.0 * p[0] + 3.0 * p[1] - p[2] + 1.0
+}
+
+/// A one-channel volume holding [`f`] at its voxel centres, and its grid.
+fn linear_field_volume(d: &Device) -> (VoxelGrid, Tensor<5>) {
+    let g = VoxelGrid::new([0.5, -1.0, 1.0], [4.0, 3.0, 2.0], [8, 6, 4]).unwrap();
+    let field: Vec<f32> = g.centers().iter().map(|c| f(*c) as f32).collect();
+    (
+        g,
+        Tensor::<5>::from_data(TensorData::new(field, [1, 1, 8, 6, 4]), d),
+    )
+}
+
 /// A query's lattice samples the volume at the root plus each offset (x slowest, z fastest, spanning
 /// `query_span` from end to end): on a linear field every sample is the field's value there.
 #[test]
 fn the_query_lattice_samples_the_volume_around_each_root() {
     let d = Device::flex();
-    let g = VoxelGrid::new([0.5, -1.0, 1.0], [4.0, 3.0, 2.0], [8, 6, 4]).unwrap();
-    let f = |p: [f64; 3]| 2.0 * p[0] + 3.0 * p[1] - p[2] + 1.0;
-    let field: Vec<f32> = g.centers().iter().map(|c| f(*c) as f32).collect();
-    let vol = Tensor::<5>::from_data(TensorData::new(field, [1, 1, 8, 6, 4]), &d);
+    let (g, vol) = linear_field_volume(&d);
     let dec = DecoderConfig::new(1)
         .with_options(DecoderOptions {
             dim: 8,
@@ -95,10 +107,7 @@ fn the_query_lattice_samples_the_volume_around_each_root() {
 #[test]
 fn a_heading_lattice_turns_with_each_person() {
     let d = Device::flex();
-    let g = VoxelGrid::new([0.5, -1.0, 1.0], [4.0, 3.0, 2.0], [8, 6, 4]).unwrap();
-    let f = |p: [f64; 3]| 2.0 * p[0] + 3.0 * p[1] - p[2] + 1.0;
-    let field: Vec<f32> = g.centers().iter().map(|c| f(*c) as f32).collect();
-    let vol = Tensor::<5>::from_data(TensorData::new(field, [1, 1, 8, 6, 4]), &d);
+    let (g, vol) = linear_field_volume(&d);
     let dec = DecoderConfig::new(1)
         .with_options(DecoderOptions {
             dim: 8,
