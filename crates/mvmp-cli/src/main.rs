@@ -28,6 +28,7 @@ mod progress;
 mod run;
 mod train;
 mod training_memory;
+mod volume_probe;
 
 /// A flag that must be a positive, finite number of `unit` (metres, minutes).
 fn positive(
@@ -103,7 +104,7 @@ enum Command {
     /// Import pretrained weights into mvmp's format.
     #[command(subcommand)]
     Import(ImportCommand),
-    /// The MVMP-HMR model: summaries.
+    /// The MVMP-HMR model: summaries and a probe of a run's volumes.
     #[command(subcommand)]
     Model(ModelCommand),
     /// Benchmarks.
@@ -212,6 +213,72 @@ enum ModelCommand {
         #[arg(long, allow_negative_numbers = true, value_parser = up_to(mvmp_model::config::MAX_PEOPLE))]
         people: Option<usize>,
     },
+    /// A linear probe of a run's volumes: how well a ridge regression reads each person's body pose
+    /// from the image-feature volume (and the joint heatmap volume, and the root height) sampled round
+    /// their true root, fitted on the training split and scored on the held-out one, beside the same
+    /// model at its initial weights.
+    Probe {
+        /// Run directory made by `mvmp train`.
+        #[arg(long)]
+        run: PathBuf,
+        /// Dataset root (mvmp layout) with train and test splits.
+        #[arg(long)]
+        data: PathBuf,
+        /// Lattice points per axis (ahead, left, up), e.g. 3,3,8.
+        #[arg(long, default_value = "3,3,8", value_parser = lattice_shape)]
+        lattice: LatticeShape,
+        /// Metres from the lattice's first point to its last per axis.
+        #[arg(long, default_value = "1,1,1.75", value_parser = lattice_span)]
+        span: LatticeSpan,
+        /// Views per frame (the first N cameras; default: the run's test_views).
+        #[arg(long, allow_negative_numbers = true, value_parser = up_to(mvmp_train::config::MAX_VIEWS))]
+        views: Option<usize>,
+        /// Read at most N frames per split (0 = all).
+        #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
+        frames: usize,
+        /// Also write the scores as JSON here.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
+}
+
+/// `--lattice`: three positive counts.
+#[derive(Clone, Copy, Debug)]
+struct LatticeShape([usize; 3]);
+
+/// `--span`: three non-negative lengths in metres.
+#[derive(Clone, Copy, Debug)]
+struct LatticeSpan([f64; 3]);
+
+fn three<T: std::str::FromStr>(s: &str) -> Result<[T; 3], String> {
+    let v: Vec<T> = (s.split(','))
+        .map(|x| {
+            x.trim()
+                .parse::<T>()
+                .map_err(|_| format!("{x:?} is not a number"))
+        })
+        .collect::<Result<_, _>>()?;
+    <[T; 3]>::try_from(v)
+        .map_err(|v| format!("expected three comma-separated values, got {}", v.len()))
+}
+
+fn lattice_shape(s: &str) -> Result<LatticeShape, String> {
+    let n: [usize; 3] = three(s)?;
+    match n.iter().all(|&k| (1..=64).contains(&k)) {
+        true => Ok(LatticeShape(n)),
+        false => Err(format!("{s}: each count must be 1 to 64")),
+    }
+}
+
+fn lattice_span(s: &str) -> Result<LatticeSpan, String> {
+    let m: [f64; 3] = three(s)?;
+    match m
+        .iter()
+        .all(|&x| x.is_finite() && (0.0..=100.0).contains(&x))
+    {
+        true => Ok(LatticeSpan(m)),
+        false => Err(format!("{s}: each length must be 0 to 100 metres")),
+    }
 }
 
 /// `mvmp eval`'s arguments.
@@ -553,6 +620,26 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 false => Ok(()),
             }
         }
+        Command::Model(ModelCommand::Probe {
+            run,
+            data,
+            lattice,
+            span,
+            views,
+            frames,
+            out,
+        }) => volume_probe::probe(
+            &volume_probe::ProbeArgs {
+                run: &run,
+                data: &data,
+                lattice: lattice.0,
+                span: span.0,
+                views,
+                frames,
+                out: out.as_deref(),
+            },
+            &device,
+        ),
         Command::Import(ImportCommand::Dinov2 { variant, from, out }) => {
             import::dinov2(variant, &from, &out)
         }

@@ -814,6 +814,43 @@ fn train_eval_infer_end_to_end() {
         assert!(o.status.success(), "{}", stderr(&o));
         serde_json::from_str(&std::fs::read_to_string(report).unwrap()).unwrap()
     };
+    // The probe of the run's volumes: every feature set scored, for the trained and the initial weights.
+    let o = mvmp(&[
+        "model",
+        "probe",
+        "--run",
+        &p("run"),
+        "--data",
+        &p("ds"),
+        "--lattice",
+        "2,2,3",
+        "--out",
+        &p("probe.json"),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let probe: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(p("probe.json")).unwrap()).unwrap();
+    assert_eq!(probe["train_people"], 4);
+    assert_eq!(probe["test_people"], 2);
+    let rows = probe["scores"].as_array().unwrap();
+    assert_eq!(rows.len(), 9, "{probe}");
+    assert!(
+        rows.iter().all(|r| r["r2"].as_f64().unwrap().is_finite()),
+        "{probe}"
+    );
+    expect_error(
+        &[
+            "model",
+            "probe",
+            "--run",
+            &p("run"),
+            "--data",
+            &p("ds"),
+            "--lattice",
+            "0,3,8",
+        ],
+        &["--lattice", "0,3,8", "1 to 64"],
+    );
     // The diagnostic that zeroes the image-feature volume is recorded in its report, and refused for
     // predictions, whose model is not at hand.
     let z = scored(&["--run", &p("run"), "--zero-volume"], &p("zero.json"));

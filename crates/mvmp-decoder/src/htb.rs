@@ -470,9 +470,38 @@ pub fn standardise_channels(volume: Tensor<5>) -> Tensor<5> {
     (centred / std).reshape([b, c, nx, ny, nz])
 }
 
+/// The volume `[B, C, X, Y, Z]` at the `lattice` offsets round each root `[B, K, 3]`, the lattice turned
+/// about the vertical so that its x axis points along each heading `[B, K, 2]` (a horizontal unit
+/// vector) and its y axis to the left -> `[B, K, L * C]`.
+pub fn sample_turned(
+    volume: Tensor<5>,
+    roots: Tensor<3>,
+    heading: Tensor<3>,
+    lattice: &[[f32; 3]],
+    grid: &VoxelGrid,
+) -> Tensor<3> {
+    let [b, k, _] = roots.dims();
+    let (l, c) = (lattice.len(), volume.dims()[1]);
+    let device = roots.device();
+    let axis = |a: usize| {
+        let v: Vec<f32> = lattice.iter().map(|o| o[a]).collect();
+        Tensor::<1>::from_data(TensorData::new(v, [l]), &device).reshape([1, 1, l])
+    };
+    let (ox, oy, oz) = (axis(0), axis(1), axis(2));
+    let hx = heading.clone().narrow(2, 0, 1); // [B, K, 1]
+    let hy = heading.narrow(2, 1, 1);
+    // Forward (hx, hy), left (-hy, hx).
+    let wx = ox.clone() * hx.clone() - oy.clone() * hy.clone();
+    let wy = ox * hy + oy * hx;
+    let wz = oz.repeat_dim(0, b).repeat_dim(1, k);
+    let offsets = Tensor::stack::<4>(vec![wx, wy, wz], 3); // [B, K, L, 3]
+    let points = roots.reshape([b, k, 1, 3]) + offsets;
+    trilinear_sample(volume, points.reshape([b, k * l, 3]), grid).reshape([b, k, l * c])
+}
+
 /// The offsets from a root of a lattice of `shape` points spanning `span` metres per axis, centred on
 /// it, x slowest and z fastest.
-fn lattice_offsets(shape: [usize; 3], span: [f64; 3]) -> Vec<[f32; 3]> {
+pub fn lattice_offsets(shape: [usize; 3], span: [f64; 3]) -> Vec<[f32; 3]> {
     let axis = |a: usize| -> Vec<f32> {
         let n = shape[a].max(1);
         if n == 1 {
@@ -534,23 +563,7 @@ impl Decoder {
         heading: Tensor<3>,
         grid: &VoxelGrid,
     ) -> Tensor<3> {
-        let [b, k, _] = roots.dims();
-        let (l, c) = (self.lattice.len(), volume.dims()[1]);
-        let device = roots.device();
-        let axis = |a: usize| {
-            let v: Vec<f32> = self.lattice.iter().map(|o| o[a]).collect();
-            Tensor::<1>::from_data(TensorData::new(v, [l]), &device).reshape([1, 1, l])
-        };
-        let (ox, oy, oz) = (axis(0), axis(1), axis(2));
-        let hx = heading.clone().narrow(2, 0, 1); // [B, K, 1]
-        let hy = heading.narrow(2, 1, 1);
-        // Forward (hx, hy), left (-hy, hx).
-        let wx = ox.clone() * hx.clone() - oy.clone() * hy.clone();
-        let wy = ox * hy + oy * hx;
-        let wz = oz.repeat_dim(0, b).repeat_dim(1, k);
-        let offsets = Tensor::stack::<4>(vec![wx, wy, wz], 3); // [B, K, L, 3]
-        let points = roots.reshape([b, k, 1, 3]) + offsets;
-        trilinear_sample(volume, points.reshape([b, k * l, 3]), grid).reshape([b, k, l * c])
+        sample_turned(volume, roots, heading, &self.lattice, grid)
     }
 
     /// Each joint's centroid in the box around each root, from a joint heatmap volume `[B, E, X, Y, Z]`:

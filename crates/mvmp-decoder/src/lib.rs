@@ -5,6 +5,6 @@ pub mod queries;
 
 pub use htb::{
     Decoder, DecoderConfig, DecoderOptions, DecoderOutput, HumanTransformerBlock, QueryInputs,
-    height_features, point_encoding, standardise_channels,
+    height_features, lattice_offsets, point_encoding, sample_turned, standardise_channels,
 };
 pub use queries::{mean_params, params_vector, trilinear_sample};

@@ -257,13 +257,39 @@ impl MvmpHmr {
         self.joint_maps(feats, [b, v])
     }
 
+    /// The fused image-feature volume `[B, Cf, X, Y, Z]` the decoder reads, of images `[B, V, 3, S, S]`.
+    pub fn feature_volume(&self, images: Tensor<5>, grids: &[RigGrids]) -> Tensor<5> {
+        let [b, v, _, s, _] = images.dims();
+        let feats = self.view_features(images.reshape([b * v, 3, s, s]));
+        self.fuse_features(feats, grids, [b, v])
+    }
+
+    /// Per-view features `[B*V, Cf, h, w]` fused into the volume (a volume of zeros with `zero_volume`).
+    fn fuse_features(&self, feats: Tensor<4>, grids: &[RigGrids], [b, v]: [usize; 2]) -> Tensor<5> {
+        let [_, cf, h, w] = feats.dims();
+        let feats = feats.reshape([b, v, cf, h, w]);
+        let fgrids: Vec<SamplingGrid> = grids.iter().map(|g| g.features.clone()).collect();
+        let volume = match &self.deformable {
+            Some(d) => d.forward(feats, &fgrids),
+            None => fuse_views(feats, &fgrids, self.config.fusion),
+        };
+        match self.zero_volume {
+            true => volume.zeros_like(),
+            false => volume,
+        }
+    }
+
     /// The detection branch alone: HRNet heatmaps, their mean fusion and the RootNet.
     pub fn detect(&self, images: Tensor<5>, grids: &[RigGrids]) -> Detection {
         self.detect_with_volume(images, grids).0
     }
 
     /// [`MvmpHmr::detect`] and the heatmap volume `[B, J, X, Y, Z]` the RootNet read.
-    fn detect_with_volume(&self, images: Tensor<5>, grids: &[RigGrids]) -> (Detection, Tensor<5>) {
+    pub fn detect_with_volume(
+        &self,
+        images: Tensor<5>,
+        grids: &[RigGrids],
+    ) -> (Detection, Tensor<5>) {
         let [b, v, _, s, _] = images.dims();
         let mut images = images.reshape([b * v, 3, s, s]);
         // The grids say what size the heatmaps must be (`hrnet_downsample` in the config).
@@ -347,21 +373,11 @@ impl MvmpHmr {
         let [b, v, _, s, _] = images.dims();
         let x = images.clone().reshape([b * v, 3, s, s]);
         let feats = self.view_features(x); // [B*V, Cf, h, w]
-        let [_, cf, h, w] = feats.dims();
         let vit_heatmaps = match feats.is_autodiff() {
             true => self.joint_maps(feats.clone(), [b, v]),
             false => None,
         };
-        let feats = feats.reshape([b, v, cf, h, w]);
-        let fgrids: Vec<SamplingGrid> = grids.iter().map(|g| g.features.clone()).collect();
-        let volume = match &self.deformable {
-            Some(d) => d.forward(feats, &fgrids),
-            None => fuse_views(feats, &fgrids, cfg.fusion),
-        };
-        let volume = match self.zero_volume {
-            true => volume.zeros_like(),
-            false => volume,
-        };
+        let volume = self.fuse_features(feats, grids, [b, v]);
         let (
             Detection {
                 heatmaps,

@@ -5,6 +5,7 @@ pub mod config;
 pub mod curves;
 pub mod diagnostics;
 pub mod error;
+pub mod probe;
 pub mod pseudo;
 pub mod run;
 pub mod step;

@@ -2045,3 +2045,155 @@ fn mesh_terms_can_leave_the_body_pose_to_the_parameter_term() {
     assert!(global > 0.0, "{global}");
     assert_eq!(body, 0.0);
 }
+
+/// People for the probe's regression tests: `scenes` scenes of 5, features from `feature`, the pose
+/// from `pose` (63 values).
+fn probe_people(
+    scenes: usize,
+    feature: impl Fn(usize) -> Vec<f32>,
+    pose: impl Fn(usize, &[f32]) -> Vec<f64>,
+) -> Vec<mvmp_train::probe::ProbedPerson> {
+    (0..scenes * 5)
+        .map(|i| {
+            let f = feature(i);
+            mvmp_train::probe::ProbedPerson {
+                scene: format!("scene_{:03}", i / 5),
+                pose: pose(i, &f),
+                volume: f,
+                heatmaps: vec![],
+                height: vec![],
+            }
+        })
+        .collect()
+}
+
+/// A deterministic value in [-1, 1) per (i, k).
+fn hashed(i: usize, k: usize) -> f32 {
+    let h = (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        ^ (k as u64).wrapping_mul(0xC2B2_AE3D_27D4_EB4F);
+    let h = h ^ (h >> 29);
+    (h.wrapping_mul(0x94D0_49BB_1331_11EB) >> 40) as f32 / (1u64 << 23) as f32 - 1.0
+}
+
+/// The probe's ridge regression, checked against the primal solution computed here at the strength it
+/// reports: the same R^2 and joint error (1e-6), a pose that is linear in the features read almost
+/// exactly, and features unrelated to the pose reading nothing.
+#[test]
+fn the_volume_probe_reads_a_linear_pose_and_not_noise() {
+    use mvmp_train::probe::{mean_pose_mm, score};
+    use nalgebra::DMatrix;
+    let d = 6;
+    let feature = |i: usize| (0..d).map(|k| hashed(i, k)).collect::<Vec<f32>>();
+    // Linear in the features plus noise of a tenth of the signal.
+    let noisy = |i: usize, f: &[f32]| -> Vec<f64> {
+        (0..63)
+            .map(|k| {
+                let lin: f64 = (0..d)
+                    .map(|j| f[j] as f64 * (((j + k) % 5) as f64 - 2.0))
+                    .sum();
+                0.01 * lin + 0.003 * hashed(i, 100 + k) as f64
+            })
+            .collect()
+    };
+    let train = probe_people(20, feature, noisy);
+    let test = probe_people(6, |i| feature(1000 + i), |i, f| noisy(1000 + i, f));
+    let s = score("noisy", &train, &test, |p| p.volume.clone()).unwrap();
+
+    // The primal ridge: standardised features, centred targets, (Z^T Z + lambda I)^-1 Z^T Y, with
+    // lambda the reported strength times the mean squared norm of a standardised row (= d).
+    let x = DMatrix::from_fn(train.len(), d, |i, j| train[i].volume[j] as f64);
+    let y = DMatrix::from_fn(train.len(), 63, |i, j| train[i].pose[j]);
+    let n = train.len() as f64;
+    let (xm, ym) = (x.row_mean(), y.row_mean());
+    let sd: Vec<f64> = (0..d)
+        .map(|j| (x.column(j).iter().map(|v| (v - xm[j]).powi(2)).sum::<f64>() / n).sqrt())
+        .collect();
+    let z = DMatrix::from_fn(x.nrows(), d, |i, j| (x[(i, j)] - xm[j]) / sd[j]);
+    let yc = DMatrix::from_fn(y.nrows(), 63, |i, j| y[(i, j)] - ym[j]);
+    let lambda = s.ridge * d as f64;
+    let w = (z.transpose() * &z + DMatrix::identity(d, d) * lambda)
+        .lu()
+        .solve(&(z.transpose() * yc))
+        .unwrap();
+    let (mut sse, mut sst, mut dist) = (0.0, 0.0, 0.0);
+    for p in &test {
+        let zt = DMatrix::from_fn(1, d, |_, j| (p.volume[j] as f64 - xm[j]) / sd[j]);
+        let pred = zt * &w;
+        for j in 0..21 {
+            let mut e2 = 0.0;
+            for a in 0..3 {
+                let k = 3 * j + a;
+                let e = p.pose[k] - (pred[k] + ym[k]);
+                e2 += e * e;
+                sst += (p.pose[k] - ym[k]).powi(2);
+            }
+            sse += e2;
+            dist += e2.sqrt();
+        }
+    }
+    let (r2, mm) = (1.0 - sse / sst, 1000.0 * dist / (test.len() * 21) as f64);
+    assert!((s.r2 - r2).abs() < 1e-6, "{} against {r2}", s.r2);
+    assert!(
+        (s.joint_mm - mm).abs() < 1e-6,
+        "{} against {mm}",
+        s.joint_mm
+    );
+    assert_eq!(s.dims, d);
+    assert!(s.r2 > 0.9, "{s:?}");
+    assert!(s.joint_mm < 0.3 * mean_pose_mm(&train, &test), "{s:?}");
+
+    // 40 features that have nothing to do with the pose: the chosen ridge keeps the probe at the mean.
+    let unrelated = |i: usize| (0..40).map(|k| hashed(i, 500 + k)).collect::<Vec<f32>>();
+    let train = probe_people(20, unrelated, |i, _| noisy(i, &feature(i)));
+    let test = probe_people(
+        6,
+        |i| unrelated(1000 + i),
+        |i, _| noisy(1000 + i, &feature(1000 + i)),
+    );
+    let s = score("unrelated", &train, &test, |p| p.volume.clone()).unwrap();
+    assert!(s.r2 < 0.1, "{s:?}");
+
+    // One training scene leaves nothing to choose the ridge on.
+    let e = score("one", &train[..5], &test, |p| p.volume.clone()).unwrap_err();
+    assert!(
+        e.contains("1 training scenes") && e.contains("at least 2"),
+        "{e}"
+    );
+}
+
+/// What the probe reads of each person of a split: the volumes on the lattice (its points times the
+/// channels), the root height and its bumps, and the pose in the person's own frame, whose left hip
+/// lies to their left and whose heights are the world's.
+#[test]
+fn the_volume_probe_reads_each_person_in_their_own_frame() {
+    use mvmp_train::probe::{ProbeOptions, collect};
+    let cfg = model_config();
+    let device = Device::flex();
+    let model = mvmp_train::train::seeded_init(&cfg, &device, 0);
+    let opts = ProbeOptions {
+        lattice: [2, 2, 3],
+        span: [0.5, 0.5, 1.0],
+        views: 2,
+        max_frames: 0,
+    };
+    let people = collect(&model, dataset(), Split::Train, &opts, &device, |_, _| {}).unwrap();
+    let ds =
+        FrameDataset::open(dataset(), Split::Train, ViewChoice::Fixed(vec![0, 1]), 64).unwrap();
+    let truth: Vec<_> = (0..ds.len())
+        .flat_map(|i| ds.load(i).unwrap().people)
+        .collect();
+    assert_eq!(people.len(), truth.len());
+    for (p, t) in people.iter().zip(&truth) {
+        assert_eq!(p.volume.len(), 12 * cfg.feature_channels);
+        assert_eq!(p.heatmaps.len(), 12 * cfg.heatmap_joints.len());
+        assert_eq!(p.height.len(), 9);
+        assert_eq!(p.height[0], t.joints_3d[0][2]);
+        assert_eq!(p.pose.len(), 63);
+        // Joint 1 is the left hip, joint 2 the right (SMPL-X order).
+        assert!(p.pose[1] > 0.03 && p.pose[4] < -0.03, "{:?}", &p.pose[..6]);
+        for j in 1..22 {
+            let dz = (t.joints_3d[j][2] - t.joints_3d[0][2]) as f64;
+            assert!((p.pose[3 * (j - 1) + 2] - dz).abs() < 1e-6);
+        }
+    }
+}

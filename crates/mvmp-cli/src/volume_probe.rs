@@ -1,0 +1,126 @@
+//! `mvmp model probe`: a linear probe of a run's volumes for each person's body pose
+//! (`mvmp_train::probe`), beside the same model at the initial weights its training drew.
+use std::path::Path;
+
+use anyhow::{Context, Result, bail};
+use burn::tensor::Device;
+
+use mvmp_data::loader::Split;
+use mvmp_infer::Predictor;
+use mvmp_model::MvmpHmr;
+use mvmp_train::RunDir;
+use mvmp_train::probe::{ProbeOptions, ProbeScore, ProbedPerson, collect, mean_pose_mm, score};
+
+use crate::progress::LazyBar;
+
+pub struct ProbeArgs<'a> {
+    pub run: &'a Path,
+    pub data: &'a Path,
+    pub lattice: [usize; 3],
+    pub span: [f64; 3],
+    pub views: Option<usize>,
+    pub frames: usize,
+    pub out: Option<&'a Path>,
+}
+
+pub fn probe(args: &ProbeArgs, device: &Device) -> Result<()> {
+    let (_, tcfg, mcfg) = RunDir::open(args.run)?;
+    let (pred, weights) = Predictor::from_run(args.run, device)?;
+    let opts = ProbeOptions {
+        lattice: args.lattice,
+        span: args.span,
+        views: args.views.unwrap_or(tcfg.test_views),
+        max_frames: args.frames,
+    };
+    let initial = mvmp_train::train::seeded_init(&mcfg, device, tcfg.seed);
+    let models = [("trained", &pred.model), ("initial", &initial)];
+    let mut scores = Vec::new();
+    let mut mean_mm = None;
+    for (label, model) in models {
+        let train = read(model, args.data, Split::Train, &opts, device, label)?;
+        let test = read(model, args.data, Split::Test, &opts, device, label)?;
+        if mean_mm.is_none() {
+            let mm = mean_pose_mm(&train, &test);
+            println!(
+                "{} training and {} held-out people; the training mean pose: {mm:.1} mm",
+                train.len(),
+                test.len()
+            );
+            mean_mm = Some((train.len(), test.len(), mm));
+        }
+        for s in rows(label, &train, &test)? {
+            println!(
+                "{:<34} {:>6} features  R2 {:>7.3}  {:>6.1} mm  (ridge {})",
+                s.features, s.dims, s.r2, s.joint_mm, s.ridge
+            );
+            scores.push(s);
+        }
+    }
+    let (train_people, test_people, mean_pose_mm) = mean_mm.unwrap_or_default();
+    if let Some(out) = args.out {
+        let report = serde_json::json!({
+            "run": args.run, "weights": weights, "data": args.data,
+            "lattice": args.lattice, "span_m": args.span, "views": opts.views,
+            "train_people": train_people, "test_people": test_people,
+            "mean_pose_mm": mean_pose_mm, "scores": scores,
+        });
+        mvmp_io::write_atomic_with(out, |w| {
+            serde_json::to_writer_pretty(&mut *w, &report).map_err(std::io::Error::other)
+        })?;
+    }
+    Ok(())
+}
+
+fn read(
+    model: &MvmpHmr,
+    data: &Path,
+    split: Split,
+    opts: &ProbeOptions,
+    device: &Device,
+    label: &str,
+) -> Result<Vec<ProbedPerson>> {
+    let mut pb = LazyBar::new("probe", false);
+    let people = collect(model, data, split, opts, device, |i, n| pb.done(i, n))
+        .with_context(|| format!("reading the {} split ({label} weights)", split.name()))?;
+    pb.finish();
+    if people.is_empty() {
+        bail!(
+            "{}: the {} split has no person with annotated hips and shoulders to probe",
+            data.display(),
+            split.name()
+        );
+    }
+    Ok(people)
+}
+
+/// What one row of the probe reads of a person.
+type Features = dyn Fn(&ProbedPerson) -> Vec<f32>;
+
+/// The feature sets probed for one model: the root height alone, each volume, and each with the height.
+fn rows(label: &str, train: &[ProbedPerson], test: &[ProbedPerson]) -> Result<Vec<ProbeScore>> {
+    let with_height = |a: &[f32], p: &ProbedPerson| [a, &p.height].concat();
+    let sets: [(&str, Box<Features>); 5] = [
+        ("root height", Box::new(|p| p.height.clone())),
+        ("image-feature volume", Box::new(|p| p.volume.clone())),
+        (
+            "image-feature volume + height",
+            Box::new(move |p| with_height(&p.volume, p)),
+        ),
+        ("heatmap volume", Box::new(|p| p.heatmaps.clone())),
+        (
+            "heatmap volume + height",
+            Box::new(move |p| with_height(&p.heatmaps, p)),
+        ),
+    ];
+    // The height does not depend on the weights: it is scored once, with the trained model.
+    (sets.iter())
+        .filter(|(name, _)| label == "trained" || *name != "root height")
+        .map(|(name, f)| {
+            let name = match *name {
+                "root height" => name.to_string(),
+                n => format!("{n}, {label}"),
+            };
+            score(&name, train, test, f).map_err(|e| anyhow::anyhow!("{}: {e}", name))
+        })
+        .collect()
+}

@@ -1,0 +1,322 @@
+//! A linear probe of the model's volumes: how much of each person's body pose a ridge regression reads
+//! from a volume sampled on a lattice round the person's true root, turned with their true heading
+//! (docs/architecture.md, The image features go unread). The pose is the 21 body joints relative to
+//! the pelvis, in the person's own frame (x ahead, y to the left, z up). A volume that carries the
+//! pose lets the probe predict it on scenes it did not fit far better than the training mean does; one
+//! that does not leaves the probe at the mean whatever a decoder could learn from it.
+use std::path::Path;
+
+use burn::data::dataloader::batcher::Batcher;
+use burn::tensor::{Device, Tensor, TensorData};
+use nalgebra::{DMatrix, RowDVector, SymmetricEigen};
+
+use mvmp_data::dataset::FrameDataset;
+use mvmp_data::loader::{FrameBatcher, Split, ViewChoice};
+use mvmp_decoder::{height_features, lattice_offsets, sample_turned};
+use mvmp_model::MvmpHmr;
+
+use crate::TrainError;
+use crate::step::{batch_grids, joint_heading};
+
+/// Body joints after the pelvis (SMPL-X order) whose offsets make up the probed pose.
+const POSE_JOINTS: std::ops::Range<usize> = 1..22;
+/// Gaussian bumps of the root height among the height features (the decoder's own encoding).
+const HEIGHT_BUMPS: usize = 8;
+/// Ridge strengths tried, as multiples of the mean squared norm of a standardised feature row.
+const RIDGE: [f64; 7] = [1e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0, 3.0];
+
+/// Where the volumes are sampled and on what.
+#[derive(Debug, Clone)]
+pub struct ProbeOptions {
+    /// Lattice points per axis (x ahead, y left, z up), centred on the root.
+    pub lattice: [usize; 3],
+    /// Metres from the lattice's first point to its last per axis.
+    pub span: [f64; 3],
+    /// Cameras per frame (the first ones of each rig).
+    pub views: usize,
+    /// Frames read per split at most (0: all).
+    pub max_frames: usize,
+}
+
+/// What the probe reads of one person.
+#[derive(Debug, Clone)]
+pub struct ProbedPerson {
+    pub scene: String,
+    /// The image-feature volume on the lattice, `L * Cf`.
+    pub volume: Vec<f32>,
+    /// The joint heatmap volume on the lattice, `L * J`.
+    pub heatmaps: Vec<f32>,
+    /// The root height and its Gaussian bumps.
+    pub height: Vec<f32>,
+    /// The body joints' offsets from the pelvis in the person's frame, metres, `21 * 3`.
+    pub pose: Vec<f64>,
+}
+
+/// The people of a split of an MVMP-HMR dataset, each as [`ProbedPerson`]. People whose heading the
+/// annotation does not give (hips and shoulders not annotated) are left out.
+pub fn collect(
+    model: &MvmpHmr,
+    data: &Path,
+    split: Split,
+    opts: &ProbeOptions,
+    device: &Device,
+    mut progress: impl FnMut(usize, usize),
+) -> Result<Vec<ProbedPerson>, TrainError> {
+    let cfg = &model.config;
+    let ds = FrameDataset::open(
+        data,
+        split,
+        ViewChoice::Fixed((0..opts.views).collect()),
+        cfg.image_size,
+    )?;
+    let n = match opts.max_frames {
+        0 => ds.len(),
+        m => m.min(ds.len()),
+    };
+    let lattice = lattice_offsets(opts.lattice, opts.span);
+    let primary = cfg.primary_joint.joint();
+    let batcher = FrameBatcher::default();
+    let mut out = Vec::new();
+    for i in 0..n {
+        let batch = batcher.batch(vec![ds.load(i)?], device);
+        let people: Vec<(&mvmp_data::loader::PersonGt, [f64; 2])> = (batch.people[0].iter())
+            .filter(|p| p.joints_3d.len() >= POSE_JOINTS.end)
+            .filter_map(|p| {
+                let joints: Vec<[f64; 3]> = p.joints_3d.iter().map(|j| j.map(f64::from)).collect();
+                Some((p, joint_heading(&joints, &batch.covers[0])?))
+            })
+            .collect();
+        progress(i, n);
+        if people.is_empty() {
+            continue;
+        }
+        let k = people.len();
+        let roots: Vec<f32> = people
+            .iter()
+            .flat_map(|(p, _)| p.joints_3d[primary])
+            .collect();
+        let heads: Vec<f32> = people
+            .iter()
+            .flat_map(|(_, h)| h.map(|x| x as f32))
+            .collect();
+        let roots =
+            Tensor::<1>::from_data(TensorData::new(roots, [k * 3]), device).reshape([1, k, 3]);
+        let heads =
+            Tensor::<1>::from_data(TensorData::new(heads, [k * 2]), device).reshape([1, k, 2]);
+        let grids = batch_grids(cfg, &batch, device);
+        let volume = model.feature_volume(batch.images.clone(), &grids);
+        let (_, hvol) = model.detect_with_volume(batch.images.clone(), &grids);
+        let at = |v: Tensor<5>| -> Vec<f32> {
+            let s = sample_turned(v, roots.clone(), heads.clone(), &lattice, &cfg.grid);
+            s.into_data().try_into_vec::<f32>().unwrap_or_default()
+        };
+        let (fv, fh) = (at(volume), at(hvol));
+        let bumps = height_features(roots.clone(), HEIGHT_BUMPS).into_data();
+        let bumps = bumps.try_into_vec::<f32>().unwrap_or_default();
+        let (cv, ch) = (fv.len() / k, fh.len() / k);
+        for (j, (p, h)) in people.iter().enumerate() {
+            let mut height = vec![p.joints_3d[primary][2]];
+            height.extend_from_slice(&bumps[j * HEIGHT_BUMPS..(j + 1) * HEIGHT_BUMPS]);
+            out.push(ProbedPerson {
+                scene: batch.names[0].0.clone(),
+                volume: fv[j * cv..(j + 1) * cv].to_vec(),
+                heatmaps: fh[j * ch..(j + 1) * ch].to_vec(),
+                height,
+                pose: body_frame_pose(&p.joints_3d, *h),
+            });
+        }
+    }
+    Ok(out)
+}
+
+/// The body joints' offsets from the pelvis, turned into the frame whose x axis is the heading.
+fn body_frame_pose(joints: &[[f32; 3]], [hx, hy]: [f64; 2]) -> Vec<f64> {
+    let pelvis = joints[0].map(f64::from);
+    POSE_JOINTS
+        .flat_map(|j| {
+            let d: [f64; 3] = std::array::from_fn(|a| joints[j][a] as f64 - pelvis[a]);
+            // Ahead (hx, hy), left (-hy, hx).
+            [d[0] * hx + d[1] * hy, -d[0] * hy + d[1] * hx, d[2]]
+        })
+        .collect()
+}
+
+/// How well one set of features predicts the pose on the held-out people.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct ProbeScore {
+    pub features: String,
+    pub dims: usize,
+    /// The ridge strength chosen on a held-back fifth of the training scenes (relative, see `RIDGE`).
+    pub ridge: f64,
+    /// 1 - SSE / SST of the held-out pose, SST about the training mean.
+    pub r2: f64,
+    /// Mean distance between predicted and true joint offsets, mm.
+    pub joint_mm: f64,
+}
+
+/// Fit a ridge regression from `features` of the `train` people to their pose, choosing its strength on
+/// the last fifth of the training scenes, and score it on `test`.
+pub fn score(
+    name: &str,
+    train: &[ProbedPerson],
+    test: &[ProbedPerson],
+    features: impl Fn(&ProbedPerson) -> Vec<f32>,
+) -> Result<ProbeScore, String> {
+    let scenes = scene_count(train);
+    if scenes < 2 || test.is_empty() {
+        return Err(format!(
+            "{scenes} training scenes and {} held-out people: the probe needs at least 2 scenes (it \
+             chooses its ridge on the last fifth of them) and 1 person",
+            test.len()
+        ));
+    }
+    let (x, y) = (matrix(train, &features), targets(train));
+    let (xt, yt) = (matrix(test, &features), targets(test));
+    let cut = fold_cut(train);
+    let (fit_x, fit_y) = (x.rows(0, cut).into_owned(), y.rows(0, cut).into_owned());
+    let (val_x, val_y) = (
+        x.rows(cut, x.nrows() - cut).into_owned(),
+        y.rows(cut, y.nrows() - cut).into_owned(),
+    );
+    let fold = Ridge::fit(&fit_x, &fit_y);
+    let best = (RIDGE.iter())
+        .map(|&r| (r, sse(&fold.predict(&val_x, r), &val_y)))
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .map_or(1.0, |(r, _)| r);
+    let pred = Ridge::fit(&x, &y).predict(&xt, best);
+    let mean = y.row_mean();
+    let sst: f64 = (0..yt.nrows())
+        .map(|i| (yt.row(i) - &mean).norm_squared())
+        .sum();
+    Ok(ProbeScore {
+        features: name.to_string(),
+        dims: x.ncols(),
+        ridge: best,
+        r2: 1.0 - sse(&pred, &yt) / sst.max(f64::MIN_POSITIVE),
+        joint_mm: joint_mm(&pred, &yt),
+    })
+}
+
+/// The error of predicting every held-out person's pose as the training mean, mm.
+pub fn mean_pose_mm(train: &[ProbedPerson], test: &[ProbedPerson]) -> f64 {
+    let mean = targets(train).row_mean();
+    let yt = targets(test);
+    let pred = DMatrix::from_fn(yt.nrows(), yt.ncols(), |_, c| mean[c]);
+    joint_mm(&pred, &yt)
+}
+
+fn scene_names(people: &[ProbedPerson]) -> Vec<&str> {
+    let mut scenes: Vec<&str> = people.iter().map(|p| p.scene.as_str()).collect();
+    scenes.dedup();
+    scenes
+}
+
+fn scene_count(people: &[ProbedPerson]) -> usize {
+    scene_names(people).len()
+}
+
+/// The index of the first person of the last fifth of the scenes (people are in scene order).
+fn fold_cut(people: &[ProbedPerson]) -> usize {
+    let scenes = scene_names(people);
+    let keep = (scenes.len() * 4 / 5).max(1);
+    let first_out = scenes.get(keep).copied();
+    (people.iter())
+        .position(|p| Some(p.scene.as_str()) == first_out)
+        .unwrap_or(people.len() * 4 / 5)
+        .clamp(1, people.len() - 1)
+}
+
+fn matrix(people: &[ProbedPerson], f: &impl Fn(&ProbedPerson) -> Vec<f32>) -> DMatrix<f64> {
+    let rows: Vec<Vec<f32>> = people.iter().map(f).collect();
+    let d = rows.first().map_or(0, Vec::len);
+    DMatrix::from_fn(rows.len(), d, |i, j| rows[i][j] as f64)
+}
+
+fn targets(people: &[ProbedPerson]) -> DMatrix<f64> {
+    let d = people.first().map_or(0, |p| p.pose.len());
+    DMatrix::from_fn(people.len(), d, |i, j| people[i].pose[j])
+}
+
+fn sse(a: &DMatrix<f64>, b: &DMatrix<f64>) -> f64 {
+    (a - b).norm_squared()
+}
+
+fn joint_mm(pred: &DMatrix<f64>, truth: &DMatrix<f64>) -> f64 {
+    let joints = truth.ncols() / 3;
+    let mut sum = 0.0;
+    for i in 0..truth.nrows() {
+        for j in 0..joints {
+            let d = pred.fixed_view::<1, 3>(i, 3 * j) - truth.fixed_view::<1, 3>(i, 3 * j);
+            sum += d.norm();
+        }
+    }
+    1000.0 * sum / (truth.nrows() * joints).max(1) as f64
+}
+
+/// Ridge regression in its dual form (the people are fewer than the features): the standardised
+/// features' Gram matrix decomposed once, so each strength costs one product.
+struct Ridge {
+    mean: RowDVector<f64>,
+    scale: RowDVector<f64>,
+    x: DMatrix<f64>,
+    eigen: SymmetricEigen<f64, nalgebra::Dyn>,
+    /// `Q^T (Y - mean)`.
+    qty: DMatrix<f64>,
+    y_mean: RowDVector<f64>,
+    /// The mean squared norm of a standardised row, the unit of the strengths.
+    unit: f64,
+}
+
+impl Ridge {
+    fn fit(x: &DMatrix<f64>, y: &DMatrix<f64>) -> Ridge {
+        let n = x.nrows() as f64;
+        let mean = x.row_mean();
+        let var = RowDVector::from_fn(x.ncols(), |_, j| {
+            x.column(j)
+                .iter()
+                .map(|v| (v - mean[j]).powi(2))
+                .sum::<f64>()
+                / n
+        });
+        // A constant feature carries nothing; dividing it by 1 keeps it at zero once centred.
+        let scale = var.map(|v| if v > 1e-12 { v.sqrt().recip() } else { 1.0 });
+        let xs = standardise(x, &mean, &scale);
+        let gram = &xs * xs.transpose();
+        let unit = gram.trace() / n;
+        let eigen = SymmetricEigen::new(gram);
+        let y_mean = y.row_mean();
+        let yc = DMatrix::from_fn(y.nrows(), y.ncols(), |i, j| y[(i, j)] - y_mean[j]);
+        let qty = eigen.eigenvectors.transpose() * yc;
+        Ridge {
+            mean,
+            scale,
+            x: xs,
+            eigen,
+            qty,
+            y_mean,
+            unit,
+        }
+    }
+
+    /// Predictions for the rows of `x` at strength `r` (times [`Ridge::unit`]).
+    fn predict(&self, x: &DMatrix<f64>, r: f64) -> DMatrix<f64> {
+        let lambda = r * self.unit.max(f64::MIN_POSITIVE);
+        let mut a = self.qty.clone();
+        for (i, mut row) in a.row_iter_mut().enumerate() {
+            row /= self.eigen.eigenvalues[i].max(0.0) + lambda;
+        }
+        let alpha = &self.eigen.eigenvectors * a; // (K + lambda I)^-1 (Y - mean)
+        let k = standardise(x, &self.mean, &self.scale) * self.x.transpose();
+        let mut pred = k * alpha;
+        for mut row in pred.row_iter_mut() {
+            row += &self.y_mean;
+        }
+        pred
+    }
+}
+
+fn standardise(x: &DMatrix<f64>, mean: &RowDVector<f64>, scale: &RowDVector<f64>) -> DMatrix<f64> {
+    DMatrix::from_fn(x.nrows(), x.ncols(), |i, j| {
+        (x[(i, j)] - mean[j]) * scale[j]
+    })
+}
