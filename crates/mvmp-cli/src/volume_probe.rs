@@ -99,7 +99,7 @@ type Features = dyn Fn(&ProbedPerson) -> Vec<f32>;
 /// The feature sets probed for one model: the root height alone, each volume, and each with the height.
 fn rows(label: &str, train: &[ProbedPerson], test: &[ProbedPerson]) -> Result<Vec<ProbeScore>> {
     let with_height = |a: &[f32], p: &ProbedPerson| [a, &p.height].concat();
-    let sets: [(&str, Box<Features>); 5] = [
+    let sets: [(&str, Box<Features>); 7] = [
         ("root height", Box::new(|p| p.height.clone())),
         ("image-feature volume", Box::new(|p| p.volume.clone())),
         (
@@ -110,6 +110,11 @@ fn rows(label: &str, train: &[ProbedPerson], test: &[ProbedPerson]) -> Result<Ve
         (
             "heatmap volume + height",
             Box::new(move |p| with_height(&p.heatmaps, p)),
+        ),
+        ("heatmap centroids", Box::new(|p| p.centroids.clone())),
+        (
+            "heatmap centroids + height",
+            Box::new(move |p| with_height(&p.centroids, p)),
         ),
     ];
     // The height does not depend on the weights: it is scored once, with the trained model.

@@ -833,7 +833,7 @@ fn train_eval_infer_end_to_end() {
     assert_eq!(probe["train_people"], 4);
     assert_eq!(probe["test_people"], 2);
     let rows = probe["scores"].as_array().unwrap();
-    assert_eq!(rows.len(), 9, "{probe}");
+    assert_eq!(rows.len(), 13, "{probe}");
     assert!(
         rows.iter().all(|r| r["r2"].as_f64().unwrap().is_finite()),
         "{probe}"

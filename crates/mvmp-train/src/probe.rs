@@ -46,6 +46,9 @@ pub struct ProbedPerson {
     pub volume: Vec<f32>,
     /// The joint heatmap volume on the lattice, `L * J`.
     pub heatmaps: Vec<f32>,
+    /// Each heatmap joint's centroid over the lattice in the person's frame, metres, `J * 3`: the
+    /// lattice offsets weighted by the squared non-negative heatmap there (zero where it has none).
+    pub centroids: Vec<f32>,
     /// The root height and its Gaussian bumps.
     pub height: Vec<f32>,
     /// The body joints' offsets from the pelvis in the person's frame, metres, `21 * 3`.
@@ -117,16 +120,34 @@ pub fn collect(
         for (j, (p, h)) in people.iter().enumerate() {
             let mut height = vec![p.joints_3d[primary][2]];
             height.extend_from_slice(&bumps[j * HEIGHT_BUMPS..(j + 1) * HEIGHT_BUMPS]);
+            let heatmaps = fh[j * ch..(j + 1) * ch].to_vec();
             out.push(ProbedPerson {
                 scene: batch.names[0].0.clone(),
                 volume: fv[j * cv..(j + 1) * cv].to_vec(),
-                heatmaps: fh[j * ch..(j + 1) * ch].to_vec(),
+                centroids: centroids(&heatmaps, &lattice),
+                heatmaps,
                 height,
                 pose: body_frame_pose(&p.joints_3d, *h),
             });
         }
     }
     Ok(out)
+}
+
+/// Each channel's centroid over the lattice from samples `[L][J]` (lattice point slowest).
+fn centroids(samples: &[f32], lattice: &[[f32; 3]]) -> Vec<f32> {
+    let j = samples.len() / lattice.len().max(1);
+    (0..j)
+        .flat_map(|c| {
+            let (mut sum, mut w) = ([0.0f32; 3], 0.0f32);
+            for (l, o) in lattice.iter().enumerate() {
+                let x = samples[l * j + c].max(0.0).powi(2);
+                w += x;
+                (0..3).for_each(|a| sum[a] += x * o[a]);
+            }
+            sum.map(|v| if w > 0.0 { v / w } else { 0.0 })
+        })
+        .collect()
 }
 
 /// The body joints' offsets from the pelvis, turned into the frame whose x axis is the heading.
@@ -319,4 +340,22 @@ fn standardise(x: &DMatrix<f64>, mean: &RowDVector<f64>, scale: &RowDVector<f64>
     DMatrix::from_fn(x.nrows(), x.ncols(), |i, j| {
         (x[(i, j)] - mean[j]) * scale[j]
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Two lattice points, two channels: weights are the squared non-negative samples (1 and 9, then
+    /// 0 and 4 with the negative clipped), and a channel with no weight sits at the root.
+    #[test]
+    fn centroids_weight_the_lattice_by_the_squared_samples() {
+        let lattice = [[0.0, 0.0, -0.5], [1.0, 2.0, 0.5]];
+        let c = centroids(&[1.0, -5.0, 3.0, 2.0], &lattice);
+        let want = [0.9, 1.8, 0.4, 1.0, 2.0, 0.5];
+        for (a, b) in c.iter().zip(want) {
+            assert!((a - b).abs() < 1e-6, "{c:?}");
+        }
+        assert_eq!(centroids(&[0.0, -1.0], &lattice[..1]), vec![0.0; 6]);
+    }
 }

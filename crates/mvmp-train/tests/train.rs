@@ -2061,6 +2061,7 @@ fn probe_people(
                 pose: pose(i, &f),
                 volume: f,
                 heatmaps: vec![],
+                centroids: vec![],
                 height: vec![],
             }
         })
@@ -2186,6 +2187,13 @@ fn the_volume_probe_reads_each_person_in_their_own_frame() {
     for (p, t) in people.iter().zip(&truth) {
         assert_eq!(p.volume.len(), 12 * cfg.feature_channels);
         assert_eq!(p.heatmaps.len(), 12 * cfg.heatmap_joints.len());
+        assert_eq!(p.centroids.len(), 3 * cfg.heatmap_joints.len());
+        // A centroid is a weighted mean of the lattice's offsets: inside its box.
+        for c in p.centroids.chunks(3) {
+            assert!(
+                c[0].abs() <= 0.25 + 1e-6 && c[1].abs() <= 0.25 + 1e-6 && c[2].abs() <= 0.5 + 1e-6
+            );
+        }
         assert_eq!(p.height.len(), 9);
         assert_eq!(p.height[0], t.joints_3d[0][2]);
         assert_eq!(p.pose.len(), 63);
