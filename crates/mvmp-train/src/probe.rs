@@ -11,7 +11,7 @@ use burn::tensor::{Device, Tensor, TensorData};
 use nalgebra::{DMatrix, RowDVector, SymmetricEigen};
 
 use mvmp_data::dataset::FrameDataset;
-use mvmp_data::loader::{FrameBatcher, Split, ViewChoice};
+use mvmp_data::loader::{FrameBatch, FrameBatcher, PersonGt, Split, ViewChoice};
 use mvmp_decoder::{height_features, lattice_offsets, sample_turned};
 use mvmp_model::MvmpHmr;
 
@@ -77,61 +77,83 @@ pub fn collect(
         m => m.min(ds.len()),
     };
     let lattice = lattice_offsets(opts.lattice, opts.span);
-    let primary = cfg.primary_joint.joint();
     let batcher = FrameBatcher::default();
     let mut out = Vec::new();
     for i in 0..n {
         let batch = batcher.batch(vec![ds.load(i)?], device);
-        let people: Vec<(&mvmp_data::loader::PersonGt, [f64; 2])> = (batch.people[0].iter())
-            .filter(|p| p.joints_3d.len() >= POSE_JOINTS.end)
-            .filter_map(|p| {
-                let joints: Vec<[f64; 3]> = p.joints_3d.iter().map(|j| j.map(f64::from)).collect();
-                Some((p, joint_heading(&joints, &batch.covers[0])?))
-            })
-            .collect();
         progress(i, n);
-        if people.is_empty() {
-            continue;
-        }
-        let k = people.len();
-        let roots: Vec<f32> = people
-            .iter()
-            .flat_map(|(p, _)| p.joints_3d[primary])
-            .collect();
-        let heads: Vec<f32> = people
-            .iter()
-            .flat_map(|(_, h)| h.map(|x| x as f32))
-            .collect();
-        let roots =
-            Tensor::<1>::from_data(TensorData::new(roots, [k * 3]), device).reshape([1, k, 3]);
-        let heads =
-            Tensor::<1>::from_data(TensorData::new(heads, [k * 2]), device).reshape([1, k, 2]);
-        let grids = batch_grids(cfg, &batch, device);
-        let volume = model.feature_volume(batch.images.clone(), &grids);
-        let (_, hvol) = model.detect_with_volume(batch.images.clone(), &grids);
-        let at = |v: Tensor<5>| -> Vec<f32> {
-            let s = sample_turned(v, roots.clone(), heads.clone(), &lattice, &cfg.grid);
-            s.into_data().try_into_vec::<f32>().unwrap_or_default()
-        };
-        let (fv, fh) = (at(volume), at(hvol));
-        let bumps = height_features(roots.clone(), HEIGHT_BUMPS).into_data();
-        let bumps = bumps.try_into_vec::<f32>().unwrap_or_default();
-        let (cv, ch) = (fv.len() / k, fh.len() / k);
-        for (j, (p, h)) in people.iter().enumerate() {
+        out.extend(probe_frame(model, &batch, &lattice, device));
+    }
+    Ok(out)
+}
+
+/// The people of a one-frame batch whose heading the annotation gives, with that heading.
+fn headed_people(batch: &FrameBatch) -> Vec<(&PersonGt, [f64; 2])> {
+    (batch.people[0].iter())
+        .filter(|p| p.joints_3d.len() >= POSE_JOINTS.end)
+        .filter_map(|p| {
+            let joints: Vec<[f64; 3]> = p.joints_3d.iter().map(|j| j.map(f64::from)).collect();
+            Some((p, joint_heading(&joints, &batch.covers[0])?))
+        })
+        .collect()
+}
+
+/// What the probe reads of each person of a one-frame batch.
+fn probe_frame(
+    model: &MvmpHmr,
+    batch: &FrameBatch,
+    lattice: &[[f32; 3]],
+    device: &Device,
+) -> Vec<ProbedPerson> {
+    let cfg = &model.config;
+    let primary = cfg.primary_joint.joint();
+    let people = headed_people(batch);
+    let k = people.len();
+    if k == 0 {
+        return vec![];
+    }
+    let rows = |v: Vec<f32>, w: usize| Tensor::<1>::from_data(TensorData::new(v, [k * w]), device);
+    let roots = people.iter().flat_map(|(p, _)| p.joints_3d[primary]);
+    let roots = rows(roots.collect(), 3).reshape([1, k, 3]);
+    let heads = people.iter().flat_map(|(_, h)| h.map(|x| x as f32));
+    let heads = rows(heads.collect(), 2).reshape([1, k, 2]);
+    let grids = batch_grids(cfg, batch, device);
+    let volume = model.feature_volume(batch.images.clone(), &grids);
+    let (_, hvol) = model.detect_with_volume(batch.images.clone(), &grids);
+    let at = |v: Tensor<5>| {
+        host(sample_turned(
+            v,
+            roots.clone(),
+            heads.clone(),
+            lattice,
+            &cfg.grid,
+        ))
+    };
+    let (fv, fh) = (at(volume), at(hvol));
+    let bumps = host(height_features(roots.clone(), HEIGHT_BUMPS));
+    let (cv, ch) = (fv.len() / k, fh.len() / k);
+    (people.iter().enumerate())
+        .map(|(j, (p, h))| {
             let mut height = vec![p.joints_3d[primary][2]];
             height.extend_from_slice(&bumps[j * HEIGHT_BUMPS..(j + 1) * HEIGHT_BUMPS]);
             let heatmaps = fh[j * ch..(j + 1) * ch].to_vec();
-            out.push(ProbedPerson {
+            ProbedPerson {
                 scene: batch.names[0].0.clone(),
                 volume: fv[j * cv..(j + 1) * cv].to_vec(),
-                centroids: centroids(&heatmaps, &lattice),
+                centroids: centroids(&heatmaps, lattice),
                 heatmaps,
                 height,
                 pose: body_frame_pose(&p.joints_3d, *h),
-            });
-        }
-    }
-    Ok(out)
+            }
+        })
+        .collect()
+}
+
+/// A float tensor's values on the host.
+fn host<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+    t.into_data_as::<f32>()
+        .try_into_vec::<f32>()
+        .unwrap_or_default()
 }
 
 /// Each channel's centroid over the lattice from samples `[L][J]` (lattice point slowest).
