@@ -851,6 +851,23 @@ fn train_eval_infer_end_to_end() {
         ],
         &["--lattice", "0,3,8", "1 to 64"],
     );
+    let (run, ds, nowhere) = (p("run"), p("ds"), p("missing/probe.json"));
+    let probe = [
+        "model",
+        "probe",
+        "--run",
+        run.as_str(),
+        "--data",
+        ds.as_str(),
+    ];
+    expect_error(
+        &[&probe[..], &["--views", "3"]].concat(),
+        &["3 views requested", "only 2 cameras"],
+    );
+    expect_error(
+        &[&probe[..], &["--out", nowhere.as_str()]].concat(),
+        &["--out", "missing", "not a directory"],
+    );
     // The diagnostic that zeroes the image-feature volume is recorded in its report, and refused for
     // predictions, whose model is not at hand.
     let z = scored(&["--run", &p("run"), "--zero-volume"], &p("zero.json"));

@@ -215,9 +215,9 @@ fn check_layout_views(layout: &DatasetLayout, views: &ViewChoice) -> Result<(), 
                 return Err(DataError::file(
                     root,
                     format!(
-                        "{} views requested (camera index {bad}), but a scene{name} has only \
-                         {min_views} cameras",
-                        bad + 1
+                        "{} views requested (camera index {bad} among them), but a scene{name} has \
+                         only {min_views} cameras",
+                        v.len()
                     ),
                 ));
             }
