@@ -55,7 +55,7 @@ pub fn probe(args: &ProbeArgs, device: &Device) -> Result<()> {
         }
         for s in rows(label, &train, &test)? {
             println!(
-                "{:<34} {:>6} features  R2 {:>7.3}  {:>6.1} mm  (ridge {})",
+                "{:<40} {:>6} features  R2 {:>7.3}  {:>6.1} mm  (ridge {})",
                 s.features, s.dims, s.r2, s.joint_mm, s.ridge
             );
             scores.push(s);
