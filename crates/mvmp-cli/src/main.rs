@@ -262,11 +262,17 @@ fn three<T: std::str::FromStr>(s: &str) -> Result<[T; 3], String> {
         .map_err(|v| format!("expected three comma-separated values, got {}", v.len()))
 }
 
+/// Most points of a probe's lattice: each person's features are points times channels.
+const MAX_PROBE_POINTS: usize = 4096;
+
 fn lattice_shape(s: &str) -> Result<LatticeShape, String> {
     let n: [usize; 3] = three(s)?;
-    match n.iter().all(|&k| (1..=64).contains(&k)) {
+    if !n.iter().all(|&k| (1..=64).contains(&k)) {
+        return Err(format!("{s}: each count must be 1 to 64"));
+    }
+    match n.iter().product::<usize>() <= MAX_PROBE_POINTS {
         true => Ok(LatticeShape(n)),
-        false => Err(format!("{s}: each count must be 1 to 64")),
+        false => Err(format!("{s}: at most {MAX_PROBE_POINTS} points in all")),
     }
 }
 

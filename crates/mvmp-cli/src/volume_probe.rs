@@ -9,7 +9,9 @@ use mvmp_data::loader::Split;
 use mvmp_infer::Predictor;
 use mvmp_model::MvmpHmr;
 use mvmp_train::RunDir;
-use mvmp_train::probe::{ProbeOptions, ProbeScore, ProbedPerson, collect, mean_pose_mm, score};
+use mvmp_train::probe::{
+    ProbeOptions, ProbeScore, ProbedPerson, collect, mean_pose_mm, scene_count, score,
+};
 
 use crate::progress::LazyBar;
 
@@ -47,7 +49,7 @@ pub fn probe(args: &ProbeArgs, device: &Device) -> Result<()> {
         if mean_mm.is_none() {
             let mm = mean_pose_mm(&train, &test);
             println!(
-                "{} training and {} held-out people; the training mean pose: {mm:.1} mm",
+                "{} training and {} held-out people; the training mean pose on the held-out people: {mm:.1} mm",
                 train.len(),
                 test.len()
             );
@@ -93,6 +95,15 @@ fn read(
             "{}: the {} split has no person with annotated hips and shoulders to probe",
             data.display(),
             split.name()
+        );
+    }
+    let scenes = scene_count(&people);
+    if split == Split::Train && scenes < 2 {
+        bail!(
+            "{}: the people read from the train split come from {scenes} scene (--frames {}): the \
+             probe needs at least 2, to choose its ridge on one and fit on the rest",
+            data.display(),
+            opts.max_frames
         );
     }
     Ok(people)

@@ -861,6 +861,14 @@ fn train_eval_infer_end_to_end() {
         ds.as_str(),
     ];
     expect_error(
+        &[&probe[..], &["--lattice", "64,64,2"]].concat(),
+        &["--lattice", "64,64,2", "at most 4096 points"],
+    );
+    expect_error(
+        &[&probe[..], &["--frames", "1"]].concat(),
+        &["train split", "1 scene", "--frames 1", "at least 2"],
+    );
+    expect_error(
         &[&probe[..], &["--views", "3"]].concat(),
         &["3 views requested", "only 2 cameras"],
     );

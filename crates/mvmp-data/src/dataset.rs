@@ -211,12 +211,14 @@ fn check_layout_views(layout: &DatasetLayout, views: &ViewChoice) -> Result<(), 
         ViewChoice::Fixed(v) => {
             if let Some(&bad) = v.iter().find(|&&i| i >= min_views) {
                 let scene = layout.scenes.iter().find(|s| s.rig.len() <= bad);
-                let name = scene.map_or(String::new(), |s| format!(" ({})", s.name));
+                let (name, has) = scene.map_or((String::new(), min_views), |s| {
+                    (format!(" ({})", s.name), s.rig.len())
+                });
                 return Err(DataError::file(
                     root,
                     format!(
                         "{} views requested (camera index {bad} among them), but a scene{name} has \
-                         only {min_views} cameras",
+                         only {has} cameras",
                         v.len()
                     ),
                 ));

@@ -257,7 +257,8 @@ impl MvmpHmr {
         self.joint_maps(feats, [b, v])
     }
 
-    /// The fused image-feature volume `[B, Cf, X, Y, Z]` the decoder reads, of images `[B, V, 3, S, S]`.
+    /// The fused image-feature volume `[B, Cf, X, Y, Z]` of images `[B, V, 3, S, S]`: what the decoder
+    /// is handed (with `volume_norm` it standardises each channel before reading it).
     pub fn feature_volume(&self, images: Tensor<5>, grids: &[RigGrids]) -> Tensor<5> {
         let [b, v, _, s, _] = images.dims();
         let feats = self.view_features(images.reshape([b * v, 3, s, s]));

@@ -34,7 +34,7 @@ pub struct ProbeOptions {
     pub span: [f64; 3],
     /// Cameras per frame (the first ones of each rig).
     pub views: usize,
-    /// Frames read per split at most (0: all).
+    /// Frames read per split at most, spread evenly over it (0: all).
     pub max_frames: usize,
 }
 
@@ -80,7 +80,8 @@ pub fn collect(
     let batcher = FrameBatcher::default();
     let mut out = Vec::new();
     for i in 0..n {
-        let batch = batcher.batch(vec![ds.load(i)?], device);
+        // Spread over the split, so that a few frames still come from several scenes.
+        let batch = batcher.batch(vec![ds.load(i * ds.len() / n)?], device);
         progress(i, n);
         out.extend(probe_frame(model, &batch, &lattice, device));
     }
@@ -189,7 +190,8 @@ fn body_frame_pose(joints: &[[f32; 3]], [hx, hy]: [f64; 2]) -> Vec<f64> {
 pub struct ProbeScore {
     pub features: String,
     pub dims: usize,
-    /// The ridge strength chosen on a held-back fifth of the training scenes (relative, see `RIDGE`).
+    /// The ridge strength chosen on the last fifth of the training scenes (at least one; relative, see
+    /// `RIDGE`).
     pub ridge: f64,
     /// 1 - SSE / SST of the held-out pose, SST about the training mean.
     pub r2: f64,
@@ -198,7 +200,7 @@ pub struct ProbeScore {
 }
 
 /// Fit a ridge regression from `features` of the `train` people to their pose, choosing its strength on
-/// the last fifth of the training scenes, and score it on `test`.
+/// the last fifth of the training scenes (at least one), and score it on `test`.
 pub fn score(
     name: &str,
     train: &[ProbedPerson],
@@ -254,7 +256,8 @@ fn scene_names(people: &[ProbedPerson]) -> Vec<&str> {
     scenes
 }
 
-fn scene_count(people: &[ProbedPerson]) -> usize {
+/// How many scenes the people come from.
+pub fn scene_count(people: &[ProbedPerson]) -> usize {
     scene_names(people).len()
 }
 
@@ -296,15 +299,19 @@ fn joint_mm(pred: &DMatrix<f64>, truth: &DMatrix<f64>) -> f64 {
     1000.0 * sum / (truth.nrows() * joints).max(1) as f64
 }
 
-/// Ridge regression in its dual form (the people are fewer than the features): the standardised
-/// features' Gram matrix decomposed once, so each strength costs one product.
+/// Ridge regression on standardised features, in whichever form has the smaller matrix to decompose:
+/// the primal `Z^T Z` (features x features) when the people outnumber the features, else the dual
+/// `Z Z^T` (people x people). Either is decomposed once, `Q Lambda Q^T`, so each strength costs one
+/// product: the weights are `B (Lambda + lambda I)^-1 Q^T Z'^T (Y - mean)` with `B = Q`, `Z' = Z`
+/// (primal) or `B = Z^T Q`, `Z' = I` (dual).
 struct Ridge {
     mean: RowDVector<f64>,
     scale: RowDVector<f64>,
-    x: DMatrix<f64>,
-    eigen: SymmetricEigen<f64, nalgebra::Dyn>,
-    /// `Q^T (Y - mean)`.
-    qty: DMatrix<f64>,
+    eigenvalues: nalgebra::DVector<f64>,
+    /// `B` above: features x rank.
+    basis: DMatrix<f64>,
+    /// `Q^T Z'^T (Y - mean)`: rank x targets.
+    projected: DMatrix<f64>,
     y_mean: RowDVector<f64>,
     /// The mean squared norm of a standardised row, the unit of the strengths.
     unit: f64,
@@ -321,36 +328,44 @@ impl Ridge {
                 .sum::<f64>()
                 / n
         });
-        // A constant feature carries nothing; dividing it by 1 keeps it at zero once centred.
-        let scale = var.map(|v| if v > 1e-12 { v.sqrt().recip() } else { 1.0 });
-        let xs = standardise(x, &mean, &scale);
-        let gram = &xs * xs.transpose();
-        let unit = gram.trace() / n;
-        let eigen = SymmetricEigen::new(gram);
+        // A constant feature carries nothing; dividing it by 1 keeps it at zero once centred. The bar is
+        // relative, so that features that are all small (an untrained head's) are still read.
+        let floor = 1e-12 * var.max().max(f64::MIN_POSITIVE);
+        let scale = var.map(|v| if v > floor { v.sqrt().recip() } else { 1.0 });
+        let z = standardise(x, &mean, &scale);
         let y_mean = y.row_mean();
         let yc = DMatrix::from_fn(y.nrows(), y.ncols(), |i, j| y[(i, j)] - y_mean[j]);
-        let qty = eigen.eigenvectors.transpose() * yc;
+        let (eigen, basis, projected) = if z.ncols() <= z.nrows() {
+            let eigen = SymmetricEigen::new(z.transpose() * &z);
+            let projected = eigen.eigenvectors.transpose() * (z.transpose() * yc);
+            let basis = eigen.eigenvectors.clone();
+            (eigen, basis, projected)
+        } else {
+            let eigen = SymmetricEigen::new(&z * z.transpose());
+            let projected = eigen.eigenvectors.transpose() * yc;
+            let basis = z.transpose() * &eigen.eigenvectors;
+            (eigen, basis, projected)
+        };
         Ridge {
+            unit: eigen.eigenvalues.sum() / n,
             mean,
             scale,
-            x: xs,
-            eigen,
-            qty,
+            eigenvalues: eigen.eigenvalues,
+            basis,
+            projected,
             y_mean,
-            unit,
         }
     }
 
     /// Predictions for the rows of `x` at strength `r` (times [`Ridge::unit`]).
     fn predict(&self, x: &DMatrix<f64>, r: f64) -> DMatrix<f64> {
         let lambda = r * self.unit.max(f64::MIN_POSITIVE);
-        let mut a = self.qty.clone();
+        let mut a = self.projected.clone();
         for (i, mut row) in a.row_iter_mut().enumerate() {
-            row /= self.eigen.eigenvalues[i].max(0.0) + lambda;
+            row /= self.eigenvalues[i].max(0.0) + lambda;
         }
-        let alpha = &self.eigen.eigenvectors * a; // (K + lambda I)^-1 (Y - mean)
-        let k = standardise(x, &self.mean, &self.scale) * self.x.transpose();
-        let mut pred = k * alpha;
+        let weights = &self.basis * a;
+        let mut pred = standardise(x, &self.mean, &self.scale) * weights;
         for mut row in pred.row_iter_mut() {
             row += &self.y_mean;
         }
@@ -379,5 +394,30 @@ mod tests {
             assert!((a - b).abs() < 1e-6, "{c:?}");
         }
         assert_eq!(centroids(&[0.0, -1.0], &lattice[..1]), vec![0.0; 6]);
+    }
+
+    /// The held-back part starts at the first person of the last fifth of the scenes (at least one),
+    /// however many people each scene has.
+    #[test]
+    fn the_ridge_is_chosen_on_the_last_scenes() {
+        let people = |sizes: &[usize]| -> Vec<ProbedPerson> {
+            (sizes.iter().enumerate())
+                .flat_map(|(s, &n)| {
+                    (0..n).map(move |_| ProbedPerson {
+                        scene: format!("scene_{s:03}"),
+                        volume: vec![],
+                        heatmaps: vec![],
+                        centroids: vec![],
+                        height: vec![],
+                        pose: vec![],
+                    })
+                })
+                .collect()
+        };
+        // 10 scenes: the last 2 are held back.
+        assert_eq!(fold_cut(&people(&[1, 2, 3, 4, 5, 6, 7, 8, 9, 10])), 36);
+        // 2 scenes: the second.
+        assert_eq!(fold_cut(&people(&[7, 1])), 7);
+        assert_eq!(scene_count(&people(&[3, 1, 4])), 3);
     }
 }
