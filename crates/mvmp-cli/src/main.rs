@@ -233,7 +233,7 @@ enum ModelCommand {
         /// Views per frame (the first N cameras; default: the run's test_views).
         #[arg(long, allow_negative_numbers = true, value_parser = up_to(mvmp_train::config::MAX_VIEWS))]
         views: Option<usize>,
-        /// Read at most N frames per split (0 = all).
+        /// Read at most N frames per split, spread over it (0 = all).
         #[arg(long, allow_negative_numbers = true, default_value_t = 0)]
         frames: usize,
         /// Also write the scores as JSON here.

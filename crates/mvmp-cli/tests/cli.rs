@@ -815,43 +815,7 @@ fn train_eval_infer_end_to_end() {
         serde_json::from_str(&std::fs::read_to_string(report).unwrap()).unwrap()
     };
     // The probe of the run's volumes: every feature set scored, for the trained and the initial weights.
-    let o = mvmp(&[
-        "model",
-        "probe",
-        "--run",
-        &p("run"),
-        "--data",
-        &p("ds"),
-        "--lattice",
-        "2,2,3",
-        "--out",
-        &p("probe.json"),
-    ]);
-    assert!(o.status.success(), "{}", stderr(&o));
-    let probe: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(p("probe.json")).unwrap()).unwrap();
-    assert_eq!(probe["train_people"], 4);
-    assert_eq!(probe["test_people"], 2);
-    let rows = probe["scores"].as_array().unwrap();
-    assert_eq!(rows.len(), 13, "{probe}");
-    assert!(
-        rows.iter().all(|r| r["r2"].as_f64().unwrap().is_finite()),
-        "{probe}"
-    );
-    expect_error(
-        &[
-            "model",
-            "probe",
-            "--run",
-            &p("run"),
-            "--data",
-            &p("ds"),
-            "--lattice",
-            "0,3,8",
-        ],
-        &["--lattice", "0,3,8", "1 to 64"],
-    );
-    let (run, ds, nowhere) = (p("run"), p("ds"), p("missing/probe.json"));
+    let (run, ds, report, nowhere) = (p("run"), p("ds"), p("probe.json"), p("missing/probe.json"));
     let probe = [
         "model",
         "probe",
@@ -860,6 +824,28 @@ fn train_eval_infer_end_to_end() {
         "--data",
         ds.as_str(),
     ];
+    let o = mvmp(
+        &[
+            &probe[..],
+            &["--lattice", "2,2,3", "--out", report.as_str()],
+        ]
+        .concat(),
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    let probe_report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    assert_eq!(probe_report["train_people"], 4);
+    assert_eq!(probe_report["test_people"], 2);
+    let rows = probe_report["scores"].as_array().unwrap();
+    assert_eq!(rows.len(), 13, "{probe_report}");
+    assert!(
+        rows.iter().all(|r| r["r2"].as_f64().unwrap().is_finite()),
+        "{probe_report}"
+    );
+    expect_error(
+        &[&probe[..], &["--lattice", "0,3,8"]].concat(),
+        &["--lattice", "0,3,8", "1 to 64"],
+    );
     expect_error(
         &[&probe[..], &["--lattice", "64,64,2"]].concat(),
         &["--lattice", "64,64,2", "at most 4096 points"],
