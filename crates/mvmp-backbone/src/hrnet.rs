@@ -85,7 +85,7 @@ impl ConvBn {
             bn: bn(co, device),
         }
     }
-    fn forward(&self, x: Tensor<4>) -> Tensor<4> {
+    pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
         batch_norm(&self.bn, conv2d(&self.conv, x))
     }
 }
@@ -113,7 +113,7 @@ impl Bottleneck {
             downsample: (ci != planes * 4).then(|| ConvBn::new(ci, planes * 4, 1, 1, device)),
         }
     }
-    fn forward(&self, x: Tensor<4>) -> Tensor<4> {
+    pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
         let r = relu(batch_norm(&self.bn1, conv2d(&self.conv1, x.clone())));
         let r = relu(batch_norm(&self.bn2, conv2d(&self.conv2, r)));
         let r = batch_norm(&self.bn3, conv2d(&self.conv3, r));
@@ -142,7 +142,7 @@ impl BasicBlock {
             bn2: bn(c, device),
         }
     }
-    fn forward(&self, x: Tensor<4>) -> Tensor<4> {
+    pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
         let r = relu(batch_norm(&self.bn1, conv2d(&self.conv1, x.clone())));
         relu(batch_norm(&self.bn2, conv2d(&self.conv2, r)) + x)
     }
@@ -278,7 +278,7 @@ impl Transition {
         }
     }
 
-    fn forward(&self, xs: &[Tensor<4>]) -> Vec<Tensor<4>> {
+    pub fn forward(&self, xs: &[Tensor<4>]) -> Vec<Tensor<4>> {
         self.layers
             .iter()
             .enumerate()

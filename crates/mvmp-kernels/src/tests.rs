@@ -317,7 +317,7 @@ fn assert_close(a: Vec<Tensor<1>>, b: Vec<Tensor<1>>, what: &str) {
 }
 
 /// 2D convolutions as products equal burn's: values and the gradients of input, weight and bias, for
-/// HRNet's 1x1s, 3x3s and stride-2 3x3s, an uneven padding and a kernel that does not fit the input a
+/// HRNet's 1x1s (pointwise products, with and without a bias; a stride-2 1x1 is a columns product), 3x3s and stride-2 3x3s, an uneven padding and a kernel that does not fit the input a
 /// whole number of times; on flex (the im2col operation) and on ndarray (the columns as tensor ops).
 #[test]
 fn convolutions_as_products_are_the_convolutions_2d() {
@@ -333,6 +333,8 @@ fn products_are_convolutions(d: &Device) {
     seed(3);
     for (k, stride, pad, bias) in [
         (1, 1, (0, 0, 0, 0), true),
+        (1, 1, (0, 0, 0, 0), false),
+        (1, 2, (0, 0, 0, 0), true),
         (3, 1, (1, 1, 1, 1), false),
         (3, 2, (1, 1, 1, 1), true),
         (3, 2, (0, 2, 1, 0), false),
@@ -379,6 +381,7 @@ fn convolutions_as_products_are_the_convolutions_3d() {
     for (k, stride, pad, bias) in [
         (3, 1, 1, true),
         (1, 1, 0, true),
+        (1, 1, 0, false),
         (3, 2, 1, false),
         (2, 1, 0, true),
     ] {

@@ -1,0 +1,102 @@
+//! The tiny HRNet's forward and backward on the autodiff flex device, timed part by part: each row
+//! runs the network up to the end of one part (stem, layer1, the transitions and stages, the final
+//! layer) and back-propagates the sum of what it has so far, so a part's cost is its row less the row
+//! before. `mvmp bench model --backward` times HRNet whole; this says which of its parts the time is in.
+//!
+//! `cargo run --release -p mvmp-cli --example hrnet_parts [-- VIEWS SIZE]` (4 views of 224 x 224 unless
+//! given; median and fastest of 7 runs).
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+use burn::tensor::activation::relu;
+use burn::tensor::{Device, Tensor, TensorData};
+use mvmp_backbone::hrnet::{HRNet, HRNetConfig};
+use mvmp_kernels::conv::conv2d;
+use mvmp_kernels::norm::batch_norm;
+use std::time::Instant;
+
+const PARTS: [&str; 9] = [
+    "stem",
+    "layer1",
+    "transition1",
+    "stage2",
+    "transition2",
+    "stage3",
+    "transition3",
+    "stage4",
+    "final layer",
+];
+
+fn total(xs: &[Tensor<4>]) -> Tensor<1> {
+    let sums = xs.iter().map(|t| t.clone().sum());
+    sums.reduce(|a, b| a + b).expect("a branch")
+}
+
+/// The network run through part `upto` (an index into [`PARTS`]), summed.
+fn through(net: &HRNet, x: Tensor<4>, upto: usize) -> Tensor<1> {
+    let x = relu(batch_norm(&net.bn1, conv2d(&net.conv1, x)));
+    let x = relu(batch_norm(&net.bn2, conv2d(&net.conv2, x)));
+    if upto == 0 {
+        return x.sum();
+    }
+    let x = net.layer1.iter().fold(x, |x, b| b.forward(x));
+    if upto == 1 {
+        return x.sum();
+    }
+    let mut xs = net.transition1.forward(&[x]);
+    let stages = [
+        (&net.stage2, Some(&net.transition2)),
+        (&net.stage3, Some(&net.transition3)),
+        (&net.stage4, None),
+    ];
+    let mut part = 2;
+    for (modules, transition) in stages {
+        if upto == part {
+            return total(&xs);
+        }
+        xs = modules.iter().fold(xs, |xs, m| m.forward(xs));
+        part += 1;
+        if upto == part {
+            return total(&xs);
+        }
+        if let Some(t) = transition {
+            xs = t.forward(&xs);
+            part += 1;
+        }
+    }
+    conv2d(&net.final_layer, xs.swap_remove(0)).sum()
+}
+
+fn main() {
+    let mut args = std::env::args().skip(1).map(|a| a.parse::<usize>());
+    let views = args.next().and_then(Result::ok).unwrap_or(4);
+    let size = args.next().and_then(Result::ok).unwrap_or(224);
+    let d = Device::flex().autodiff();
+    let net = HRNetConfig::tiny(17).init(&d);
+    let n = views * 3 * size * size;
+    let img: Vec<f32> = (0..n)
+        .map(|i| ((i * 7919) % 255) as f32 / 255.0 - 0.5)
+        .collect();
+    let x = Tensor::<4>::from_data(TensorData::new(img, [views, 3, size, size]), &d);
+    println!(
+        "tiny HRNet, {views} views of {size} x {size}: forward and backward through each part"
+    );
+    let mut before = 0.0;
+    for (upto, name) in PARTS.iter().enumerate() {
+        let mut ts: Vec<f64> = (0..7)
+            .map(|_| {
+                let t = Instant::now();
+                drop(through(&net, x.clone(), upto).backward());
+                t.elapsed().as_secs_f64() * 1e3
+            })
+            .collect();
+        ts.sort_by(f64::total_cmp);
+        let median = ts[ts.len() / 2];
+        println!(
+            "through {name:12} {median:7.1} ms (fastest {:7.1}); the part {:6.1} ms",
+            ts[0],
+            median - before
+        );
+        before = median;
+    }
+}
