@@ -71,6 +71,12 @@ pub struct DecoderOptions {
     /// Metres from that lattice's first point to its last per axis: the box around the root where a
     /// person's joints are looked for.
     pub joint_span: [f64; 3],
+    /// With `query_joints`: the joint heatmap volume joins the query as its samples on the joint lattice
+    /// (turned with the heading under `heading_lattice`, layer-normalised) instead of as each joint's
+    /// centroid. A centroid keeps one number per joint and axis; a linear read of the samples told the
+    /// demo's body poses 0.18 R^2 better than of the centroids (docs/architecture.md, The image features
+    /// go unread). With `sample_skip` they also reach the heads directly.
+    pub joint_samples: bool,
     /// Only the body-pose head trains the shared query path (projection, blocks, final norm): the
     /// global orientation, the hands and face, betas, expression and the root offset get heads of
     /// their own that read it detached. Residuals the queries cannot explain (the heading's error,
@@ -109,6 +115,7 @@ impl Default for DecoderOptions {
             query_joints: false,
             joint_lattice: [5, 5, 8],
             joint_span: [1.0, 1.0, 1.75],
+            joint_samples: false,
             pose_trunk: false,
             height_features: 0,
         }
@@ -268,9 +275,12 @@ pub struct Decoder {
     pub volume_norm: bool,
     /// Present with [`DecoderOptions::query_norm`].
     pub query_norm: Option<LayerNorm>,
-    /// Present with joint centroids ([`DecoderConfig::joint_channels`] > 0): they are layer-normalised
-    /// before they join the query.
+    /// Present with joint centroids or samples ([`DecoderConfig::joint_channels`] > 0): they are
+    /// layer-normalised before they join the query.
     pub joint_norm: Option<LayerNorm>,
+    /// See [`DecoderOptions::joint_samples`].
+    #[module(skip)]
+    pub joint_samples: bool,
     /// Offsets from the root of the query's sample points (see [`DecoderOptions::query_lattice`]).
     #[module(skip)]
     pub lattice: Vec<[f32; 3]>,
@@ -391,11 +401,8 @@ impl DecoderConfig {
         let o = &self.options;
         let d = o.dim;
         Decoder {
-            query_proj: LinearConfig::new(
-                self.sample_width() + 3 * self.joint_channels + PARAM_DIM,
-                d,
-            )
-            .init(device),
+            query_proj: LinearConfig::new(self.sample_width() + self.joint_width() + PARAM_DIM, d)
+                .init(device),
             token_proj: LinearConfig::new(self.volume_channels, d).init(device),
             pos_proj: LinearConfig::new(6 * POS_FREQS, d).init(device),
             blocks: if o.use_htb {
@@ -429,14 +436,15 @@ impl DecoderConfig {
             heading_proj: self.heading.then(|| LinearConfig::new(2, d).init(device)),
             sample_proj: o
                 .sample_skip
-                .then(|| LinearConfig::new(self.sample_width(), d).init(device)),
+                .then(|| LinearConfig::new(self.skip_width(), d).init(device)),
             height_proj: (o.height_features > 0)
                 .then(|| LinearConfig::new(o.height_features, d).init(device)),
             query_norm: o
                 .query_norm
                 .then(|| LayerNormConfig::new(self.sample_width()).init(device)),
             joint_norm: (self.joint_channels > 0)
-                .then(|| LayerNormConfig::new(3 * self.joint_channels).init(device)),
+                .then(|| LayerNormConfig::new(self.joint_width()).init(device)),
+            joint_samples: o.joint_samples,
             lattice: lattice_offsets(o.query_lattice, o.query_span),
             heading_lattice: o.heading_lattice,
             volume_norm: o.volume_norm,
@@ -452,6 +460,24 @@ impl DecoderConfig {
     /// Channels of a query's volume sample: every lattice point's.
     fn sample_width(&self) -> usize {
         self.volume_channels * self.options.query_lattice.iter().product::<usize>()
+    }
+
+    /// Numbers a query reads from the joint heatmap volume: three per joint, or with
+    /// [`DecoderOptions::joint_samples`] one per joint and joint-lattice point.
+    fn joint_width(&self) -> usize {
+        let o = &self.options;
+        match o.joint_samples {
+            true => self.joint_channels * o.joint_lattice.iter().product::<usize>(),
+            false => 3 * self.joint_channels,
+        }
+    }
+
+    /// What `sample_proj` reads: the feature sample, and the joints' samples where they are read.
+    fn skip_width(&self) -> usize {
+        match self.options.joint_samples {
+            true => self.sample_width() + self.joint_width(),
+            false => self.sample_width(),
+        }
     }
 }
 
@@ -588,6 +614,37 @@ impl Decoder {
         (centroid.reshape([b, k, e, 3]) / total).reshape([b, k, e * 3])
     }
 
+    /// What a query reads of the joint heatmap volume `[B, E, X, Y, Z]`, layer-normalised: each joint's
+    /// centroid, or with [`DecoderOptions::joint_samples`] its samples on the joint lattice (turned with
+    /// `heading` under `heading_lattice`) -> `[B, K, W]`.
+    pub fn joint_inputs(
+        &self,
+        joints: Tensor<5>,
+        roots: Tensor<3>,
+        heading: Option<Tensor<3>>,
+        grid: &VoxelGrid,
+    ) -> Tensor<3> {
+        let [b, k, _] = roots.dims();
+        let part = match (self.joint_samples, heading) {
+            (true, Some(h)) if self.heading_lattice => {
+                sample_turned(joints, roots, h, &self.joint_lattice, grid)
+            }
+            (true, _) => {
+                let s = sample_at(joints, roots, &self.joint_lattice, grid);
+                let [_, _, l, e] = s.dims();
+                s.reshape([b, k, l * e])
+            }
+            (false, _) => self.joint_centroids(joints, roots, grid), // [B, K, E * 3]
+        };
+        // Raw, the centroids (a few tenths of the box) never steered the heads: in the learning test's
+        // frames, with each person's bends given only as joint offsets, the bend error stayed at 1.00 of
+        // predicting none; scaled by 20 it fell to 0.24.
+        match &self.joint_norm {
+            Some(norm) => norm.forward(part),
+            None => part,
+        }
+    }
+
     /// The same decoder starting its regression from `mean` `[PARAM_DIM]` (see [`params_vector`]).
     ///
     /// [`params_vector`]: crate::queries::params_vector
@@ -661,20 +718,15 @@ impl Decoder {
         if let Some(norm) = &self.query_norm {
             sampled = norm.forward(sampled);
         }
-        let skip = self
-            .sample_proj
-            .as_ref()
-            .map(|p| p.forward(sampled.clone()));
-        if let Some(j) = joints {
-            let mut centroids = self.joint_centroids(j, roots.clone(), grid); // [B, K, E * 3]
-            // Raw, the centroids (a few tenths of the box) never steered the heads: in the learning
-            // test's frames, with each person's bends given only as joint offsets, the bend error
-            // stayed at 1.00 of predicting none; scaled by 20 it fell to 0.24.
-            if let Some(norm) = &self.joint_norm {
-                centroids = norm.forward(centroids);
+        let joint_part = joints.map(|j| self.joint_inputs(j, roots.clone(), heading.clone(), grid));
+        let mut skip_in = sampled.clone();
+        if let Some(j) = joint_part {
+            if self.joint_samples {
+                skip_in = Tensor::cat(vec![skip_in, j.clone()], 2);
             }
-            sampled = Tensor::cat(vec![sampled, centroids], 2);
+            sampled = Tensor::cat(vec![sampled, j], 2);
         }
+        let skip = self.sample_proj.as_ref().map(|p| p.forward(skip_in));
         let mean = self.mean.val().detach().reshape([1, 1, PARAM_DIM]);
         let q_in = Tensor::cat(
             vec![sampled, mean.clone().repeat_dim(0, b).repeat_dim(1, k)],

@@ -586,3 +586,66 @@ fn a_standardised_volume_reads_every_channel_the_same_at_any_level_and_scale() {
         );
     }
 }
+
+/// With `joint_samples` a query reads the joint volume's samples on the joint lattice, turned with the
+/// heading under `heading_lattice` and layer-normalised (over each person's samples: the norm's initial
+/// gain 1 and bias 0): on a linear field they are the field at the hand-turned points, normalised by
+/// hand. The query projection widens by one input per joint and lattice point.
+#[test]
+fn joint_samples_are_the_turned_lattice_normalised() {
+    let d = Device::flex();
+    let (g, vol) = linear_field_volume(&d);
+    let lattice = [2, 2, 3];
+    let dec = |turn: bool| {
+        DecoderConfig::new(4)
+            .with_options(DecoderOptions {
+                dim: 8,
+                heads: 2,
+                query_joints: true,
+                joint_samples: true,
+                joint_lattice: lattice,
+                joint_span: [0.8, 0.6, 0.5],
+                heading_lattice: turn,
+                ..Default::default()
+            })
+            .with_joint_channels(1)
+            .with_heading(true)
+            .init(&d)
+    };
+    assert_eq!(dec(true).query_proj.weight.dims()[0], 4 + 12 + 53 * 6 + 20);
+    let roots = [[0.3f64, -0.8, 1.0], [1.1, -0.9, 0.9]];
+    let flat: Vec<f32> = roots.iter().flatten().map(|&x| x as f32).collect();
+    let roots_t = Tensor::<3>::from_data(TensorData::new(flat, [1, 2, 3]), &d);
+    let heading = Tensor::<3>::from_data(TensorData::new(vec![1f32, 0.0, 0.0, 1.0], [1, 2, 2]), &d);
+    let normalised = |x: Vec<f64>| {
+        let mean = x.iter().sum::<f64>() / x.len() as f64;
+        let var = x.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / x.len() as f64;
+        x.iter()
+            .map(|v| (v - mean) / (var + 1e-5).sqrt())
+            .collect::<Vec<_>>()
+    };
+    for turn in [true, false] {
+        let dec = dec(turn);
+        let got = dec.joint_inputs(vol.clone(), roots_t.clone(), Some(heading.clone()), &g);
+        assert_eq!(got.dims(), [1, 2, 12]);
+        let got = vals(got);
+        for (k, r) in roots.iter().enumerate() {
+            // The second person faces +y: the lattice's x is the world's +y, its y the world's -x.
+            let points = dec.joint_lattice.iter().map(|o| {
+                let [ox, oy, oz] = o.map(f64::from);
+                match (turn, k) {
+                    (true, 1) => [r[0] - oy, r[1] + ox, r[2] + oz],
+                    _ => [r[0] + ox, r[1] + oy, r[2] + oz],
+                }
+            });
+            let want = normalised(points.map(f).collect());
+            for (l, w) in want.iter().enumerate() {
+                let v = got[k * 12 + l] as f64;
+                assert!(
+                    (v - w).abs() < 1e-3,
+                    "turn {turn}, person {k}, point {l}: {v} vs {w}"
+                );
+            }
+        }
+    }
+}

@@ -436,10 +436,17 @@ impl ModelConfig {
             d.joint_lattice,
             d.joint_span,
         )?;
-        if d.heading_lattice && !(self.facing && d.query_lattice.iter().product::<usize>() > 1) {
+        let turns = d.query_lattice.iter().product::<usize>() > 1 || d.joint_samples;
+        if d.heading_lattice && !(self.facing && turns) {
             return Err((
                 "decoder.heading_lattice",
-                "true: the lattice turns with the facing head's heading, so it needs `facing = true` and a query_lattice of more than one point".into(),
+                "true: the lattice turns with the facing head's heading, so it needs `facing = true` and a query_lattice of more than one point (or joint_samples)".into(),
+            ));
+        }
+        if d.joint_samples && !d.query_joints {
+            return Err((
+                "decoder.joint_samples",
+                "true: it sets how the joint heatmap volume is read, so it needs `query_joints = true`".into(),
             ));
         }
         // Each feature is one input of `height_proj`: a count past this only sizes an allocation.

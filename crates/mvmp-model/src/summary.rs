@@ -197,17 +197,24 @@ impl Sizes {
 /// The decoder's MACs: token projection, query projection, blocks (or the baseline's MLP).
 fn decoder_macs(cfg: &ModelConfig, z: &Sizes) -> f64 {
     let (k, d, tokens) = (z.k, z.d, z.tokens);
-    // The query projection reads every lattice point of the features (and the joints' centroids).
-    let lattice = cfg.decoder.query_lattice.iter().product::<usize>() as f64;
-    let joints = if cfg.decoder.query_joints {
-        3.0 * z.j
-    } else {
-        0.0
+    // The query projection reads every lattice point of the features (and the joints' centroids or
+    // samples).
+    let dc = &cfg.decoder;
+    let lattice = dc.query_lattice.iter().product::<usize>() as f64;
+    let joints = match (dc.query_joints, dc.joint_samples) {
+        (true, true) => z.j * dc.joint_lattice.iter().product::<usize>() as f64,
+        (true, false) => 3.0 * z.j,
+        (false, _) => 0.0,
     };
-    // With `sample_skip` the lattice's samples are projected a second time, onto the heads' input.
-    let skip = if cfg.decoder.sample_skip { 2.0 } else { 1.0 };
+    // With `sample_skip` the lattice's samples (and the joints' samples) are projected a second time,
+    // onto the heads' input.
+    let skipped = match dc.joint_samples {
+        true => lattice * z.cf + joints,
+        false => lattice * z.cf,
+    };
+    let skip = if dc.sample_skip { skipped } else { 0.0 };
     let query_macs =
-        k * (skip * lattice * z.cf + joints + mvmp_decoder::queries::PARAM_DIM as f64) * d;
+        k * (skip + lattice * z.cf + joints + mvmp_decoder::queries::PARAM_DIM as f64) * d;
     tokens * z.cf * d
         + query_macs
         + if cfg.decoder.use_htb {

@@ -288,7 +288,7 @@ type Edit = fn(&mut ModelConfig);
 
 #[test]
 fn unusable_people_caps_thresholds_and_lattices_name_the_key() {
-    let cases: [(&str, Edit); 11] = [
+    let cases: [(&str, Edit); 12] = [
         ("max_people", |c| c.max_people = 100_000_000),
         ("max_people", |c| c.max_people = 0),
         ("root_threshold", |c| c.root_threshold = f32::NAN),
@@ -316,6 +316,8 @@ fn unusable_people_caps_thresholds_and_lattices_name_the_key() {
             c.facing = true;
             c.decoder.heading_lattice = true;
         }),
+        // How the joint volume is read, without reading it.
+        ("decoder.joint_samples", |c| c.decoder.joint_samples = true),
     ];
     for (key, edit) in cases {
         let mut c = ModelConfig::default();
@@ -327,6 +329,15 @@ fn unusable_people_caps_thresholds_and_lattices_name_the_key() {
         max_people: mvmp_model::config::MAX_PEOPLE,
         ..Default::default()
     };
+    c.validate().unwrap();
+    // The joint samples alone are a lattice to turn.
+    let mut c = ModelConfig {
+        facing: true,
+        ..Default::default()
+    };
+    c.decoder.query_joints = true;
+    c.decoder.joint_samples = true;
+    c.decoder.heading_lattice = true;
     c.validate().unwrap();
 }
 
