@@ -1,12 +1,12 @@
 //! Convolutions in training as the matrix products they are: the zero-padded input's taps of every
-//! output position side by side (the columns) multiply the weight. On flex columns and product are one
-//! operation ([`crate::product`], the columns from [`crate::im2col`]), whose backward adds them back in
-//! one pass; elsewhere each kernel tap is a strided
-//! slice of the padded input, channels last. Flex's own convolution backward is far slower when channels
-//! are few (4 views, forward / backward: a 3x3 over 16 channels at 56 x 56 3.9 / 34 ms; a 1x1 0.24 /
-//! 13 ms, the same 1x1 as a product 0.68 / 0.57 ms). The tiny HRNet's forward and backward went from
-//! 393-417 to 253-316 ms with the slices and to 205-230 ms with the im2col operation (`mvmp bench model
-//! --backward`).
+//! output position side by side (the columns) multiply the weight. On flex the columns are one
+//! operation ([`crate::im2col`], channels first, with its own col2im backward) and the product a
+//! batched matmul whose output is already channels first; elsewhere each kernel tap is a strided slice
+//! of the padded input, channels last. Flex's own convolution backward is far slower when channels are
+//! few (4 views, forward / backward: a 3x3 over 16 channels at 56 x 56 3.9 / 34 ms; a 1x1 0.24 / 13
+//! ms, the same 1x1 as a product 0.68 / 0.57 ms). The tiny HRNet's forward and backward went from
+//! 393-417 to 253-316 ms with the slices, to 205-230 ms with a columns operation and to 72-89 ms with
+//! the channels-first columns and the pointwise products below (`mvmp bench model --backward`).
 //!
 //! A 1 x 1 (x 1) convolution of stride 1 needs no columns: it is the weight times each batch item's
 //! channels-first input as it lies, one batched product whose gradients autodiff derives, with no
@@ -81,8 +81,8 @@ fn pointwise_product<const K: usize>(
     bias: Option<&burn::module::Param<Tensor<1>>>,
     x: Tensor<3>,
 ) -> Tensor<3> {
-    let [co, ci] = [weight.dims()[0], weight.dims()[1]];
-    let y = weight.clone().reshape([1, co, ci]).matmul(x);
+    let co = weight.dims()[0];
+    let y = weight.clone().reshape([1, co, x.dims()[1]]).matmul(x);
     match bias {
         Some(b) => y + b.val().reshape([1, co, 1]),
         None => y,
@@ -135,18 +135,23 @@ fn product3d(conv: &Conv3d, x: Tensor<5>, pad: [usize; 3]) -> Option<Tensor<5>> 
         pad,
         out,
     };
-    // The weight's taps in the columns' order: [Co, kd, kh, kw, Ci].
-    let weight = conv
-        .weight
-        .val()
-        .permute([0, 2, 3, 4, 1])
-        .reshape([co, taps * ci]);
-    let mut y = crate::product::columns_product(x, weight, geometry);
-    if let Some(bias) = &conv.bias {
-        y = y + bias.val().reshape([1, co]);
-    }
+    let y = planar_product(&conv.weight.val(), conv.bias.as_ref(), x, geometry);
     let [od, oh, ow] = out;
-    Some(y.reshape([b, od, oh, ow, co]).permute([0, 4, 1, 2, 3]))
+    Some(y.reshape([b, co, od, oh, ow]))
+}
+
+/// `weight [Co, Ci, k...]` times each batch item's planar columns of `x [B, Ci, D, H, W]`
+/// ([`crate::planar`]), plus the bias -> `[B, Co, Do * Ho * Wo]`, channels first as the input was.
+fn planar_product<const K: usize>(
+    weight: &Tensor<K>,
+    bias: Option<&burn::module::Param<Tensor<1>>>,
+    x: Tensor<5>,
+    geometry: Columns,
+) -> Tensor<3> {
+    let [b, ci] = [x.dims()[0], x.dims()[1]];
+    let x =
+        crate::im2col::columns(x, geometry).reshape([b, ci * geometry.taps(), geometry.outputs()]);
+    pointwise_product(weight, bias, x)
 }
 
 /// The convolution as a product, `pad` = (top, left, bottom, right); `None` when the kernel is wider
@@ -161,23 +166,28 @@ fn product(conv: &Conv2d, x: Tensor<4>, pad: [usize; 4]) -> Option<Tensor<4>> {
     if b * ho * wo * kh * kw * ci > PRODUCT_CAP.load(Ordering::Relaxed) {
         return None;
     }
-    // The weight's taps in the columns' order: [Co, kh, kw, Ci].
-    let weight = conv
-        .weight
-        .val()
-        .permute([0, 2, 3, 1])
-        .reshape([co, kh * kw * ci]);
-    let mut y = if x.device() == Device::flex() && crate::im2col::fused_im2col() {
+    if x.device() == Device::flex() && crate::im2col::fused_im2col() {
         let geometry = Columns {
             kernel: [1, kh, kw],
             stride: [1, sh, sw],
             pad: [0, top, left],
             out: [1, ho, wo],
         };
-        crate::product::columns_product(x.unsqueeze_dim(2), weight, geometry)
-    } else {
-        tensor_columns(x, [kh, kw], [sh, sw], pad, [ho, wo]).matmul(weight.transpose())
-    };
+        let y = planar_product(
+            &conv.weight.val(),
+            conv.bias.as_ref(),
+            x.unsqueeze_dim(2),
+            geometry,
+        );
+        return Some(y.reshape([b, co, ho, wo]));
+    }
+    // The weight's taps in the columns' order: [Co, kh, kw, Ci].
+    let weight = conv
+        .weight
+        .val()
+        .permute([0, 2, 3, 1])
+        .reshape([co, kh * kw * ci]);
+    let mut y = tensor_columns(x, [kh, kw], [sh, sw], pad, [ho, wo]).matmul(weight.transpose());
     if let Some(bias) = &conv.bias {
         y = y + bias.val().reshape([1, co]);
     }

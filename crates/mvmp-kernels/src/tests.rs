@@ -607,62 +607,6 @@ mod gelu {
     }
 }
 
-/// The columns' product as one operation is the two operations it replaces (the columns, then burn's
-/// matmul with the transposed weight) bit for bit: values and the gradients of input and weight, for
-/// 3x3x3, 1x1x1 and strided kernels, one batch item and two, a 2D convolution as depth 1, and products
-/// large enough to run on every thread.
-#[test]
-fn the_columns_product_is_columns_then_matmul_bit_for_bit() {
-    use crate::im2col::{Columns, columns};
-    use crate::product::columns_product;
-    let d = Device::flex().autodiff();
-    seed(7);
-    for (dims, kernel, stride, pad, co) in [
-        ([1, 8, 6, 7, 5], [3; 3], [1; 3], [1; 3], 6),
-        ([2, 3, 5, 6, 7], [1; 3], [1; 3], [0; 3], 4),
-        ([1, 4, 5, 8, 8], [3; 3], [2; 3], [1; 3], 3),
-        ([2, 5, 1, 9, 8], [1, 3, 3], [1, 2, 2], [0, 1, 1], 7),
-        // Products over flex's threshold for running on every thread.
-        ([1, 16, 8, 16, 16], [3; 3], [1; 3], [1; 3], 16),
-    ] {
-        let mut out = [0; 3];
-        for a in 0..3 {
-            out[a] = (dims[2 + a] + 2 * pad[a] - kernel[a]) / stride[a] + 1;
-        }
-        let g = Columns {
-            kernel,
-            stride,
-            pad,
-            out,
-        };
-        let taps: usize = kernel.iter().product();
-        let x = normal(dims, 1.0, &d).require_grad();
-        let wt = normal([co, taps * dims[1]], 0.3, &d).require_grad();
-        let n = dims[0] * out.iter().product::<usize>();
-        let r = normal([n, co], 1.0, &d);
-        let run = |fused: bool| {
-            let y = match fused {
-                true => columns_product(x.clone(), wt.clone(), g),
-                false => columns(x.clone(), g).matmul(wt.clone().transpose()),
-            };
-            let grads = (y.clone() * r.clone()).sum().backward();
-            [
-                y.detach().into_data(),
-                x.grad(&grads).unwrap().into_data(),
-                wt.grad(&grads).unwrap().into_data(),
-            ]
-            .map(|t| t.try_to_vec::<f32>().unwrap())
-        };
-        let (fused, two) = (run(true), run(false));
-        for (what, (a, b)) in ["values", "input gradient", "weight gradient"]
-            .iter()
-            .zip(fused.iter().zip(&two))
-        {
-            assert!(a == b, "{what} differ for {dims:?} {g:?}");
-        }
-    }
-}
-
 /// The convolution with the tiled gradients equals burn's: values and the gradients of input, weight
 /// and bias, for the RootNet's 7x7x7 front over a volume whose last axis is shorter than the
 /// kernel, uneven kernels and paddings, paddings wider than the volume, more positions than one tile,
