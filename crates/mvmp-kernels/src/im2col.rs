@@ -128,34 +128,43 @@ struct Run {
     hi: usize,
 }
 
-/// The runs of tap `t` (flat over the kernel) in an input plane of `size`, one per output line (fixed
-/// output depth and row) whose tap lands inside the input; the padding's are left out.
-fn runs(g: &Columns, [d, h, w]: [usize; 3], t: usize) -> impl Iterator<Item = Run> + '_ {
-    let [_, kh, kw] = g.kernel;
-    let k = [t / (kh * kw), t / kw % kh, t % kw];
-    let [od, oh, ow] = g.out;
-    let (sw, pw) = (g.stride[2], g.pad[2]);
-    // Output columns whose input column `o * sw + k - pw` lies in 0..w.
-    let lo = pw.saturating_sub(k[2]).div_ceil(sw);
-    let hi = match (w + pw).checked_sub(k[2] + 1) {
-        Some(last) => (last / sw + 1).min(ow),
+/// The output positions `lo..hi` along one axis of `out` positions whose tap `k` (stride `s`, padding
+/// `p` before) lands inside the input's `n`.
+fn span(out: usize, s: usize, k: usize, p: usize, n: usize) -> (usize, usize) {
+    let lo = p.saturating_sub(k).div_ceil(s);
+    let hi = match (n + p).checked_sub(k + 1) {
+        Some(last) => (last / s + 1).min(out),
         None => 0,
     };
-    let inside = move |o: usize, a: usize, n: usize| {
-        (o * g.stride[a] + k[a])
-            .checked_sub(g.pad[a])
-            .filter(|&i| i < n)
-    };
-    (0..od * oh).filter_map(move |line| {
-        let (z, y) = (line / oh, line % oh);
-        let (iz, iy) = (inside(z, 0, d)?, inside(y, 1, h)?);
-        (lo < hi).then(|| Run {
-            out: line * ow,
-            input: (iz * h + iy) * w + lo * sw + k[2] - pw,
-            lo,
-            hi,
-        })
-    })
+    (lo, hi.max(lo))
+}
+
+/// Calls `f` with each run of tap `t` (flat over the kernel) in an input plane of `size`, one per output
+/// line (fixed output depth and row) whose tap lands inside the input, in the order of the lines; the
+/// padding's are left out. Plain loops over the lines that land inside, rather than a test of every
+/// line: the tiny RootNet's lines are 8 voxels long, and its forward and backward took 89.6 / 101.1 ms
+/// this way against 103.9 / 108.5 (`mvmp bench model --backward`, alternating, values bit for bit).
+fn for_runs(g: &Columns, size: [usize; 3], t: usize, mut f: impl FnMut(Run)) {
+    let [_, kh, kw] = g.kernel;
+    let k = [t / (kh * kw), t / kw % kh, t % kw];
+    let [(z0, z1), (y0, y1), (lo, hi)] =
+        std::array::from_fn(|a| span(g.out[a], g.stride[a], k[a], g.pad[a], size[a]));
+    if lo == hi {
+        return;
+    }
+    let [_, oh, ow] = g.out;
+    let [_, h, w] = size;
+    let input_at = |o: usize, a: usize| o * g.stride[a] + k[a] - g.pad[a];
+    for z in z0..z1 {
+        for y in y0..y1 {
+            f(Run {
+                out: (z * oh + y) * ow,
+                input: (input_at(z, 0) * h + input_at(y, 1)) * w + input_at(lo, 2),
+                lo,
+                hi,
+            });
+        }
+    }
 }
 
 fn forward_host(x: &[f32], [b, c, d, h, w]: [usize; 5], g: &Columns) -> Vec<f32> {
@@ -167,7 +176,7 @@ fn forward_host(x: &[f32], [b, c, d, h, w]: [usize; 5], g: &Columns) -> Vec<f32>
         .for_each(|(bc, dst)| {
             let src = &x[bc * plane..(bc + 1) * plane];
             for (t, row) in dst.chunks_exact_mut(outputs).enumerate() {
-                for r in runs(g, [d, h, w], t) {
+                for_runs(g, [d, h, w], t, |r| {
                     let out = &mut row[r.out + r.lo..r.out + r.hi];
                     if sw == 1 {
                         out.copy_from_slice(&src[r.input..r.input + out.len()]);
@@ -175,7 +184,7 @@ fn forward_host(x: &[f32], [b, c, d, h, w]: [usize; 5], g: &Columns) -> Vec<f32>
                         let strided = src[r.input..].iter().step_by(sw);
                         out.iter_mut().zip(strided).for_each(|(o, s)| *o = *s);
                     }
-                }
+                });
             }
         });
     cols
@@ -188,7 +197,7 @@ fn backward_host(grad: &[f32], [b, c, d, h, w]: [usize; 5], g: &Columns) -> Vec<
     dx.par_chunks_mut(plane).enumerate().for_each(|(bc, dst)| {
         let src = &grad[bc * taps * outputs..(bc + 1) * taps * outputs];
         for (t, row) in src.chunks_exact(outputs).enumerate() {
-            for r in runs(g, [d, h, w], t) {
+            for_runs(g, [d, h, w], t, |r| {
                 let from = &row[r.out + r.lo..r.out + r.hi];
                 if sw == 1 {
                     let to = &mut dst[r.input..r.input + from.len()];
@@ -197,7 +206,7 @@ fn backward_host(grad: &[f32], [b, c, d, h, w]: [usize; 5], g: &Columns) -> Vec<
                     let to = dst[r.input..].iter_mut().step_by(sw);
                     to.zip(from).for_each(|(a, v)| *a += v);
                 }
-            }
+            });
         }
     });
     dx
