@@ -1,0 +1,76 @@
+//! The tiny RootNet's forward and backward on the autodiff flex device, and each kind of block it is
+//! made of at the sizes it runs them (the tiny config: 17 heatmap joints, `rootnet_width = 0.5`, group
+//! norm, a 32 x 32 x 8 grid): the 7^3 front, the residual blocks at each resolution, the upsampling
+//! blocks and the pooling. `mvmp bench model --backward` times the RootNet whole; this says which of its
+//! blocks the time is in (a row is one call of a block; its name says how often the V2V calls it).
+//!
+//! `cargo run --release -p mvmp-cli --example rootnet_parts` (median and fastest of 9 runs).
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+use burn::tensor::{Device, Distribution, Tensor};
+use mvmp_fusion::pool::max_pool3d_2;
+use mvmp_fusion::v2v::{Basic3DBlock, Res3DBlock, RootNetConfig, Upsample3DBlock, VolumeNorm};
+use std::time::Instant;
+
+/// Median and fastest of 9 runs of `f`, in ms.
+fn time(name: &str, f: impl Fn()) {
+    let mut ts: Vec<f64> = (0..9)
+        .map(|_| {
+            let t = Instant::now();
+            f();
+            t.elapsed().as_secs_f64() * 1e3
+        })
+        .collect();
+    ts.sort_by(f64::total_cmp);
+    println!("{name:44} {:7.1} ms (fastest {:7.1})", ts[4], ts[0]);
+}
+
+/// A random tracked volume `[1, c, x, y, z]`.
+fn volume(c: usize, [x, y, z]: [usize; 3], d: &Device) -> Tensor<5> {
+    Tensor::<5>::random([1, c, x, y, z], Distribution::Default, d).require_grad()
+}
+
+fn main() {
+    let d = Device::flex().autodiff();
+    let n = VolumeNorm::Group;
+    let full = [32, 32, 8];
+    let half = full.map(|a| a / 2);
+    let quarter = full.map(|a| a / 4);
+    let heatmaps = volume(17, full, &d);
+    let rootnet = RootNetConfig::new(17).with_width(0.5).with_norm(n).init(&d);
+    println!("tiny RootNet on a [1, 17, 32, 32, 8] heatmap volume: forward and backward");
+    time("the whole RootNet", || {
+        let (likelihood, offset) = rootnet.forward(heatmaps.clone());
+        drop((likelihood.sum() + offset.sum()).backward());
+    });
+    let front = Basic3DBlock::new(17, 8, 7, n, &d);
+    time("front: 7^3, 17 -> 8 channels, full", || {
+        drop(front.forward(heatmaps.clone()).sum().backward())
+    });
+    // Widths 8, 16, 32, 64 (the reference's 16 to 128 at `rootnet_width = 0.5`).
+    for (name, c, co, size) in [
+        ("residual 8 -> 16, full (once)", 8, 16, full),
+        ("residual 16 -> 16, full (once)", 16, 16, full),
+        ("residual 16 -> 32, half (once)", 16, 32, half),
+        ("residual 32 -> 32, half (twice)", 32, 32, half),
+        ("residual 32 -> 64, quarter (once)", 32, 64, quarter),
+        ("residual 64 -> 64, quarter (twice)", 64, 64, quarter),
+    ] {
+        let block = Res3DBlock::new(c, co, n, &d);
+        let x = volume(c, size, &d);
+        time(name, || drop(block.forward(x.clone()).sum().backward()));
+    }
+    for (name, c, co, size) in [
+        ("upsampling 64 -> 32, quarter to half", 64, 32, quarter),
+        ("upsampling 32 -> 16, half to full", 32, 16, half),
+    ] {
+        let block = Upsample3DBlock::new(c, co, n, &d);
+        let x = volume(c, size, &d);
+        time(name, || drop(block.forward(x.clone()).sum().backward()));
+    }
+    let x = volume(16, full, &d);
+    time("max pooling by 2, 16 channels, full", || {
+        drop(max_pool3d_2(x.clone()).sum().backward())
+    });
+}
