@@ -458,13 +458,13 @@ impl DecoderConfig {
 
 impl DecoderConfig {
     /// Channels of a query's volume sample: every lattice point's.
-    fn sample_width(&self) -> usize {
+    pub fn sample_width(&self) -> usize {
         self.volume_channels * self.options.query_lattice.iter().product::<usize>()
     }
 
     /// Numbers a query reads from the joint heatmap volume: three per joint, or with
     /// [`DecoderOptions::joint_samples`] one per joint and joint-lattice point.
-    fn joint_width(&self) -> usize {
+    pub fn joint_width(&self) -> usize {
         let o = &self.options;
         match o.joint_samples {
             true => self.joint_channels * o.joint_lattice.iter().product::<usize>(),
@@ -473,7 +473,7 @@ impl DecoderConfig {
     }
 
     /// What `sample_proj` reads: the feature sample, and the joints' samples where they are read.
-    fn skip_width(&self) -> usize {
+    pub fn skip_width(&self) -> usize {
         match self.options.joint_samples {
             true => self.sample_width() + self.joint_width(),
             false => self.sample_width(),
@@ -563,6 +563,19 @@ fn sample_at(
     trilinear_sample(volume, points.reshape([b, k * l, 3]), grid).reshape([b, k, l, c])
 }
 
+/// [`sample_at`] with each root's samples side by side -> `[B, K, L * C]`.
+fn sample_flat(
+    volume: Tensor<5>,
+    roots: Tensor<3>,
+    offsets: &[[f32; 3]],
+    grid: &VoxelGrid,
+) -> Tensor<3> {
+    let [b, k, _] = roots.dims();
+    let s = sample_at(volume, roots, offsets, grid);
+    let [_, _, l, c] = s.dims();
+    s.reshape([b, k, l * c])
+}
+
 impl Decoder {
     /// The volume `[B, C, X, Y, Z]` at every lattice point around each root `[B, K, 3]` -> `[B, K, L * C]`.
     pub fn sample_lattice(
@@ -571,13 +584,10 @@ impl Decoder {
         roots: Tensor<3>,
         grid: &VoxelGrid,
     ) -> Tensor<3> {
-        let [b, k, _] = roots.dims();
         if self.lattice.len() <= 1 {
             return trilinear_sample(volume, roots, grid);
         }
-        let s = sample_at(volume, roots, &self.lattice, grid);
-        let [_, _, l, c] = s.dims();
-        s.reshape([b, k, l * c])
+        sample_flat(volume, roots, &self.lattice, grid)
     }
 
     /// [`Decoder::sample_lattice`] with the lattice turned about the vertical so that its x axis points
@@ -624,16 +634,11 @@ impl Decoder {
         heading: Option<Tensor<3>>,
         grid: &VoxelGrid,
     ) -> Tensor<3> {
-        let [b, k, _] = roots.dims();
         let part = match (self.joint_samples, heading) {
             (true, Some(h)) if self.heading_lattice => {
                 sample_turned(joints, roots, h, &self.joint_lattice, grid)
             }
-            (true, _) => {
-                let s = sample_at(joints, roots, &self.joint_lattice, grid);
-                let [_, _, l, e] = s.dims();
-                s.reshape([b, k, l * e])
-            }
+            (true, _) => sample_flat(joints, roots, &self.joint_lattice, grid),
             (false, _) => self.joint_centroids(joints, roots, grid), // [B, K, E * 3]
         };
         // Raw, the centroids (a few tenths of the box) never steered the heads: in the learning test's

@@ -51,14 +51,7 @@ pub fn conv2d(conv: &Conv2d, x: Tensor<4>) -> Tensor<4> {
         Some([0, 0, 0, 0])
             if plain && x.is_autodiff() && pointwise(&conv.kernel_size, &conv.stride) =>
         {
-            let [b, ci, h, w] = x.dims();
-            let y = pointwise_product(
-                &conv.weight.val(),
-                conv.bias.as_ref(),
-                x.reshape([b, ci, h * w]),
-            );
-            let co = y.dims()[1];
-            y.reshape([b, co, h, w])
+            pointwise_conv(&conv.weight.val(), conv.bias.as_ref(), x)
         }
         Some(pad) if plain && x.is_autodiff() => {
             product(conv, x.clone(), pad).unwrap_or_else(|| conv.forward(x))
@@ -72,10 +65,22 @@ fn pointwise(kernel: &[usize], stride: &[usize]) -> bool {
     kernel.iter().chain(stride).all(|&n| n == 1)
 }
 
-/// A pointwise convolution in the channels-first layout it is given: `weight [Co, Ci, 1, ...]` times each
-/// batch item's `x [B, Ci, P]` (P positions) -> `[B, Co, P]`. No columns and no transposes: as a columns
-/// product the same 1x1 (4 views of 64 channels at 56 x 56, HRNet's first layer) took 2.6-4.7 ms
-/// forward and backward, as this product 1.0-1.4 ms.
+/// A pointwise convolution in the channels-first layout it is given: `weight [Co, Ci, 1, ...]` times
+/// each batch item's `x [B, Ci, ...]`, its positions flattened -> `[B, Co, ...]`. No columns and no
+/// transposes: as a columns product the same 1x1 (4 views of 64 channels at 56 x 56, HRNet's first
+/// layer) took 2.6-4.7 ms forward and backward, as this product 1.0-1.4 ms.
+fn pointwise_conv<const D: usize, const K: usize>(
+    weight: &Tensor<K>,
+    bias: Option<&burn::module::Param<Tensor<1>>>,
+    x: Tensor<D>,
+) -> Tensor<D> {
+    let mut dims = x.dims();
+    let y = pointwise_product(weight, bias, x.flatten::<3>(2, D - 1));
+    dims[1] = y.dims()[1];
+    y.reshape(dims)
+}
+
+/// [`pointwise_conv`] on `x [B, Ci, P]` (P positions) -> `[B, Co, P]`.
 fn pointwise_product<const K: usize>(
     weight: &Tensor<K>,
     bias: Option<&burn::module::Param<Tensor<1>>>,
@@ -103,14 +108,7 @@ pub fn conv3d(conv: &Conv3d, x: Tensor<5>) -> Tensor<5> {
         return conv.forward(x);
     }
     if pad == [0; 3] && pointwise(&conv.kernel_size, &conv.stride) {
-        let [b, ci, d, h, w] = x.dims();
-        let y = pointwise_product(
-            &conv.weight.val(),
-            conv.bias.as_ref(),
-            x.reshape([b, ci, d * h * w]),
-        );
-        let co = y.dims()[1];
-        return y.reshape([b, co, d, h, w]);
+        return pointwise_conv(&conv.weight.val(), conv.bias.as_ref(), x);
     }
     product3d(conv, x.clone(), pad).unwrap_or_else(|| conv.forward(x))
 }
@@ -141,17 +139,14 @@ fn product3d(conv: &Conv3d, x: Tensor<5>, pad: [usize; 3]) -> Option<Tensor<5>> 
 }
 
 /// `weight [Co, Ci, k...]` times each batch item's planar columns of `x [B, Ci, D, H, W]`
-/// ([`crate::planar`]), plus the bias -> `[B, Co, Do * Ho * Wo]`, channels first as the input was.
+/// ([`crate::im2col`]), plus the bias -> `[B, Co, Do * Ho * Wo]`, channels first as the input was.
 fn planar_product<const K: usize>(
     weight: &Tensor<K>,
     bias: Option<&burn::module::Param<Tensor<1>>>,
     x: Tensor<5>,
     geometry: Columns,
 ) -> Tensor<3> {
-    let [b, ci] = [x.dims()[0], x.dims()[1]];
-    let x =
-        crate::im2col::columns(x, geometry).reshape([b, ci * geometry.taps(), geometry.outputs()]);
-    pointwise_product(weight, bias, x)
+    pointwise_product(weight, bias, crate::im2col::columns(x, geometry))
 }
 
 /// The convolution as a product, `pad` = (top, left, bottom, right); `None` when the kernel is wider

@@ -151,6 +151,19 @@ pub struct MvmpOutput {
 }
 
 impl ModelConfig {
+    /// The decoder this model builds: its options and what the rest of the config fixes.
+    pub fn decoder_config(&self) -> DecoderConfig {
+        let joints = match self.decoder.query_joints {
+            true => self.heatmap_joints.len(),
+            false => 0,
+        };
+        DecoderConfig::new(self.feature_channels)
+            .with_options(self.decoder.clone())
+            .with_joint_channels(joints)
+            .with_heading(self.facing)
+            .with_attention_tile(self.attention_tile)
+    }
+
     pub fn init(&self, device: &Device) -> MvmpHmr {
         let vit = self
             .vit()
@@ -164,16 +177,7 @@ impl ModelConfig {
                 .with_width(self.rootnet_width)
                 .with_norm(self.rootnet_norm)
                 .init(device),
-            decoder: DecoderConfig::new(self.feature_channels)
-                .with_options(self.decoder.clone())
-                .with_joint_channels(if self.decoder.query_joints {
-                    self.heatmap_joints.len()
-                } else {
-                    0
-                })
-                .with_heading(self.facing)
-                .with_attention_tile(self.attention_tile)
-                .init(device),
+            decoder: self.decoder_config().init(device),
             deformable: (self.fusion == FusionMode::Deformable)
                 .then(|| DeformableFusionConfig::new().init(device)),
             facing: self

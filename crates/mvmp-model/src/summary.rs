@@ -198,23 +198,15 @@ impl Sizes {
 fn decoder_macs(cfg: &ModelConfig, z: &Sizes) -> f64 {
     let (k, d, tokens) = (z.k, z.d, z.tokens);
     // The query projection reads every lattice point of the features (and the joints' centroids or
-    // samples).
-    let dc = &cfg.decoder;
-    let lattice = dc.query_lattice.iter().product::<usize>() as f64;
-    let joints = match (dc.query_joints, dc.joint_samples) {
-        (true, true) => z.j * dc.joint_lattice.iter().product::<usize>() as f64,
-        (true, false) => 3.0 * z.j,
-        (false, _) => 0.0,
+    // samples); with `sample_skip` the features' samples (and the joints' samples) are projected a
+    // second time, onto the heads' input.
+    let dc = cfg.decoder_config();
+    let skip = match cfg.decoder.sample_skip {
+        true => dc.skip_width(),
+        false => 0,
     };
-    // With `sample_skip` the lattice's samples (and the joints' samples) are projected a second time,
-    // onto the heads' input.
-    let skipped = match dc.joint_samples {
-        true => lattice * z.cf + joints,
-        false => lattice * z.cf,
-    };
-    let skip = if dc.sample_skip { skipped } else { 0.0 };
-    let query_macs =
-        k * (skip + lattice * z.cf + joints + mvmp_decoder::queries::PARAM_DIM as f64) * d;
+    let inputs = skip + dc.sample_width() + dc.joint_width() + mvmp_decoder::queries::PARAM_DIM;
+    let query_macs = k * inputs as f64 * d;
     tokens * z.cf * d
         + query_macs
         + if cfg.decoder.use_htb {
