@@ -8,12 +8,14 @@
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
+#[path = "parts/timing.rs"]
+mod timing;
+
 use burn::tensor::activation::relu;
 use burn::tensor::{Device, Tensor, TensorData};
 use mvmp_backbone::hrnet::{HRNet, HRNetConfig};
 use mvmp_kernels::conv::conv2d;
 use mvmp_kernels::norm::batch_norm;
-use std::time::Instant;
 
 const PARTS: [&str; 9] = [
     "stem",
@@ -67,10 +69,28 @@ fn through(net: &HRNet, x: Tensor<4>, upto: usize) -> Tensor<1> {
     conv2d(&net.final_layer, xs.swap_remove(0)).sum()
 }
 
+/// Positional argument `i`, `default` when absent; refused, naming `what` it must be, unless `ok` holds.
+fn argument(i: usize, what: &str, default: usize, ok: fn(usize) -> bool) -> std::io::Result<usize> {
+    let Some(text) = std::env::args().nth(i) else {
+        return Ok(default);
+    };
+    match text.parse::<usize>() {
+        Ok(n) if ok(n) => Ok(n),
+        _ => Err(std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            format!("argument {i}: {text:?} is not {what}"),
+        )),
+    }
+}
+
 fn main() {
-    let mut args = std::env::args().skip(1).map(|a| a.parse::<usize>());
-    let views = args.next().and_then(Result::ok).unwrap_or(4);
-    let size = args.next().and_then(Result::ok).unwrap_or(224);
+    timing::finish("hrnet_parts", run());
+}
+
+fn run() -> std::io::Result<()> {
+    let views = argument(1, "VIEWS, a count of at least 1", 4, |n| n >= 1)?;
+    let side = "SIZE, a multiple of 4 of at least 32 pixels";
+    let size = argument(2, side, 224, |n| n >= 32 && n.is_multiple_of(4))?;
     let d = Device::flex().autodiff();
     let net = HRNetConfig::tiny(17).init(&d);
     let n = views * 3 * size * size;
@@ -78,25 +98,18 @@ fn main() {
         .map(|i| ((i * 7919) % 255) as f32 / 255.0 - 0.5)
         .collect();
     let x = Tensor::<4>::from_data(TensorData::new(img, [views, 3, size, size]), &d);
-    println!(
+    timing::print(format_args!(
         "tiny HRNet, {views} views of {size} x {size}: forward and backward through each part"
-    );
+    ))?;
     let mut before = 0.0;
     for (upto, name) in PARTS.iter().enumerate() {
-        let mut ts: Vec<f64> = (0..7)
-            .map(|_| {
-                let t = Instant::now();
-                drop(through(&net, x.clone(), upto).backward());
-                t.elapsed().as_secs_f64() * 1e3
-            })
-            .collect();
-        ts.sort_by(f64::total_cmp);
-        let median = ts[ts.len() / 2];
-        println!(
-            "through {name:12} {median:7.1} ms (fastest {:7.1}); the part {:6.1} ms",
-            ts[0],
+        let (median, fastest) =
+            timing::median_and_fastest(7, || drop(through(&net, x.clone(), upto).backward()));
+        timing::print(format_args!(
+            "through {name:12} {median:7.1} ms (fastest {fastest:7.1}); the part {:6.1} ms",
             median - before
-        );
+        ))?;
         before = median;
     }
+    Ok(())
 }

@@ -8,22 +8,19 @@
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
+#[path = "parts/timing.rs"]
+mod timing;
+
 use burn::tensor::{Device, Distribution, Tensor};
 use mvmp_fusion::pool::max_pool3d_2;
 use mvmp_fusion::v2v::{Basic3DBlock, Res3DBlock, RootNetConfig, Upsample3DBlock, VolumeNorm};
-use std::time::Instant;
 
-/// Median and fastest of 9 runs of `f`, in ms.
-fn time(name: &str, f: impl Fn()) {
-    let mut ts: Vec<f64> = (0..9)
-        .map(|_| {
-            let t = Instant::now();
-            f();
-            t.elapsed().as_secs_f64() * 1e3
-        })
-        .collect();
-    ts.sort_by(f64::total_cmp);
-    println!("{name:44} {:7.1} ms (fastest {:7.1})", ts[4], ts[0]);
+/// Times `f` (9 runs) and prints the row.
+fn time(name: &str, f: impl Fn()) -> std::io::Result<()> {
+    let (median, fastest) = timing::median_and_fastest(9, f);
+    timing::print(format_args!(
+        "{name:44} {median:7.1} ms (fastest {fastest:7.1})"
+    ))
 }
 
 /// A random tracked volume `[1, c, x, y, z]`.
@@ -32,6 +29,10 @@ fn volume(c: usize, [x, y, z]: [usize; 3], d: &Device) -> Tensor<5> {
 }
 
 fn main() {
+    timing::finish("rootnet_parts", run());
+}
+
+fn run() -> std::io::Result<()> {
     let d = Device::flex().autodiff();
     let n = VolumeNorm::Group;
     let full = [32, 32, 8];
@@ -39,15 +40,17 @@ fn main() {
     let quarter = full.map(|a| a / 4);
     let heatmaps = volume(17, full, &d);
     let rootnet = RootNetConfig::new(17).with_width(0.5).with_norm(n).init(&d);
-    println!("tiny RootNet on a [1, 17, 32, 32, 8] heatmap volume: forward and backward");
+    timing::print(format_args!(
+        "tiny RootNet on a [1, 17, 32, 32, 8] heatmap volume: forward and backward"
+    ))?;
     time("the whole RootNet", || {
         let (likelihood, offset) = rootnet.forward(heatmaps.clone());
         drop((likelihood.sum() + offset.sum()).backward());
-    });
+    })?;
     let front = Basic3DBlock::new(17, 8, 7, n, &d);
     time("front: 7^3, 17 -> 8 channels, full", || {
         drop(front.forward(heatmaps.clone()).sum().backward())
-    });
+    })?;
     // Widths 8, 16, 32, 64 (the reference's 16 to 128 at `rootnet_width = 0.5`).
     for (name, c, co, size) in [
         ("residual 8 -> 16, full (once)", 8, 16, full),
@@ -59,7 +62,7 @@ fn main() {
     ] {
         let block = Res3DBlock::new(c, co, n, &d);
         let x = volume(c, size, &d);
-        time(name, || drop(block.forward(x.clone()).sum().backward()));
+        time(name, || drop(block.forward(x.clone()).sum().backward()))?;
     }
     for (name, c, co, size) in [
         ("upsampling 64 -> 32, quarter to half", 64, 32, quarter),
@@ -67,10 +70,10 @@ fn main() {
     ] {
         let block = Upsample3DBlock::new(c, co, n, &d);
         let x = volume(c, size, &d);
-        time(name, || drop(block.forward(x.clone()).sum().backward()));
+        time(name, || drop(block.forward(x.clone()).sum().backward()))?;
     }
     let x = volume(16, full, &d);
     time("max pooling by 2, 16 channels, full", || {
         drop(max_pool3d_2(x.clone()).sum().backward())
-    });
+    })
 }
