@@ -38,6 +38,7 @@ pub fn probe(args: &ProbeArgs, device: &Device) -> Result<()> {
         span: args.span,
         views: args.views.unwrap_or(tcfg.test_views),
         max_frames: args.frames,
+        sigma: tcfg.loss.heatmap_sigma,
     };
     let initial = mvmp_train::train::seeded_init(&mcfg, device, tcfg.seed);
     let models = [("trained", &pred.model), ("initial", &initial)];
@@ -115,7 +116,7 @@ type Features = dyn Fn(&ProbedPerson) -> Vec<f32>;
 /// The feature sets probed for one model: the root height alone, each volume, and each with the height.
 fn rows(label: &str, train: &[ProbedPerson], test: &[ProbedPerson]) -> Result<Vec<ProbeScore>> {
     let with_height = |a: &[f32], p: &ProbedPerson| [a, &p.height].concat();
-    let sets: [(&str, Box<Features>); 7] = [
+    let sets: [(&str, Box<Features>); 10] = [
         ("root height", Box::new(|p| p.height.clone())),
         ("image-feature volume", Box::new(|p| p.volume.clone())),
         (
@@ -132,13 +133,28 @@ fn rows(label: &str, train: &[ProbedPerson], test: &[ProbedPerson]) -> Result<Ve
             "heatmap centroids + height",
             Box::new(move |p| with_height(&p.centroids, p)),
         ),
+        (
+            "ground-truth heatmap volume",
+            Box::new(|p| p.true_heatmaps.clone()),
+        ),
+        (
+            "ground-truth heatmap volume + height",
+            Box::new(move |p| with_height(&p.true_heatmaps, p)),
+        ),
+        (
+            "ground-truth heatmap centroids + height",
+            Box::new(move |p| with_height(&p.true_centroids, p)),
+        ),
     ];
-    // The height does not depend on the weights: it is scored once, with the trained model.
+    // The height and the ground-truth maps do not depend on the weights: scored once, with the trained
+    // model.
     (sets.iter())
-        .filter(|(name, _)| label == "trained" || *name != "root height")
+        .filter(|(name, _)| {
+            label == "trained" || !(*name == "root height" || name.starts_with("ground"))
+        })
         .map(|(name, f)| {
             let name = match *name {
-                "root height" => name.to_string(),
+                n if n == "root height" || n.starts_with("ground") => n.to_string(),
                 n => format!("{n}, {label}"),
             };
             score(&name, train, test, f).map_err(|e| anyhow::anyhow!("{}: {e}", name))

@@ -13,10 +13,11 @@ use nalgebra::{DMatrix, RowDVector, SymmetricEigen};
 use mvmp_data::dataset::FrameDataset;
 use mvmp_data::loader::{FrameBatch, FrameBatcher, PersonGt, Split, ViewChoice};
 use mvmp_decoder::{height_features, lattice_offsets, sample_turned};
+use mvmp_fusion::{FusionMode, SamplingGrid, fuse_views};
 use mvmp_model::MvmpHmr;
 
 use crate::TrainError;
-use crate::step::{batch_grids, joint_heading};
+use crate::step::{HostGt, batch_grids, joint_heading, joint_heatmap_targets};
 
 /// Body joints after the pelvis (SMPL-X order) whose offsets make up the probed pose.
 const POSE_JOINTS: std::ops::Range<usize> = 1..22;
@@ -36,6 +37,8 @@ pub struct ProbeOptions {
     pub views: usize,
     /// Frames read per split at most, spread evenly over it (0: all).
     pub max_frames: usize,
+    /// Width of the ground-truth heatmaps' Gaussians, map pixels (the training's `heatmap_sigma`).
+    pub sigma: f32,
 }
 
 /// What the probe reads of one person.
@@ -49,6 +52,11 @@ pub struct ProbedPerson {
     /// Each heatmap joint's centroid over the lattice in the person's frame, metres, `J * 3`: the
     /// lattice offsets weighted by the squared non-negative heatmap there (zero where it has none).
     pub centroids: Vec<f32>,
+    /// The heatmap volume fused, as the model fuses its own, from the heatmap loss's targets (Gaussians
+    /// at the visible ground-truth joints) on the lattice, `L * J`: what perfect 2D maps would give.
+    pub true_heatmaps: Vec<f32>,
+    /// Each heatmap joint's centroid over the lattice in `true_heatmaps`, as `centroids`.
+    pub true_centroids: Vec<f32>,
     /// The root height and its Gaussian bumps.
     pub height: Vec<f32>,
     /// The body joints' offsets from the pelvis in the person's frame, metres, `21 * 3`.
@@ -83,7 +91,7 @@ pub fn collect(
         // Spread over the split, so that a few frames still come from several scenes.
         let batch = batcher.batch(vec![ds.load(i * ds.len() / n)?], device);
         progress(i, n);
-        out.extend(probe_frame(model, &batch, &lattice, device));
+        out.extend(probe_frame(model, &batch, &lattice, opts.sigma, device));
     }
     Ok(out)
 }
@@ -104,6 +112,7 @@ fn probe_frame(
     model: &MvmpHmr,
     batch: &FrameBatch,
     lattice: &[[f32; 3]],
+    sigma: f32,
     device: &Device,
 ) -> Vec<ProbedPerson> {
     let cfg = &model.config;
@@ -120,7 +129,18 @@ fn probe_frame(
     let heads = rows(heads.collect(), 2).reshape([1, k, 2]);
     let grids = batch_grids(cfg, batch, device);
     let volume = model.feature_volume(batch.images.clone(), &grids);
-    let (_, hvol) = model.detect_with_volume(batch.images.clone(), &grids);
+    let (det, hvol) = model.detect_with_volume(batch.images.clone(), &grids);
+    let stride = cfg.heatmap_stride() as f32;
+    let truth = joint_heatmap_targets(
+        det.heatmaps.dims(),
+        stride,
+        &HostGt::new(batch),
+        cfg,
+        sigma,
+        device,
+    );
+    let hgrids: Vec<SamplingGrid> = grids.iter().map(|g| g.heatmaps.clone()).collect();
+    let tvol = fuse_views(truth, &hgrids, FusionMode::Mean);
     let at = |v: Tensor<5>| {
         host(sample_turned(
             v,
@@ -130,7 +150,7 @@ fn probe_frame(
             &cfg.grid,
         ))
     };
-    let (fv, fh) = (at(volume), at(hvol));
+    let (fv, fh, ft) = (at(volume), at(hvol), at(tvol));
     let bumps = host(height_features(roots.clone(), HEIGHT_BUMPS));
     let (cv, ch) = (fv.len() / k, fh.len() / k);
     (people.iter().enumerate())
@@ -143,6 +163,8 @@ fn probe_frame(
                 volume: fv[j * cv..(j + 1) * cv].to_vec(),
                 centroids: centroids(&heatmaps, lattice),
                 heatmaps,
+                true_centroids: centroids(&ft[j * ch..(j + 1) * ch], lattice),
+                true_heatmaps: ft[j * ch..(j + 1) * ch].to_vec(),
                 height,
                 pose: body_frame_pose(&p.joints_3d, *h),
             }

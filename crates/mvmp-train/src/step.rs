@@ -191,17 +191,18 @@ pub fn heatmap_term(
     joint_heatmap_term(det.heatmaps.clone(), stride, gt, cfg, sigma, device)
 }
 
-/// The heatmap loss of maps `[B, V, J, h, w]` of the heatmap joints, `stride` network pixels per map
-/// pixel, against Gaussians of width `sigma` (map pixels) at the visible ground-truth joints.
-pub fn joint_heatmap_term(
-    maps: Tensor<5>,
+/// The heatmap loss's targets `dims` (`[B, V, J, h, w]`, `stride` network pixels per map pixel):
+/// per view and heatmap joint, the largest of the Gaussians (width `sigma`, map pixels) at the people's
+/// visible ground-truth joints.
+pub fn joint_heatmap_targets(
+    dims: [usize; 5],
     stride: f32,
     gt: &HostGt,
     cfg: &ModelConfig,
     sigma: f32,
     device: &Device,
-) -> Tensor<1> {
-    let [b, v, j, h, w] = maps.dims();
+) -> Tensor<5> {
+    let [b, v, j, h, w] = dims;
     let mut target = Vec::with_capacity(b * v * j * h * w);
     for bi in 0..b {
         for vi in 0..v {
@@ -223,7 +224,21 @@ pub fn joint_heatmap_term(
             target.extend(map);
         }
     }
-    let target = Tensor::from_data(TensorData::new(target, [b, v, j, h, w]), device);
+    Tensor::from_data(TensorData::new(target, dims), device)
+}
+
+/// The heatmap loss of maps `[B, V, J, h, w]` of the heatmap joints, `stride` network pixels per map
+/// pixel, against Gaussians of width `sigma` (map pixels) at the visible ground-truth joints.
+pub fn joint_heatmap_term(
+    maps: Tensor<5>,
+    stride: f32,
+    gt: &HostGt,
+    cfg: &ModelConfig,
+    sigma: f32,
+    device: &Device,
+) -> Tensor<1> {
+    let target = joint_heatmap_targets(maps.dims(), stride, gt, cfg, sigma, device);
+    let [b, v, j, _, _] = maps.dims();
     // A heatmap is supervised (towards zero where nobody shows the joint) only where the item's dataset
     // annotates that joint.
     let mut weight = Vec::with_capacity(b * v * j);

@@ -2062,6 +2062,8 @@ fn probe_people(
                 volume: f,
                 heatmaps: vec![],
                 centroids: vec![],
+                true_heatmaps: vec![],
+                true_centroids: vec![],
                 height: vec![],
             }
         })
@@ -2210,6 +2212,7 @@ fn the_volume_probe_reads_each_person_in_their_own_frame() {
         span: [0.5, 0.5, 1.0],
         views: 2,
         max_frames: 0,
+        sigma: 2.0,
     };
     let people = collect(&model, dataset(), Split::Train, &opts, &device, |_, _| {}).unwrap();
     let ds =
@@ -2218,10 +2221,16 @@ fn the_volume_probe_reads_each_person_in_their_own_frame() {
         .flat_map(|i| ds.load(i).unwrap().people)
         .collect();
     assert_eq!(people.len(), truth.len());
+    // The lattice round each root lies on the person's own joints' Gaussians.
+    let truth_mass: f32 = people.iter().flat_map(|p| &p.true_heatmaps).sum();
+    assert!(truth_mass > 0.0);
     for (p, t) in people.iter().zip(&truth) {
         assert_eq!(p.volume.len(), 12 * cfg.feature_channels);
         assert_eq!(p.heatmaps.len(), 12 * cfg.heatmap_joints.len());
         assert_eq!(p.centroids.len(), 3 * cfg.heatmap_joints.len());
+        assert_eq!(p.true_heatmaps.len(), p.heatmaps.len());
+        // Fused from Gaussians of peak 1: a mean over views of values in [0, 1].
+        assert!(p.true_heatmaps.iter().all(|&x| (0.0..=1.0).contains(&x)));
         // A centroid is a weighted mean of the lattice's offsets: inside its box.
         for c in p.centroids.chunks(3) {
             assert!(
