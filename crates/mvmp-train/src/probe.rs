@@ -42,7 +42,7 @@ pub struct ProbeOptions {
 }
 
 /// What the probe reads of one person.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Default)]
 pub struct ProbedPerson {
     pub scene: String,
     /// The image-feature volume on the lattice, `L * Cf`.
@@ -427,11 +427,7 @@ mod tests {
                 .flat_map(|(s, &n)| {
                     (0..n).map(move |_| ProbedPerson {
                         scene: format!("scene_{s:03}"),
-                        volume: vec![],
-                        heatmaps: vec![],
-                        centroids: vec![],
-                        height: vec![],
-                        pose: vec![],
+                        ..Default::default()
                     })
                 })
                 .collect()

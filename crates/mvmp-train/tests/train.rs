@@ -2060,11 +2060,7 @@ fn probe_people(
                 scene: format!("scene_{:03}", i / 5),
                 pose: pose(i, &f),
                 volume: f,
-                heatmaps: vec![],
-                centroids: vec![],
-                true_heatmaps: vec![],
-                true_centroids: vec![],
-                height: vec![],
+                ..Default::default()
             }
         })
         .collect()
