@@ -114,48 +114,69 @@ fn read(
 type Features = dyn Fn(&ProbedPerson) -> Vec<f32>;
 
 /// The feature sets probed for one model: the root height alone, each volume, and each with the height.
+/// The height and the ground-truth maps do not depend on the weights, and where the initial weights put
+/// the roots says nothing: those rows are read once, with the trained model.
 fn rows(label: &str, train: &[ProbedPerson], test: &[ProbedPerson]) -> Result<Vec<ProbeScore>> {
     let with_height = |a: &[f32], p: &ProbedPerson| [a, &p.height].concat();
-    let sets: [(&str, Box<Features>); 10] = [
-        ("root height", Box::new(|p| p.height.clone())),
-        ("image-feature volume", Box::new(|p| p.volume.clone())),
+    let own = |a: &[f32], p: &ProbedPerson| [a, &p.own_height].concat();
+    // (name, read for every model, what it reads)
+    let sets: [(&str, bool, Box<Features>); 13] = [
+        ("root height", false, Box::new(|p| p.height.clone())),
+        ("image-feature volume", true, Box::new(|p| p.volume.clone())),
         (
             "image-feature volume + height",
+            true,
             Box::new(move |p| with_height(&p.volume, p)),
         ),
-        ("heatmap volume", Box::new(|p| p.heatmaps.clone())),
+        ("heatmap volume", true, Box::new(|p| p.heatmaps.clone())),
         (
             "heatmap volume + height",
+            true,
             Box::new(move |p| with_height(&p.heatmaps, p)),
         ),
-        ("heatmap centroids", Box::new(|p| p.centroids.clone())),
+        ("heatmap centroids", true, Box::new(|p| p.centroids.clone())),
         (
             "heatmap centroids + height",
+            true,
             Box::new(move |p| with_height(&p.centroids, p)),
         ),
         (
             "ground-truth heatmap volume",
+            false,
             Box::new(|p| p.true_heatmaps.clone()),
         ),
         (
             "ground-truth heatmap volume + height",
+            false,
             Box::new(move |p| with_height(&p.true_heatmaps, p)),
         ),
         (
             "ground-truth heatmap centroids + height",
+            false,
             Box::new(move |p| with_height(&p.true_centroids, p)),
         ),
+        (
+            "the model's root height",
+            false,
+            Box::new(|p| p.own_height.clone()),
+        ),
+        (
+            "heatmap volume + height at the model's roots",
+            false,
+            Box::new(move |p| own(&p.own_heatmaps, p)),
+        ),
+        (
+            "ground-truth heatmap volume + height at the model's roots",
+            false,
+            Box::new(move |p| own(&p.own_true_heatmaps, p)),
+        ),
     ];
-    // The height and the ground-truth maps do not depend on the weights: scored once, with the trained
-    // model.
     (sets.iter())
-        .filter(|(name, _)| {
-            label == "trained" || !(*name == "root height" || name.starts_with("ground"))
-        })
-        .map(|(name, f)| {
-            let name = match *name {
-                n if n == "root height" || n.starts_with("ground") => n.to_string(),
-                n => format!("{n}, {label}"),
+        .filter(|(_, each, _)| *each || label == "trained")
+        .map(|(name, each, f)| {
+            let name = match each {
+                true => format!("{name}, {label}"),
+                false => name.to_string(),
             };
             score(&name, train, test, f).map_err(|e| anyhow::anyhow!("{}: {e}", name))
         })

@@ -77,6 +77,14 @@ pub struct DecoderOptions {
     /// demo's body poses 0.18 R^2 better than of the centroids (docs/architecture.md, The image features
     /// go unread). With `sample_skip` they also reach the heads directly.
     pub joint_samples: bool,
+    /// With `joint_samples`: the joint heatmap samples also reach the 21 body-pose rotations through
+    /// one linear map (`pose_read`) that starts at zero, added to what the heads give. Through the
+    /// query path the samples share the residual stream with what the blocks add for everyone alike,
+    /// and the heads learned to give one pose (docs/architecture.md, The image features go unread); a
+    /// linear read of the same samples tells the pose far better than the decoder does. Started at
+    /// zero, the map changes nothing at first and grows only along what lowers the loss. false (the
+    /// paper) has the heads alone.
+    pub pose_read: bool,
     /// Only the body-pose head trains the shared query path (projection, blocks, final norm): the
     /// global orientation, the hands and face, betas, expression and the root offset get heads of
     /// their own that read it detached. Residuals the queries cannot explain (the heading's error,
@@ -116,6 +124,7 @@ impl Default for DecoderOptions {
             joint_lattice: [5, 5, 8],
             joint_span: [1.0, 1.0, 1.75],
             joint_samples: false,
+            pose_read: false,
             pose_trunk: false,
             height_features: 0,
         }
@@ -270,6 +279,8 @@ pub struct Decoder {
     pub height_proj: Option<Linear>,
     /// Present with [`DecoderOptions::sample_skip`].
     pub sample_proj: Option<Linear>,
+    /// Present with [`DecoderOptions::pose_read`]: joint samples -> the body's 21 rotations (6D).
+    pub pose_read: Option<Linear>,
     /// See [`DecoderOptions::volume_norm`].
     #[module(skip)]
     pub volume_norm: bool,
@@ -437,6 +448,11 @@ impl DecoderConfig {
             sample_proj: o
                 .sample_skip
                 .then(|| LinearConfig::new(self.skip_width(), d).init(device)),
+            pose_read: (o.pose_read && o.joint_samples).then(|| {
+                LinearConfig::new(self.joint_width(), BODY_SLOTS * 6)
+                    .with_initializer(burn::nn::Initializer::Zeros)
+                    .init(device)
+            }),
             height_proj: (o.height_features > 0)
                 .then(|| LinearConfig::new(o.height_features, d).init(device)),
             query_norm: o
@@ -724,6 +740,11 @@ impl Decoder {
             sampled = norm.forward(sampled);
         }
         let joint_part = joints.map(|j| self.joint_inputs(j, roots.clone(), heading.clone(), grid));
+        // Scaled by 1 / sqrt(inputs): Adam moves every weight by about the learning rate whatever its
+        // gradient, so thousands of unit inputs would otherwise move the rotations by whole units per step.
+        let pose_read = (self.pose_read.as_ref())
+            .zip(joint_part.clone())
+            .map(|(p, j)| p.forward(j) / (p.weight.dims()[0] as f64).sqrt());
         let mut skip_in = sampled.clone();
         if let Some(j) = joint_part {
             if self.joint_samples {
@@ -783,7 +804,21 @@ impl Decoder {
             q.clone()
         };
         let mean = mean.reshape([1, 1, PARAM_DIM]);
-        let rot = mean.clone().narrow(2, 0, NUM_REGRESSED * 6) + self.rotations(q, side.clone());
+        let mut rot =
+            mean.clone().narrow(2, 0, NUM_REGRESSED * 6) + self.rotations(q, side.clone());
+        if let Some(read) = pose_read {
+            // The body's rotations follow the global orientation's in the 53.
+            let rest = (NUM_REGRESSED - 1 - BODY_SLOTS) * 6;
+            let padded = Tensor::cat(
+                vec![
+                    Tensor::zeros([b, k, 6], &device),
+                    read,
+                    Tensor::zeros([b, k, rest], &device),
+                ],
+                2,
+            );
+            rot = rot + padded;
+        }
         let betas = mean.clone().narrow(2, NUM_REGRESSED * 6, NUM_BETAS)
             + self.betas_head.forward(side.clone());
         let expr = mean.narrow(2, NUM_REGRESSED * 6 + NUM_BETAS, NUM_EXPRESSION)

@@ -649,3 +649,77 @@ fn joint_samples_are_the_turned_lattice_normalised() {
         }
     }
 }
+
+/// `pose_read` starts at zero (the decoder's output is bit for bit that without it) and adds its linear
+/// read of the joint samples, divided by the square root of their number, to the 21 body rotations
+/// alone (slots 1-21 of the 53; the global orientation and the hands and face stay).
+#[test]
+fn pose_read_adds_its_linear_read_to_the_body_rotations() {
+    let d = Device::flex();
+    let (g, joints) = linear_field_volume(&d);
+    let volume = Tensor::cat(vec![joints.clone(); 4], 1);
+    let mut dec = DecoderConfig::new(4)
+        .with_options(DecoderOptions {
+            dim: 8,
+            heads: 2,
+            query_joints: true,
+            joint_samples: true,
+            pose_read: true,
+            joint_lattice: [2, 2, 3],
+            joint_span: [0.8, 0.6, 0.5],
+            ..Default::default()
+        })
+        .with_joint_channels(1)
+        .init(&d);
+    let roots = Tensor::<3>::from_data(
+        TensorData::new(vec![0.3f32, -0.8, 1.0, 1.1, -0.9, 0.9], [1, 2, 3]),
+        &d,
+    );
+    let present = Tensor::<2, Bool>::from_data(TensorData::new(vec![true, true], [1, 2]), &d);
+    let run = |dec: &Decoder| {
+        let inputs = QueryInputs {
+            heading: None,
+            joints: Some(joints.clone()),
+        };
+        vals(
+            dec.forward_with(volume.clone(), inputs, &g, roots.clone(), present.clone())
+                .rot6d,
+        )
+    };
+    let at_zero = run(&dec);
+    let mut without = dec.clone();
+    without.pose_read = None;
+    assert_eq!(at_zero, run(&without));
+    let x = vals(dec.joint_inputs(joints.clone(), roots.clone(), None, &g));
+    let (n, out) = (12, 21 * 6);
+    let w: Vec<f32> = (0..n * out)
+        .map(|i| ((i * 7) % 11) as f32 * 0.1 - 0.5)
+        .collect();
+    let bias: Vec<f32> = (0..out).map(|o| o as f32 * 0.01).collect();
+    let read = dec.pose_read.as_mut().unwrap();
+    read.weight = Param::from_tensor(Tensor::from_data(TensorData::new(w.clone(), [n, out]), &d));
+    read.bias = Some(Param::from_tensor(Tensor::from_data(
+        TensorData::new(bias.clone(), [out]),
+        &d,
+    )));
+    let got = run(&dec);
+    for k in 0..2 {
+        for slot in 0..53 * 6 {
+            let delta = (got[k * 318 + slot] - at_zero[k * 318 + slot]) as f64;
+            let want = match slot {
+                6..132 => {
+                    let o = slot - 6;
+                    let dot: f64 = (0..n)
+                        .map(|i| x[k * n + i] as f64 * w[i * out + o] as f64)
+                        .sum();
+                    (dot + bias[o] as f64) / (n as f64).sqrt()
+                }
+                _ => 0.0,
+            };
+            assert!(
+                (delta - want).abs() < 1e-4,
+                "person {k}, slot {slot}: {delta} vs {want}"
+            );
+        }
+    }
+}

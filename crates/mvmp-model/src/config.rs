@@ -449,6 +449,13 @@ impl ModelConfig {
                 "true: it sets how the joint heatmap volume is read, so it needs `query_joints = true`".into(),
             ));
         }
+        if d.pose_read && !d.joint_samples {
+            return Err((
+                "decoder.pose_read",
+                "true: it reads the joint heatmap samples, so it needs `joint_samples = true`"
+                    .into(),
+            ));
+        }
         // Each feature is one input of `height_proj`: a count past this only sizes an allocation.
         if d.height_features > MAX_HEIGHT_FEATURES {
             return Err((

@@ -206,7 +206,11 @@ fn decoder_macs(cfg: &ModelConfig, z: &Sizes) -> f64 {
         false => 0,
     };
     let inputs = skip + dc.sample_width() + dc.joint_width() + mvmp_decoder::queries::PARAM_DIM;
-    let query_macs = k * inputs as f64 * d;
+    let pose_read = match cfg.decoder.pose_read {
+        true => dc.joint_width() as f64 * 21.0 * 6.0,
+        false => 0.0,
+    };
+    let query_macs = k * (inputs as f64 * d + pose_read);
     tokens * z.cf * d
         + query_macs
         + if cfg.decoder.use_htb {

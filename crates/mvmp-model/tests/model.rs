@@ -288,7 +288,7 @@ type Edit = fn(&mut ModelConfig);
 
 #[test]
 fn unusable_people_caps_thresholds_and_lattices_name_the_key() {
-    let cases: [(&str, Edit); 12] = [
+    let cases: [(&str, Edit); 13] = [
         ("max_people", |c| c.max_people = 100_000_000),
         ("max_people", |c| c.max_people = 0),
         ("root_threshold", |c| c.root_threshold = f32::NAN),
@@ -318,6 +318,11 @@ fn unusable_people_caps_thresholds_and_lattices_name_the_key() {
         }),
         // How the joint volume is read, without reading it.
         ("decoder.joint_samples", |c| c.decoder.joint_samples = true),
+        // A read of the joint samples, without them.
+        ("decoder.pose_read", |c| {
+            c.decoder.query_joints = true;
+            c.decoder.pose_read = true;
+        }),
     ];
     for (key, edit) in cases {
         let mut c = ModelConfig::default();
@@ -338,6 +343,7 @@ fn unusable_people_caps_thresholds_and_lattices_name_the_key() {
     c.decoder.query_joints = true;
     c.decoder.joint_samples = true;
     c.decoder.heading_lattice = true;
+    c.decoder.pose_read = true;
     c.validate().unwrap();
 }
 

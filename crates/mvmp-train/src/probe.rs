@@ -7,14 +7,16 @@
 use std::path::Path;
 
 use burn::data::dataloader::batcher::Batcher;
-use burn::tensor::{Device, Tensor, TensorData};
+use burn::tensor::{Bool, Device, Tensor, TensorData};
 use nalgebra::{DMatrix, RowDVector, SymmetricEigen};
 
 use mvmp_data::dataset::FrameDataset;
 use mvmp_data::loader::{FrameBatch, FrameBatcher, PersonGt, Split, ViewChoice};
 use mvmp_decoder::{height_features, lattice_offsets, sample_turned};
+use mvmp_fusion::Root;
 use mvmp_fusion::{FusionMode, SamplingGrid, fuse_views};
-use mvmp_model::MvmpHmr;
+use mvmp_model::facing::facing_readout;
+use mvmp_model::{Detection, MvmpHmr, RigGrids};
 
 use crate::TrainError;
 use crate::step::{HostGt, batch_grids, joint_heading, joint_heatmap_targets};
@@ -23,6 +25,8 @@ use crate::step::{HostGt, batch_grids, joint_heading, joint_heatmap_targets};
 const POSE_JOINTS: std::ops::Range<usize> = 1..22;
 /// Gaussian bumps of the root height among the height features (the decoder's own encoding).
 const HEIGHT_BUMPS: usize = 8;
+/// Metres from a person's true root within which the nearest detected root is theirs.
+const OWN_ROOT_GATE: f64 = 0.5;
 /// Ridge strengths tried, as multiples of the mean squared norm of a standardised feature row.
 const RIDGE: [f64; 7] = [1e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0, 3.0];
 
@@ -57,6 +61,13 @@ pub struct ProbedPerson {
     pub true_heatmaps: Vec<f32>,
     /// Each heatmap joint's centroid over the lattice in `true_heatmaps`, as `centroids`.
     pub true_centroids: Vec<f32>,
+    /// `heatmaps` and `true_heatmaps` with the lattice where the decoder puts it: round the model's own
+    /// root (the detection nearest the person within [`OWN_ROOT_GATE`], the true root where none is)
+    /// turned with the facing head's heading there (the true heading for a model without one).
+    pub own_heatmaps: Vec<f32>,
+    pub own_true_heatmaps: Vec<f32>,
+    /// The height features of the model's own root.
+    pub own_height: Vec<f32>,
     /// The root height and its Gaussian bumps.
     pub height: Vec<f32>,
     /// The body joints' offsets from the pelvis in the person's frame, metres, `21 * 3`.
@@ -150,6 +161,18 @@ fn probe_frame(
             &cfg.grid,
         ))
     };
+    let (own_roots, own_heads) = own_placement(model, &det, &grids, &people, device);
+    let own_at = |v: Tensor<5>| {
+        host(sample_turned(
+            v,
+            own_roots.clone(),
+            own_heads.clone(),
+            lattice,
+            &cfg.grid,
+        ))
+    };
+    let (oh, ot) = (own_at(hvol.clone()), own_at(tvol.clone()));
+    let own_height = heights(own_roots.clone());
     let (fv, fh, ft) = (at(volume), at(hvol), at(tvol));
     let bumps = host(height_features(roots.clone(), HEIGHT_BUMPS));
     let (cv, ch) = (fv.len() / k, fh.len() / k);
@@ -165,9 +188,76 @@ fn probe_frame(
                 heatmaps,
                 true_centroids: centroids(&ft[j * ch..(j + 1) * ch], lattice),
                 true_heatmaps: ft[j * ch..(j + 1) * ch].to_vec(),
+                own_heatmaps: oh[j * ch..(j + 1) * ch].to_vec(),
+                own_true_heatmaps: ot[j * ch..(j + 1) * ch].to_vec(),
+                own_height: own_height[j * (HEIGHT_BUMPS + 1)..(j + 1) * (HEIGHT_BUMPS + 1)]
+                    .to_vec(),
                 height,
                 pose: body_frame_pose(&p.joints_3d, *h),
             }
+        })
+        .collect()
+}
+
+/// Where the decoder would read each person: the model's detected root nearest their true one (within
+/// [`OWN_ROOT_GATE`]; else the true root) `[1, K, 3]`, and the facing head's heading there `[1, K, 2]`
+/// (the true heading without a facing head).
+fn own_placement(
+    model: &MvmpHmr,
+    det: &Detection,
+    grids: &[RigGrids],
+    people: &[(&PersonGt, [f64; 2])],
+    device: &Device,
+) -> (Tensor<3>, Tensor<3>) {
+    let cfg = &model.config;
+    let primary = cfg.primary_joint.joint();
+    let found = model.detect_roots(det.likelihood.clone(), det.offset.clone());
+    let k = people.len();
+    let own: Vec<f32> = (people.iter())
+        .flat_map(|(p, _)| {
+            let truth = p.joints_3d[primary].map(f64::from);
+            let dist = |r: &Root| {
+                (0..3)
+                    .map(|a| (r.position[a] - truth[a]).powi(2))
+                    .sum::<f64>()
+            };
+            let nearest = found[0].iter().min_by(|a, b| dist(a).total_cmp(&dist(b)));
+            match nearest.filter(|r| dist(r).sqrt() <= OWN_ROOT_GATE) {
+                Some(r) => r.position,
+                None => truth,
+            }
+            .map(|x| x as f32)
+        })
+        .collect();
+    let roots = Tensor::<3>::from_data(TensorData::new(own, [1, k, 3]), device);
+    let heads = match &det.facing {
+        Some(f) => {
+            let present =
+                Tensor::<2, Bool>::from_data(TensorData::new(vec![true; k], [1, k]), device);
+            facing_readout(f.clone(), grids, &cfg.grid, roots.clone(), present)
+        }
+        None => {
+            let h = people
+                .iter()
+                .flat_map(|(_, h)| h.map(|x| x as f32))
+                .collect();
+            Tensor::from_data(TensorData::new(h, [1, k, 2]), device)
+        }
+    };
+    (roots, heads)
+}
+
+/// Each root's height and its Gaussian bumps, `K * (1 + HEIGHT_BUMPS)`.
+fn heights(roots: Tensor<3>) -> Vec<f32> {
+    let z = host(roots.clone().narrow(2, 2, 1));
+    let bumps = host(height_features(roots, HEIGHT_BUMPS));
+    (z.iter().enumerate())
+        .flat_map(|(j, &h)| {
+            std::iter::once(h).chain(
+                bumps[j * HEIGHT_BUMPS..(j + 1) * HEIGHT_BUMPS]
+                    .iter()
+                    .copied(),
+            )
         })
         .collect()
 }

@@ -2225,6 +2225,11 @@ fn the_volume_probe_reads_each_person_in_their_own_frame() {
         assert_eq!(p.heatmaps.len(), 12 * cfg.heatmap_joints.len());
         assert_eq!(p.centroids.len(), 3 * cfg.heatmap_joints.len());
         assert_eq!(p.true_heatmaps.len(), p.heatmaps.len());
+        // Read where the model puts the person: its root nearest theirs, within the gate.
+        assert_eq!(p.own_heatmaps.len(), p.heatmaps.len());
+        assert_eq!(p.own_true_heatmaps.len(), p.heatmaps.len());
+        assert_eq!(p.own_height.len(), 9);
+        assert!((p.own_height[0] - t.joints_3d[0][2]).abs() <= 0.5);
         // Fused from Gaussians of peak 1: a mean over views of values in [0, 1].
         assert!(p.true_heatmaps.iter().all(|&x| (0.0..=1.0).contains(&x)));
         // A centroid is a weighted mean of the lattice's offsets: inside its box.
