@@ -86,6 +86,37 @@ pub struct LearnArgs<'a> {
     pub seeds: &'a [u64],
 }
 
+/// What a benchmark trains, fixed once it has measured its step times (`OUT/plan.json`): a stopped
+/// benchmark goes on from it ([`resume_learn`]).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Plan {
+    minutes: f64,
+    scenes: usize,
+    variants: Vec<String>,
+    seeds: Vec<u64>,
+    /// Frames of the training split.
+    train_frames: usize,
+    /// Epochs of stage 1 and 2 every variant trains.
+    epochs: [usize; 2],
+    /// The full model's seconds per step of each stage, measured before the plan was made.
+    step_seconds: [f64; 2],
+}
+
+const PLAN: &str = "plan.json";
+/// A run's figures once it is trained and scored (`runs/RUN/bench.json`).
+const SCORED: &str = "bench.json";
+/// Minutes a run trained before the benchmark was stopped (`runs/RUN/bench-minutes.json`).
+const PARTIAL: &str = "bench-minutes.json";
+
+/// A trained and scored run, as `runs/RUN/bench.json` keeps it.
+#[derive(serde::Serialize, serde::Deserialize)]
+struct Scored {
+    steps: u64,
+    minutes: f64,
+    metrics: Metrics,
+}
+
 /// The name of one variant's run with one seed: the variant's own when the benchmark runs one seed.
 fn label(name: &str, seed: u64, seeds: &[u64]) -> String {
     match seeds {
@@ -140,28 +171,70 @@ pub fn bench_learn(args: &LearnArgs, device: &Device) -> Result<()> {
     let existed = out.exists();
     if existed && std::fs::read_dir(out)?.next().is_some() {
         bail!(
-            "{} exists and is not empty: pass --out to a new directory",
+            "{} exists and is not empty: pass --out to a new directory (or --resume to go on with a \
+             stopped benchmark there)",
             out.display()
         );
     }
-    // The benchmark writes in place (its runs can be watched as they train); a failure or an interrupt
-    // removes what it wrote, so that nothing half-done stays behind.
+    // The benchmark writes in place (its runs can be watched as they train). Until its plan is made, a
+    // failure or an interrupt removes what it wrote; from then on it keeps what is done, to go on from.
     crate::interrupt::unfinished_output(out, existed);
-    let result = bench_into(args, device);
+    let result = plan_and_run(args, device);
     crate::interrupt::finished(out);
-    result.map_err(|err| match crate::interrupt::clear(out, existed) {
-        Ok(()) => anyhow::anyhow!(
-            "{err:#} (what was written under {} was removed)",
-            out.display()
-        ),
-        Err(e) => anyhow::anyhow!(
-            "{err:#} (removing what was written under {} failed too: {e})",
-            out.display()
-        ),
+    result.map_err(|err| {
+        if out.join(PLAN).exists() {
+            return kept(out, err);
+        }
+        match crate::interrupt::clear(out, existed) {
+            Ok(()) => anyhow::anyhow!(
+                "{err:#} (what was written under {} was removed)",
+                out.display()
+            ),
+            Err(e) => anyhow::anyhow!(
+                "{err:#} (removing what was written under {} failed too: {e})",
+                out.display()
+            ),
+        }
     })
 }
 
-fn bench_into(args: &LearnArgs, device: &Device) -> Result<()> {
+/// Go on with the benchmark stopped in `out`: its runs scored stay, a run stopped resumes from its
+/// checkpoint, and the rest train as planned.
+pub fn resume_learn(out: &Path, device: &Device) -> Result<()> {
+    let path = out.join(PLAN);
+    let text = std::fs::read_to_string(&path).with_context(|| {
+        format!(
+            "{}: cannot read the plan of a stopped benchmark (start one with --out instead)",
+            path.display()
+        )
+    })?;
+    let plan: Plan =
+        serde_json::from_str(&text).with_context(|| format!("{}: not a plan", path.display()))?;
+    let variants = select(Some(&plan.variants.join(",")))
+        .with_context(|| format!("{}: key `variants`", path.display()))?;
+    if plan.seeds.is_empty() || plan.epochs.contains(&0) {
+        bail!(
+            "{}: key `seeds` is empty or `epochs` holds 0 ({:?}, {:?})",
+            path.display(),
+            plan.seeds,
+            plan.epochs
+        );
+    }
+    eprintln!("resuming the benchmark in {}", out.display());
+    run_plan(out, &plan, &variants, device).map_err(|e| kept(out, e))
+}
+
+/// `err` of a benchmark whose plan is made: what is done stays to go on from.
+fn kept(out: &Path, err: anyhow::Error) -> anyhow::Error {
+    anyhow::anyhow!(
+        "{err:#} (the runs done and the checkpoints of the one stopped stay under {}; `mvmp bench \
+         learn --resume --out {}` goes on)",
+        out.display(),
+        out.display()
+    )
+}
+
+fn plan_and_run(args: &LearnArgs, device: &Device) -> Result<()> {
     let out = args.out;
     let variants = select(args.variants)?;
     for (i, seed) in args.seeds.iter().enumerate() {
@@ -187,31 +260,56 @@ fn bench_into(args: &LearnArgs, device: &Device) -> Result<()> {
     let (base_train, base_model) = TrainConfig::read(&cfg_dir.join("train.toml"))?;
     let step_s = calibrate(&base_train, &base_model, &data, device)?;
     let (e1, e2) = epochs(args.minutes, train_frames, step_s);
+    let plan = Plan {
+        minutes: args.minutes,
+        scenes: args.scenes,
+        variants: variants.iter().map(|v| v.name.to_string()).collect(),
+        seeds: args.seeds.to_vec(),
+        train_frames,
+        epochs: [e1, e2],
+        step_seconds: step_s,
+    };
+    write_atomic(
+        &out.join(PLAN),
+        serde_json::to_string_pretty(&plan)?.as_bytes(),
+    )?;
+    // From here on, what is done is kept to go on from: an interrupt no longer removes it.
+    crate::interrupt::finished(out);
+    run_plan(out, &plan, &variants, device)
+}
+
+fn run_plan(out: &Path, plan: &Plan, variants: &[&'static Variant], device: &Device) -> Result<()> {
+    let cfg_dir = out.join("configs");
+    let data = out.join("data");
+    let (base_train, base_model) = TrainConfig::read(&cfg_dir.join("train.toml"))?;
+    let [e1, e2] = plan.epochs;
     eprintln!(
-        "each variant: {e1} + {e2} epochs of {train_frames} frames (about {} min for the full model at \
-         {:.3} and {:.3} s per step, measured here), stopped at {} min",
-        args.minutes,
-        step_s[0],
-        step_s[1],
-        args.minutes * TIME_GUARD
+        "each variant: {e1} + {e2} epochs of {} frames (about {} min for the full model at {:.3} and \
+         {:.3} s per step, measured here), stopped at {} min",
+        plan.train_frames,
+        plan.minutes,
+        plan.step_seconds[0],
+        plan.step_seconds[1],
+        plan.minutes * TIME_GUARD
     );
     let mut rows = Vec::new();
     let mut curves = Vec::new();
     for v in variants {
-        for &seed in args.seeds {
+        for &seed in &plan.seeds {
             let (mut t, mut m) = (base_train.clone(), base_model.clone());
             t.stage1.epochs = e1;
             t.stage2.epochs = e2;
             t.seed = seed;
             (v.edit)(&mut t, &mut m);
-            let run = label(v.name, seed, args.seeds);
+            let run = label(v.name, seed, &plan.seeds);
             let dir = cfg_dir.join(&run);
             std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
             write_atomic(&dir.join("model.toml"), toml::to_string(&m)?.as_bytes())?;
             t.model = "model.toml".into();
             write_atomic(&dir.join("train.toml"), toml::to_string(&t)?.as_bytes())?;
-            let row = train_and_score(v.name, seed, &run, &dir, &data, args, device)?;
-            rows.push(row);
+            rows.push(train_and_score(
+                v.name, seed, &run, &dir, &data, out, plan, device,
+            )?);
             let log = std::fs::read_to_string(out.join("runs").join(&run).join("metrics.jsonl"))?;
             curves.push((run, Curves::from_log(&log)));
         }
@@ -223,7 +321,7 @@ fn bench_into(args: &LearnArgs, device: &Device) -> Result<()> {
         "stage 2 recall_500",
     );
     write_png(&picture, &out.join("curves.png"))?;
-    let report = report(&rows, args, train_frames, (e1, e2), step_s);
+    let report = report(&rows, plan);
     write_atomic(&out.join("learning.md"), report.as_bytes())?;
     print!("{report}");
     eprintln!(
@@ -251,48 +349,86 @@ fn calibrate(
     crate::bench_train::step_seconds(&cfg, model, tmp.path(), CALIBRATION_STEPS, device)
 }
 
+/// Read a JSON file the benchmark wrote, naming it in the error.
+fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    serde_json::from_str(&text).with_context(|| format!("{}: malformed", path.display()))
+}
+
 /// Train one variant on the benchmark's schedule (at most [`TIME_GUARD`] times the time given), then
-/// score it on the held-out scenes.
+/// score it on the held-out scenes. A run scored before is read back; a run stopped before resumes
+/// from its checkpoint (a run directory without one starts again).
+#[allow(clippy::too_many_arguments)]
 fn train_and_score(
     name: &'static str,
     seed: u64,
     run: &str,
     cfg_dir: &Path,
     data: &Path,
-    args: &LearnArgs,
+    out: &Path,
+    plan: &Plan,
     device: &Device,
 ) -> Result<Row> {
-    let (out, minutes) = (args.out, args.minutes);
     let run_dir = out.join("runs").join(run);
+    let row = |s: Scored| Row {
+        name,
+        seed,
+        run: run.to_string(),
+        metrics: s.metrics,
+        steps: s.steps,
+        minutes: s.minutes,
+    };
+    if run_dir.join(SCORED).exists() {
+        eprintln!("[{run}] trained and scored before");
+        return Ok(row(read_json(&run_dir.join(SCORED))?));
+    }
+    let resumed = run_dir.join("state.json").exists();
+    if run_dir.exists() && !resumed {
+        std::fs::remove_dir_all(&run_dir)
+            .with_context(|| format!("removing {} (no checkpoint)", run_dir.display()))?;
+    }
+    let before: f64 = match run_dir.join(PARTIAL).exists() {
+        true => read_json(&run_dir.join(PARTIAL))?,
+        false => 0.0,
+    };
     eprintln!("[{run}] training -> {}", run_dir.display());
     let t0 = std::time::Instant::now();
+    let config = cfg_dir.join("train.toml");
     crate::train::train(
         crate::train::TrainArgs {
-            config: Some(&cfg_dir.join("train.toml")),
-            data: Some(data),
+            config: (!resumed).then_some(config.as_path()),
+            data: (!resumed).then_some(data),
             out: Some(&run_dir),
-            resume: None,
+            resume: resumed.then_some(run_dir.as_path()),
             stop_after_steps: None,
-            stop_after_minutes: Some(minutes * TIME_GUARD),
-            resumable: true,
+            stop_after_minutes: Some((plan.minutes * TIME_GUARD - before).max(0.0)),
+            resumable: false,
         },
         device,
         &mut crate::train::BarMonitor::new(true),
     )?;
-    let trained = t0.elapsed().as_secs_f64() / 60.0;
+    let minutes = before + t0.elapsed().as_secs_f64() / 60.0;
+    // Kept for a resume, should the benchmark stop before the run is scored.
+    write_atomic(&run_dir.join(PARTIAL), minutes.to_string().as_bytes())?;
+    if let Some(signal) = crate::interrupt::received() {
+        bail!("[{run}] stopped by signal {signal} after {minutes:.1} minutes of training");
+    }
     let (opened, _, _) = mvmp_train::RunDir::open(&run_dir)?;
     let steps = opened.state()?.map_or(0, |s| s.global_step);
     let report = run_dir.join("eval-test.json");
     let eval_args = EvalArgs::held_out(Source::Run(&run_dir), data, &report);
     let (metrics, _) = eval(&eval_args, device, true)?;
-    Ok(Row {
-        name,
-        seed,
-        run: run.to_string(),
-        metrics,
+    let scored = Scored {
         steps,
-        minutes: trained,
-    })
+        minutes,
+        metrics,
+    };
+    write_atomic(
+        &run_dir.join(SCORED),
+        serde_json::to_string_pretty(&scored)?.as_bytes(),
+    )?;
+    Ok(row(scored))
 }
 
 /// MPJPE differences smaller than this are called noise: one run per variant, and on the demo three
@@ -372,36 +508,31 @@ fn verdict(each: &[Option<Option<bool>>]) -> &'static str {
     }
 }
 
-fn report(
-    rows: &[Row],
-    args: &LearnArgs,
-    frames: usize,
-    (e1, e2): (usize, usize),
-    step_s: [f64; 2],
-) -> String {
+fn report(rows: &[Row], plan: &Plan) -> String {
+    let (frames, [e1, e2], step_s) = (plan.train_frames, plan.epochs, plan.step_seconds);
     let mut s = format!(
         "# Learning benchmark\n\n`mvmp bench learn --minutes {} --scenes {}`: the tiny model on a synthetic set of {} \
          one-frame scenes ({frames} for training, the rest held out). Every variant trains the same schedule, \
          {e1} + {e2} epochs (sized so that the full model takes about {} minutes at the {:.3} and {:.3} s \
          per step of stage 1 and 2 measured on this machine; a variant is stopped at {} minutes), then is \
          scored on the held-out scenes. Errors in mm.\n\n```text\n",
-        args.minutes,
-        args.scenes,
-        args.scenes,
-        args.minutes,
+        plan.minutes,
+        plan.scenes,
+        plan.scenes,
+        plan.minutes,
         step_s[0],
         step_s[1],
-        args.minutes * TIME_GUARD
+        plan.minutes * TIME_GUARD
     );
     let named: Vec<(String, Metrics)> = rows
         .iter()
         .map(|r| (r.run.clone(), r.metrics.clone()))
         .collect();
     s += &table(&named);
-    if args.seeds.len() > 1 {
+    if plan.seeds.len() > 1 {
         s += &format!(
             "```\n\nOver the seeds {:?} (means; the range is the seeds' lowest and highest MPJPE):\n\n```text\n",
-            args.seeds
+            plan.seeds
         );
         s += &seed_summary(rows);
     }

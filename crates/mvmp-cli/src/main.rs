@@ -491,6 +491,11 @@ enum BenchCommand {
         seeds: Vec<u64>,
         #[arg(long, default_value = "out/learn")]
         out: PathBuf,
+        /// Go on with the benchmark stopped in --out (by Ctrl-C or an error once its schedule was
+        /// planned): runs scored stay, a stopped run resumes from its checkpoint, the rest train as
+        /// planned; its minutes, scenes, variants and seeds are the plan's.
+        #[arg(long, conflicts_with_all = ["minutes", "scenes", "variants", "seeds"])]
+        resume: bool,
     },
     /// Seconds per training step of each stage and their split (load, forward, backward, gradient
     /// norms, optimizer), from short runs in a temporary directory.
@@ -796,11 +801,15 @@ fn bench_command(cmd: BenchCommand, device: &Device, host: bool) -> anyhow::Resu
             device,
         ),
         BenchCommand::Learn {
+            out, resume: true, ..
+        } => learn::resume_learn(&out, device),
+        BenchCommand::Learn {
             minutes,
             scenes,
             variants,
             seeds,
             out,
+            resume: false,
         } => learn::bench_learn(
             &learn::LearnArgs {
                 out: &out,

@@ -1354,6 +1354,7 @@ fn the_learning_benchmark_compares_variants() {
         let seed = &run[run.len() - 1..];
         assert!(train.contains(&format!("seed = {seed}")), "{train}");
     }
+    resume_goes_on_from_what_is_done(&out);
     expect_error(
         &[
             "bench",
@@ -1377,6 +1378,58 @@ fn the_learning_benchmark_compares_variants() {
         ],
         &["--variants", "huge", "voxelsmplx"],
     );
+}
+
+/// A benchmark stopped with runs scored, one trained but not scored and one not begun (as an
+/// interrupt leaves it) goes on with `--resume`: the scored run is read back, not trained again, the
+/// others are finished, and the report has all four. Without a plan there is nothing to resume, and the
+/// plan's settings cannot be given again.
+fn resume_goes_on_from_what_is_done(out: &Path) {
+    let runs = out.join("runs");
+    let kept = std::fs::read_to_string(runs.join("full-s3/bench.json")).unwrap();
+    std::fs::remove_dir_all(runs.join("no_density-s5")).unwrap();
+    std::fs::remove_file(runs.join("full-s5/bench.json")).unwrap();
+    std::fs::remove_file(out.join("learning.md")).unwrap();
+    let o = mvmp(&["bench", "learn", "--resume", "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stderr(&o).contains("[full-s3] trained and scored before"));
+    assert!(!stderr(&o).contains("[full-s5] trained and scored before"));
+    assert_eq!(
+        std::fs::read_to_string(runs.join("full-s3/bench.json")).unwrap(),
+        kept
+    );
+    assert!(runs.join("no_density-s5/bench.json").exists());
+    let report = std::fs::read_to_string(out.join("learning.md")).unwrap();
+    for run in [
+        "| full | 3 |",
+        "| full | 5 |",
+        "| no_density | 3 |",
+        "| no_density | 5 |",
+    ] {
+        assert!(report.contains(run), "{run:?} not in {report}");
+    }
+    let none = out.with_file_name("none");
+    expect_error(
+        &[
+            "bench",
+            "learn",
+            "--resume",
+            "--out",
+            none.to_str().unwrap(),
+        ],
+        &["plan.json", "start one with --out"],
+    );
+    let o = mvmp(&[
+        "bench",
+        "learn",
+        "--resume",
+        "--minutes",
+        "1",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(stderr(&o).contains("--minutes"), "{}", stderr(&o));
 }
 
 /// Output that cannot be written (a full device, a closed pipe) is an error with a message, not a panic.

@@ -18,7 +18,7 @@ use std::collections::BTreeMap;
 
 use nalgebra::Vector3;
 use pathfinding::prelude::{Matrix, kuhn_munkres_min};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use mvmp_geom::similarity_procrustes;
 
@@ -122,7 +122,7 @@ pub fn match_people(pred: &[[f64; 3]], gt: &[[f64; 3]], gate: f64) -> Vec<(usize
 }
 
 /// Figures of a set of frames.
-#[derive(Debug, Clone, Serialize, PartialEq)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct Metrics {
     pub mpjpe_mm: Option<f64>,
     pub pve_mm: Option<f64>,
