@@ -120,7 +120,7 @@ fn rows(label: &str, train: &[ProbedPerson], test: &[ProbedPerson]) -> Result<Ve
     let with_height = |a: &[f32], p: &ProbedPerson| [a, &p.height].concat();
     let own = |a: &[f32], p: &ProbedPerson| [a, &p.own_height].concat();
     // (name, read for every model, what it reads)
-    let sets: [(&str, bool, Box<Features>); 13] = [
+    let sets: [(&str, bool, Box<Features>); 15] = [
         ("root height", false, Box::new(|p| p.height.clone())),
         ("image-feature volume", true, Box::new(|p| p.volume.clone())),
         (
@@ -169,6 +169,16 @@ fn rows(label: &str, train: &[ProbedPerson], test: &[ProbedPerson]) -> Result<Ve
             "ground-truth heatmap volume + height at the model's roots",
             false,
             Box::new(move |p| own(&p.own_true_heatmaps, p)),
+        ),
+        (
+            "ground-truth heatmap volume + height at the model's roots, true heading",
+            false,
+            Box::new(move |p| own(&p.own_root_true_heatmaps, p)),
+        ),
+        (
+            "ground-truth heatmap volume + height at the true roots, model's heading",
+            false,
+            Box::new(move |p| with_height(&p.own_heading_true_heatmaps, p)),
         ),
     ];
     (sets.iter())

@@ -66,6 +66,10 @@ pub struct ProbedPerson {
     /// turned with the facing head's heading there (the true heading for a model without one).
     pub own_heatmaps: Vec<f32>,
     pub own_true_heatmaps: Vec<f32>,
+    /// `true_heatmaps` at the model's own root turned with the true heading, and at the true root turned
+    /// with the model's heading: which of the two placements costs what.
+    pub own_root_true_heatmaps: Vec<f32>,
+    pub own_heading_true_heatmaps: Vec<f32>,
     /// The height features of the model's own root.
     pub own_height: Vec<f32>,
     /// The root height and its Gaussian bumps.
@@ -152,7 +156,7 @@ fn probe_frame(
     );
     let hgrids: Vec<SamplingGrid> = grids.iter().map(|g| g.heatmaps.clone()).collect();
     let tvol = fuse_views(truth, &hgrids, FusionMode::Mean);
-    let at = |v: Tensor<5>| {
+    let place = |v: Tensor<5>, roots: &Tensor<3>, heads: &Tensor<3>| {
         host(sample_turned(
             v,
             roots.clone(),
@@ -161,17 +165,12 @@ fn probe_frame(
             &cfg.grid,
         ))
     };
+    let at = |v: Tensor<5>| place(v, &roots, &heads);
     let (own_roots, own_heads) = own_placement(model, &det, &grids, &people, device);
-    let own_at = |v: Tensor<5>| {
-        host(sample_turned(
-            v,
-            own_roots.clone(),
-            own_heads.clone(),
-            lattice,
-            &cfg.grid,
-        ))
-    };
-    let (oh, ot) = (own_at(hvol.clone()), own_at(tvol.clone()));
+    let oh = place(hvol.clone(), &own_roots, &own_heads);
+    let ot = place(tvol.clone(), &own_roots, &own_heads);
+    let ot_root = place(tvol.clone(), &own_roots, &heads);
+    let ot_heading = place(tvol.clone(), &roots, &own_heads);
     let own_height = heights(own_roots.clone());
     let (fv, fh, ft) = (at(volume), at(hvol), at(tvol));
     let bumps = host(height_features(roots.clone(), HEIGHT_BUMPS));
@@ -190,6 +189,8 @@ fn probe_frame(
                 true_heatmaps: ft[j * ch..(j + 1) * ch].to_vec(),
                 own_heatmaps: oh[j * ch..(j + 1) * ch].to_vec(),
                 own_true_heatmaps: ot[j * ch..(j + 1) * ch].to_vec(),
+                own_root_true_heatmaps: ot_root[j * ch..(j + 1) * ch].to_vec(),
+                own_heading_true_heatmaps: ot_heading[j * ch..(j + 1) * ch].to_vec(),
                 own_height: own_height[j * (HEIGHT_BUMPS + 1)..(j + 1) * (HEIGHT_BUMPS + 1)]
                     .to_vec(),
                 height,

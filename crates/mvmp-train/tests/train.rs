@@ -2228,6 +2228,8 @@ fn the_volume_probe_reads_each_person_in_their_own_frame() {
         // Read where the model puts the person: its root nearest theirs, within the gate.
         assert_eq!(p.own_heatmaps.len(), p.heatmaps.len());
         assert_eq!(p.own_true_heatmaps.len(), p.heatmaps.len());
+        assert_eq!(p.own_root_true_heatmaps.len(), p.heatmaps.len());
+        assert_eq!(p.own_heading_true_heatmaps.len(), p.heatmaps.len());
         assert_eq!(p.own_height.len(), 9);
         assert!((p.own_height[0] - t.joints_3d[0][2]).abs() <= 0.5);
         // Fused from Gaussians of peak 1: a mean over views of values in [0, 1].
