@@ -173,29 +173,25 @@ fn probe_frame(
     let ot_heading = place(tvol.clone(), &roots, &own_heads);
     let own_height = heights(own_roots.clone());
     let (fv, fh, ft) = (at(volume), at(hvol), at(tvol));
-    let bumps = host(height_features(roots.clone(), HEIGHT_BUMPS));
-    let (cv, ch) = (fv.len() / k, fh.len() / k);
+    let height = heights(roots.clone());
+    let (cv, ch, hw) = (fv.len() / k, fh.len() / k, HEIGHT_BUMPS + 1);
+    // Person j's part of values of `w` per person.
+    let part = |v: &[f32], j: usize, w: usize| v[j * w..(j + 1) * w].to_vec();
     (people.iter().enumerate())
-        .map(|(j, (p, h))| {
-            let mut height = vec![p.joints_3d[primary][2]];
-            height.extend_from_slice(&bumps[j * HEIGHT_BUMPS..(j + 1) * HEIGHT_BUMPS]);
-            let heatmaps = fh[j * ch..(j + 1) * ch].to_vec();
-            ProbedPerson {
-                scene: batch.names[0].0.clone(),
-                volume: fv[j * cv..(j + 1) * cv].to_vec(),
-                centroids: centroids(&heatmaps, lattice),
-                heatmaps,
-                true_centroids: centroids(&ft[j * ch..(j + 1) * ch], lattice),
-                true_heatmaps: ft[j * ch..(j + 1) * ch].to_vec(),
-                own_heatmaps: oh[j * ch..(j + 1) * ch].to_vec(),
-                own_true_heatmaps: ot[j * ch..(j + 1) * ch].to_vec(),
-                own_root_true_heatmaps: ot_root[j * ch..(j + 1) * ch].to_vec(),
-                own_heading_true_heatmaps: ot_heading[j * ch..(j + 1) * ch].to_vec(),
-                own_height: own_height[j * (HEIGHT_BUMPS + 1)..(j + 1) * (HEIGHT_BUMPS + 1)]
-                    .to_vec(),
-                height,
-                pose: body_frame_pose(&p.joints_3d, *h),
-            }
+        .map(|(j, (p, h))| ProbedPerson {
+            scene: batch.names[0].0.clone(),
+            volume: part(&fv, j, cv),
+            centroids: centroids(&part(&fh, j, ch), lattice),
+            heatmaps: part(&fh, j, ch),
+            true_centroids: centroids(&part(&ft, j, ch), lattice),
+            true_heatmaps: part(&ft, j, ch),
+            own_heatmaps: part(&oh, j, ch),
+            own_true_heatmaps: part(&ot, j, ch),
+            own_root_true_heatmaps: part(&ot_root, j, ch),
+            own_heading_true_heatmaps: part(&ot_heading, j, ch),
+            own_height: part(&own_height, j, hw),
+            height: part(&height, j, hw),
+            pose: body_frame_pose(&p.joints_3d, *h),
         })
         .collect()
 }
