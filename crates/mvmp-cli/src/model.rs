@@ -10,6 +10,7 @@ use burn::tensor::module::avg_pool2d;
 use burn::tensor::ops::AvgPoolOptions;
 use burn::tensor::{Bool, Device, Tensor, TensorData};
 
+use mvmp_decoder::QueryInputs;
 use mvmp_fusion::{FusionMode, Subvoxel, extract_roots, fuse_views};
 use mvmp_model::summary::summarize;
 use mvmp_model::{ModelConfig, MvmpHmr, RigGrids};
@@ -367,10 +368,16 @@ impl StageBench<'_> {
         self.rows.push(("roots", t0.elapsed().as_secs_f64(), 0.0));
         let roots = Tensor::<3>::from_data(TensorData::new(ring_roots(g, k), [1, k, 3]), device);
         let present = Tensor::<2, Bool>::from_data(TensorData::new(vec![true; k], [1, k]), device);
+        // What the config has the decoder read beside the volume: everyone facing +x, the joint volume.
+        let facing = [1f32, 0.0].repeat(k);
+        let heading = Tensor::<3>::from_data(TensorData::new(facing, [1, k, 2]), device);
         let rot = self.run("decoder", self.macs("decoder"), || {
-            let decoded = net
-                .decoder
-                .forward(vol.clone(), g, roots.clone(), present.clone());
+            let inputs = QueryInputs {
+                heading: cfg.facing.then(|| heading.clone()),
+                joints: cfg.decoder.query_joints.then(|| hvol.clone().detach()),
+            };
+            let decoded =
+                (net.decoder).forward_with(vol.clone(), inputs, g, roots.clone(), present.clone());
             decoded.rot6d
         });
         let rot = rot.detach().reshape([k * NUM_REGRESSED, 6]);
