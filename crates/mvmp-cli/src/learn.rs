@@ -280,7 +280,6 @@ fn plan_and_run(args: &LearnArgs, device: &Device) -> Result<()> {
 
 fn run_plan(out: &Path, plan: &Plan, variants: &[&'static Variant], device: &Device) -> Result<()> {
     let cfg_dir = out.join("configs");
-    let data = out.join("data");
     let (base_train, base_model) = TrainConfig::read(&cfg_dir.join("train.toml"))?;
     let [e1, e2] = plan.epochs;
     eprintln!(
@@ -307,9 +306,7 @@ fn run_plan(out: &Path, plan: &Plan, variants: &[&'static Variant], device: &Dev
             write_atomic(&dir.join("model.toml"), toml::to_string(&m)?.as_bytes())?;
             t.model = "model.toml".into();
             write_atomic(&dir.join("train.toml"), toml::to_string(&t)?.as_bytes())?;
-            rows.push(train_and_score(
-                v.name, seed, &run, &dir, &data, out, plan, device,
-            )?);
+            rows.push(train_and_score(v.name, seed, &run, out, plan, device)?);
             let log = std::fs::read_to_string(out.join("runs").join(&run).join("metrics.jsonl"))?;
             curves.push((run, Curves::from_log(&log)));
         }
@@ -358,19 +355,17 @@ fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T> {
 
 /// Train one variant on the benchmark's schedule (at most [`TIME_GUARD`] times the time given), then
 /// score it on the held-out scenes. A run scored before is read back; a run stopped before resumes
-/// from its checkpoint (a run directory without one starts again).
-#[allow(clippy::too_many_arguments)]
+/// from its checkpoint (a run directory without one starts again). Its configs are `OUT/configs/RUN`.
 fn train_and_score(
     name: &'static str,
     seed: u64,
     run: &str,
-    cfg_dir: &Path,
-    data: &Path,
     out: &Path,
     plan: &Plan,
     device: &Device,
 ) -> Result<Row> {
-    let run_dir = out.join("runs").join(run);
+    let (run_dir, data) = (out.join("runs").join(run), out.join("data"));
+    let data = data.as_path();
     let row = |s: Scored| Row {
         name,
         seed,
@@ -394,7 +389,7 @@ fn train_and_score(
     };
     eprintln!("[{run}] training -> {}", run_dir.display());
     let t0 = std::time::Instant::now();
-    let config = cfg_dir.join("train.toml");
+    let config = out.join("configs").join(run).join("train.toml");
     crate::train::train(
         crate::train::TrainArgs {
             config: (!resumed).then_some(config.as_path()),
