@@ -346,6 +346,11 @@ struct EvalCli {
     /// height (with --run; the report records it).
     #[arg(long)]
     zero_volume: bool,
+    /// Diagnostic (an error budget): take these SMPL-X parameter groups (comma-separated: orient, body,
+    /// hands, face, shape) from the annotated person nearest each prediction's pelvis, keeping the
+    /// predicted pelvis, before scoring (with --run or --predictions on an mvmp dataset; the report records it).
+    #[arg(long, value_parser = mvmp_eval::truth_parts::parse_truth_parts)]
+    truth: Option<mvmp_eval::truth_parts::TruthParts>,
 }
 
 #[derive(Subcommand)]
@@ -738,6 +743,7 @@ fn eval_command(e: EvalCli, device: &Device) -> anyhow::Result<()> {
         stride: e.stride,
         pseudo_gt: e.pseudo_gt.as_deref(),
         zero_volume: e.zero_volume,
+        truth: e.truth.clone().map(|t| t.0).unwrap_or_default(),
     };
     let (m, _) = run::eval(&args, device, false)?;
     print!(

@@ -13,6 +13,7 @@ use mvmp_eval::drivers::{
     mean_pose_at, mvmp_split, pose_params, reference_mean,
 };
 use mvmp_eval::joint_sets::JointSet;
+use mvmp_eval::truth_parts::{TruthPart, pose_with_truth};
 use mvmp_eval::{AP_THRESHOLDS, Evaluator, Metrics};
 use mvmp_geom::{Camera, Rig};
 use mvmp_infer::Predictor;
@@ -99,6 +100,9 @@ pub struct EvalArgs<'a> {
     pub pseudo_gt: Option<&'a Path>,
     /// The fused image-feature volume zeroed before the decoder (a diagnostic; runs only).
     pub zero_volume: bool,
+    /// Parameter groups taken from the matched annotation before scoring (an error budget; runs and
+    /// predictions on an mvmp dataset).
+    pub truth: Vec<TruthPart>,
 }
 
 impl<'a> EvalArgs<'a> {
@@ -121,6 +125,7 @@ impl<'a> EvalArgs<'a> {
             stride: None,
             pseudo_gt: None,
             zero_volume: false,
+            truth: Vec::new(),
         }
     }
 
@@ -132,6 +137,7 @@ impl<'a> EvalArgs<'a> {
             max_frames: self.frames,
             gate: self.gate,
             joints: self.joints,
+            truth: self.truth.clone(),
         }
     }
 }
@@ -175,6 +181,14 @@ pub fn error_parts(m: &Metrics) -> Option<String> {
 pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, serde_json::Value)> {
     if args.zero_volume && !matches!(args.source, Source::Run(_)) {
         bail!("--zero-volume applies to a run's weights (--run), not to predictions or a baseline");
+    }
+    if !args.truth.is_empty()
+        && (matches!(args.source, Source::MeanPose) || args.format != SourceFormat::Mvmp)
+    {
+        bail!(
+            "--truth takes parameters from SMPL-X annotations into a run's or stored predictions \
+             (--run or --predictions on an mvmp dataset), not into a baseline or a joint-annotated dataset"
+        );
     }
     check_save_predictions(args)?;
     check_outputs(args)?;
@@ -226,7 +240,22 @@ pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, s
         "views": views,
         "protocol": protocol(args.gate, args.joints),
     });
+    let header = with_truth_note(header, &args.truth);
     finish_with_predictions(&ev, header, "ground_truth", args.out, staged)
+}
+
+/// The report's note of the parameter groups taken from the annotations, if any.
+fn with_truth_note(mut header: serde_json::Value, truth: &[TruthPart]) -> serde_json::Value {
+    if !truth.is_empty() {
+        let names: Vec<&str> = truth.iter().map(|p| p.name()).collect();
+        header["truth_parts"] = json!({
+            "parts": names,
+            "note": "these parameter groups of each prediction were replaced by those of the annotated \
+                     person nearest its pelvis within the gate, the predicted pelvis kept: an error budget, \
+                     not the model's own figures",
+        });
+    }
+    header
 }
 
 /// [`finish_report`], then the saved predictions put in place: a report that cannot be written leaves
@@ -371,7 +400,17 @@ fn eval_predictions(
             .into_iter()
             .map(|p| (p.params, p.score))
             .collect();
-        Ok(pose_params(&layer, &people))
+        if args.truth.is_empty() {
+            return Ok(pose_params(&layer, &people));
+        }
+        let truth = at.smplx_people()?;
+        Ok(pose_with_truth(
+            &layer,
+            &people,
+            truth,
+            &args.truth,
+            args.gate,
+        ))
     })?;
     Ok((ev, json!({"predictions": dir.display().to_string()}), views))
 }
@@ -774,6 +813,7 @@ fn demo_references(
         max_frames: 0,
         gate: mvmp_eval::DEFAULT_GATE,
         joints: JointSet::Smplx127,
+        truth: Vec::new(),
     };
     let m_untrained = evaluate(&untrained, data, &opts, |_, _, _| Ok(()))?.overall();
     drop(untrained);

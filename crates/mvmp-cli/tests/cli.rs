@@ -892,6 +892,56 @@ fn train_eval_infer_end_to_end() {
             "{k}: {a:?} vs {b:?}"
         );
     }
+    // The error budget: every parameter group from the annotations leaves only the pelvis error, so the
+    // aligned errors vanish (to float precision) while the matching stays the model's; the report says so.
+    let all = "orient,body,hands,face,shape";
+    for (i, source) in [["--run", &p("run")], ["--predictions", &p("pred")]]
+        .iter()
+        .enumerate()
+    {
+        let report = p(&format!("truth{i}.json"));
+        let t = scored(&[&source[..], &["--truth", all]].concat(), &report);
+        assert_eq!(
+            t["truth_parts"]["parts"].as_array().unwrap().len(),
+            5,
+            "{t}"
+        );
+        assert_eq!(t["matched"], r["matched"]);
+        if let Some(pa) = t["pa_pve_mm"].as_f64() {
+            assert!(pa < 0.5, "PA-PVE {pa} with every part from the truth");
+        }
+        let (mpjpe, rr) = (t["mpjpe_mm"].as_f64(), t["rr_mpjpe_mm"].as_f64());
+        if let (Some(m), Some(rr)) = (mpjpe, rr) {
+            assert!(
+                rr < 1.0,
+                "root-relative {rr} with every part from the truth (MPJPE {m})"
+            );
+        }
+    }
+    expect_error(
+        &[
+            "eval",
+            "--baseline",
+            "mean-pose",
+            "--data",
+            &p("ds"),
+            "--truth",
+            "body",
+        ],
+        &["--truth", "--run or --predictions"],
+    );
+    expect_error(
+        &[
+            "eval",
+            "--run",
+            &p("run"),
+            "--data",
+            &p("ds"),
+            "--truth",
+            "legs,body",
+        ],
+        &["--truth", "\"legs\"", "orient, body"],
+    );
 
     // Infer on a sequence: a scene directory holds one sub-directory per frame.
     let layout = mvmp_data::DatasetLayout::open(&dir.path().join("ds")).unwrap();

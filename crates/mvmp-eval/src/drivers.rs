@@ -19,6 +19,7 @@ use mvmp_smplx::people::read_people_npz;
 use mvmp_smplx::{SmplxLayer, SmplxParams, regressed_to_full_pose};
 
 use crate::joint_sets::JointSet;
+use crate::truth_parts::{TruthPart, pose_with_truth};
 use crate::{Evaluator, PersonPose, match_people};
 
 /// A prediction as an eval pose (joints and mesh, its detection score).
@@ -70,6 +71,9 @@ pub struct EvalOptions {
     pub gate: f64,
     /// The joints MPJPE is taken on (SMPL-X's 127, or a dataset's set through the documented mapping).
     pub joints: JointSet,
+    /// Parameter groups taken from the matched annotation before scoring (an error budget; empty for the
+    /// model's own figures). SMPL-X annotations only.
+    pub truth: Vec<TruthPart>,
 }
 
 /// One scored frame's predictions.
@@ -112,6 +116,20 @@ impl EvalFrame<'_> {
     pub fn images(&self, views: usize) -> Result<Vec<image::RgbImage>, InferError> {
         let cams = self.cameras(views);
         Ok(read_frame_images(&self.frame.images[..cams.len()], cams)?)
+    }
+
+    /// The annotated SMPL-X people; an error naming the frame for a joint-annotated one.
+    pub fn smplx_people(&self) -> Result<&[Person], InferError> {
+        match &self.frame.people {
+            FramePeople::Smplx(people) => Ok(people),
+            FramePeople::Joints(set, _) => Err(InferError::file(
+                &self.frame.source,
+                format!(
+                    "annotated with {} joints, not SMPL-X parameters: --truth needs SMPL-X annotations",
+                    set.name()
+                ),
+            )),
+        }
     }
 
     /// Each annotated person's root: the SMPL-X pelvis, or the joint set's root joint.
@@ -310,7 +328,7 @@ pub fn evaluate(
 ) -> Result<Evaluator, InferError> {
     let (seqs, truth) = mvmp_split(data, opts.split, &pred.device)?;
     let (ev, _) = evaluate_sequences(&seqs, &truth, opts, |i, n, at| {
-        scored_frame(pred, opts.views, at, |fp| each(i, n, fp))
+        scored_frame(pred, opts, at, |fp| each(i, n, fp))
     })?;
     Ok(ev)
 }
@@ -332,7 +350,7 @@ pub fn pose_params(layer: &SmplxLayer, people: &[(SmplxParams, f64)]) -> Vec<Per
     to_poses(out.joints, out.vertices, people.iter().map(|p| p.1))
 }
 
-fn to_poses(
+pub(crate) fn to_poses(
     joints: Tensor<3>,
     vertices: Tensor<3>,
     scores: impl Iterator<Item = f64>,
@@ -541,31 +559,41 @@ pub fn evaluate_joint_sequences(
         max_frames,
         gate,
         joints: set,
+        truth: Vec::new(),
     };
     let truth = Truth {
         body: None,
         pseudo: pseudo.cloned(),
     };
     evaluate_sequences(seqs, &truth, &opts, |i, n, at| {
-        scored_frame(pred, opts.views, at, |fp| each(i, n, fp))
+        scored_frame(pred, &opts, at, |fp| each(i, n, fp))
     })
 }
 
 /// The predictor's people in a frame as eval poses, after `each` has seen them.
 fn scored_frame(
     pred: &Predictor,
-    views: usize,
+    opts: &EvalOptions,
     at: &EvalFrame,
     each: impl FnOnce(FramePredictions) -> Result<(), InferError>,
 ) -> Result<Vec<PersonPose>, InferError> {
-    let people = predict_frame(pred, views, at)?;
-    let poses = people.iter().map(pose_of).collect();
+    let people = predict_frame(pred, opts.views, at)?;
+    let poses = if opts.truth.is_empty() {
+        people.iter().map(pose_of).collect()
+    } else {
+        let params: Vec<_> = people
+            .iter()
+            .map(|p| (p.params(), p.score as f64))
+            .collect();
+        let truth = at.smplx_people()?;
+        pose_with_truth(&pred.layer, &params, truth, &opts.truth, opts.gate)
+    };
     let (scene, frame) = at.names();
     each(FramePredictions {
         scene,
         frame,
         people,
-        cameras: at.cameras(views).to_vec(),
+        cameras: at.cameras(opts.views).to_vec(),
     })?;
     Ok(poses)
 }

@@ -13,6 +13,7 @@ pub use mvmp_smplx::joint_sets;
 
 pub mod drivers;
 pub mod spread;
+pub mod truth_parts;
 
 use std::collections::BTreeMap;
 

@@ -131,6 +131,7 @@ pub(crate) fn validate(
         max_frames: cfg.val_frames,
         gate: cfg.match_gate,
         joints: mvmp_eval::joint_sets::JointSet::Smplx127,
+        truth: Vec::new(),
     };
     let metrics = if stage == Stage::Detection {
         root_metrics(&pred, data, &opts)?

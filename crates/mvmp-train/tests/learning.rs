@@ -131,6 +131,7 @@ fn two_frames_are_overfitted_and_every_person_is_found() {
         max_frames: 0,
         gate: mvmp_eval::DEFAULT_GATE,
         joints: JointSet::Smplx127,
+        truth: Vec::new(),
     };
     let m = evaluate(&pred, &data, &eval, |_, _, _| Ok(()))
         .unwrap()
