@@ -50,6 +50,15 @@ impl HRNetConfig {
             .with_blocks(1)
             .with_modules([1, 1, 1])
     }
+    /// Twice the tiny one's widths (branches 16 to 128 channels, stem 32), one block and one module per
+    /// stage: about four times its multiply-adds, still far below W32.
+    pub fn small(joints: usize) -> Self {
+        HRNetConfig::new(joints, 16)
+            .with_stem(32)
+            .with_planes(32)
+            .with_blocks(1)
+            .with_modules([1, 1, 1])
+    }
     /// A variant by its config name (`tiny`, `hrnet_w32`, `hrnet_w48`).
     pub fn by_name(name: &str, joints: usize) -> Option<Self> {
         name.parse::<crate::HrnetVariant>()

@@ -61,11 +61,13 @@ impl std::fmt::Display for VitVariant {
     }
 }
 
-/// The HRNet variants: the tiny CPU model and the reference W32 and W48.
+/// The HRNet variants: the tiny and small CPU models and the reference W32 and W48.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub enum HrnetVariant {
     #[serde(rename = "tiny")]
     Tiny,
+    #[serde(rename = "small")]
+    Small,
     #[serde(rename = "hrnet_w32")]
     W32,
     #[serde(rename = "hrnet_w48")]
@@ -73,11 +75,17 @@ pub enum HrnetVariant {
 }
 
 impl HrnetVariant {
-    pub const ALL: [HrnetVariant; 3] = [HrnetVariant::Tiny, HrnetVariant::W32, HrnetVariant::W48];
+    pub const ALL: [HrnetVariant; 4] = [
+        HrnetVariant::Tiny,
+        HrnetVariant::Small,
+        HrnetVariant::W32,
+        HrnetVariant::W48,
+    ];
 
     pub fn name(self) -> &'static str {
         match self {
             HrnetVariant::Tiny => "tiny",
+            HrnetVariant::Small => "small",
             HrnetVariant::W32 => "hrnet_w32",
             HrnetVariant::W48 => "hrnet_w48",
         }
@@ -87,6 +95,7 @@ impl HrnetVariant {
     pub fn config(self, joints: usize) -> HRNetConfig {
         match self {
             HrnetVariant::Tiny => HRNetConfig::tiny(joints),
+            HrnetVariant::Small => HRNetConfig::small(joints),
             HrnetVariant::W32 => HRNetConfig::hrnet_w32(joints),
             HrnetVariant::W48 => HRNetConfig::hrnet_w48(joints),
         }
@@ -99,7 +108,7 @@ impl std::str::FromStr for HrnetVariant {
         HrnetVariant::ALL
             .into_iter()
             .find(|v| v.name() == s)
-            .ok_or_else(|| format!("{s:?}: expected tiny, hrnet_w32 or hrnet_w48"))
+            .ok_or_else(|| format!("{s:?}: expected tiny, small, hrnet_w32 or hrnet_w48"))
     }
 }
 

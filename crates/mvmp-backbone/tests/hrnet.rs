@@ -6,12 +6,15 @@ use mvmp_backbone::HRNetConfig;
 #[test]
 fn heatmaps_at_stride_four() {
     let d = Device::flex();
-    let net = HRNetConfig::tiny(15).init(&d);
-    let y = net.forward(Tensor::<4>::zeros([2, 3, 64, 96], &d));
-    assert_eq!(y.dims(), [2, 15, 16, 24]);
-    // Sizes that are not multiples of 32 (the paper's 1288 is not): branches round up, fusion resizes.
-    let y = net.forward(Tensor::<4>::zeros([1, 3, 100, 92], &d));
-    assert_eq!(y.dims(), [1, 15, 25, 23]);
+    for name in ["tiny", "small"] {
+        let net = HRNetConfig::by_name(name, 15).unwrap().init(&d);
+        let y = net.forward(Tensor::<4>::zeros([2, 3, 64, 96], &d));
+        assert_eq!(y.dims(), [2, 15, 16, 24], "{name}");
+        // Sizes that are not multiples of 32 (the paper's 1288 is not): branches round up, fusion resizes.
+        let y = net.forward(Tensor::<4>::zeros([1, 3, 100, 92], &d));
+        assert_eq!(y.dims(), [1, 15, 25, 23], "{name}");
+    }
+    assert!(HRNetConfig::by_name("w16", 15).is_none());
 }
 
 #[test]

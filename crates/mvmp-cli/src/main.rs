@@ -178,7 +178,7 @@ enum ImportCommand {
     },
     /// HRNet pose weights in the reference pose_hrnet layout (.pth or .safetensors).
     Hrnet {
-        /// tiny, hrnet_w32 or hrnet_w48.
+        /// tiny, small, hrnet_w32 or hrnet_w48.
         #[arg(long, default_value = "hrnet_w32")]
         variant: mvmp_backbone::HrnetVariant,
         /// Heatmap joints of the checkpoint's head (17 for COCO).

@@ -448,6 +448,10 @@ pub struct LossWeights {
     pub heatmap_2d_stage2: f32,
     /// Width of the 2D heatmap targets in heatmap pixels (HRNet: 2).
     pub heatmap_sigma: f32,
+    /// Weight, inside the 2D heatmap term, of the joint maps' squared error weighted by their Gaussian
+    /// targets ([`detection_positive_loss`] on the maps; HRNet: 0, a plain MSE). The plain MSE averages
+    /// over every pixel, where the few pixels at joints weigh little beside the empty image.
+    pub heatmap_2d_positive: f32,
     /// Weight of the 2D joint heatmap term on the ViT's reduced features, read by a model's
     /// `vit_heatmaps` head in both stages (the paper: 0; its ViT comes pretrained on 2D pose).
     pub vit_heatmap: f32,
@@ -483,6 +487,7 @@ impl Default for LossWeights {
             heatmap_2d: 1.0,
             heatmap_2d_stage2: 0.0,
             heatmap_sigma: 2.0,
+            heatmap_2d_positive: 0.0,
             vit_heatmap: 0.0,
             vit_heatmap_sigma: 1.0,
             facing: 0.1,
@@ -509,6 +514,7 @@ impl LossWeights {
             ("density", self.density),
             ("heatmap_2d", self.heatmap_2d),
             ("heatmap_2d_stage2", self.heatmap_2d_stage2),
+            ("heatmap_2d_positive", self.heatmap_2d_positive),
             ("vit_heatmap", self.vit_heatmap),
             ("detection_offset", self.detection_offset),
             ("detection_positive", self.detection_positive),

@@ -185,10 +185,19 @@ pub fn heatmap_term(
     gt: &HostGt,
     cfg: &ModelConfig,
     sigma: f32,
+    positive: f32,
     device: &Device,
 ) -> Tensor<1> {
     let stride = cfg.heatmap_stride() as f32;
-    joint_heatmap_term(det.heatmaps.clone(), stride, gt, cfg, sigma, device)
+    joint_heatmap_term(
+        det.heatmaps.clone(),
+        stride,
+        gt,
+        cfg,
+        sigma,
+        positive,
+        device,
+    )
 }
 
 /// The heatmap loss's targets `dims` (`[B, V, J, h, w]`, `stride` network pixels per map pixel):
@@ -228,13 +237,15 @@ pub fn joint_heatmap_targets(
 }
 
 /// The heatmap loss of maps `[B, V, J, h, w]` of the heatmap joints, `stride` network pixels per map
-/// pixel, against Gaussians of width `sigma` (map pixels) at the visible ground-truth joints.
+/// pixel, against Gaussians of width `sigma` (map pixels) at the visible ground-truth joints, plus
+/// `positive` times the error weighted by those Gaussians ([`detection_positive_loss`]).
 pub fn joint_heatmap_term(
     maps: Tensor<5>,
     stride: f32,
     gt: &HostGt,
     cfg: &ModelConfig,
     sigma: f32,
+    positive: f32,
     device: &Device,
 ) -> Tensor<1> {
     let target = joint_heatmap_targets(maps.dims(), stride, gt, cfg, sigma, device);
@@ -253,11 +264,14 @@ pub fn joint_heatmap_term(
             }));
         }
     }
-    heatmap_loss(
-        maps,
-        target,
-        Tensor::from_data(TensorData::new(weight, [b, v, j]), device),
-    )
+    let weight = Tensor::from_data(TensorData::new(weight, [b, v, j]), device);
+    let mse = heatmap_loss(maps.clone(), target.clone(), weight.clone());
+    if positive <= 0.0 {
+        return mse;
+    }
+    // Unsupervised joints drop out with their targets.
+    let supervised = target * weight.reshape([b, v, j, 1, 1]);
+    mse + detection_positive_loss(maps, supervised) * positive
 }
 
 /// SMPL-X joints of the torso, where the facing head is trained: pelvis, hips, spine1-3, neck, shoulders.
@@ -439,7 +453,10 @@ fn heatmap_2d_term(
     weight: f32,
     device: &Device,
 ) -> Option<Tensor<1>> {
-    (weight > 0.0).then(|| heatmap_term(det, gt, cfg, weights.heatmap_sigma, device) * weight)
+    (weight > 0.0).then(|| {
+        let (sigma, positive) = (weights.heatmap_sigma, weights.heatmap_2d_positive);
+        heatmap_term(det, gt, cfg, sigma, positive, device) * weight
+    })
 }
 
 /// The ViT features' heatmap term at its weight (`None` at 0 or for a model without the head).
@@ -467,7 +484,7 @@ fn vit_heatmap_weighted(
 ) -> Tensor<1> {
     let stride = mvmp_backbone::vit::PATCH as f32;
     let sigma = weights.vit_heatmap_sigma;
-    joint_heatmap_term(maps, stride, gt, cfg, sigma, device) * weights.vit_heatmap
+    joint_heatmap_term(maps, stride, gt, cfg, sigma, 0.0, device) * weights.vit_heatmap
 }
 
 /// The facing term at its weight (`None` at 0 or for a model without a facing head).

@@ -730,6 +730,10 @@ fn bad_configs_name_the_key() {
             "loss.detection_positive",
         ),
         (
+            ("[stage1]", "[loss]\nheatmap_2d_positive = -1.0\n[stage1]"),
+            "loss.heatmap_2d_positive",
+        ),
+        (
             ("lr = 1e-3", "lr = 1e-3\nfinal_lr_factor = 2.0"),
             "stage1.final_lr_factor",
         ),
@@ -1880,6 +1884,22 @@ fn body_frame_mesh_terms_run_on_smplx_and_joint_people() {
         h["heatmap_2d"].is_finite() && h["heatmap_2d"] > 0.0,
         "{h:?}"
     );
+    // The target-weighted part adds its weight times a positive error to the plain MSE (the maps are
+    // the same in every call, so the addition is linear in the weight).
+    let positive = |p: f32| {
+        terms(&mvmp_losses::LossWeights {
+            heatmap_2d_stage2: 1.0,
+            heatmap_2d_positive: p,
+            ..world.clone()
+        })
+        .1["heatmap_2d"]
+    };
+    let (half, one) = (
+        positive(0.5) - h["heatmap_2d"],
+        positive(1.0) - h["heatmap_2d"],
+    );
+    assert!(half > 0.0 && half.is_finite(), "{half}");
+    assert!((one - 2.0 * half).abs() < 1e-4 * one, "{half} {one}");
     for frame in [MeshFrame::Pelvis, MeshFrame::Body] {
         let local = mvmp_losses::LossWeights {
             mesh_frame: frame,
