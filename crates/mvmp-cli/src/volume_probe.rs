@@ -9,6 +9,7 @@ use mvmp_data::loader::Split;
 use mvmp_infer::Predictor;
 use mvmp_model::MvmpHmr;
 use mvmp_train::RunDir;
+use mvmp_train::keypoints::{KeypointSummary, summarise};
 use mvmp_train::probe::{
     ProbeOptions, ProbeScore, ProbedPerson, collect, mean_pose_mm, scene_count, score,
 };
@@ -43,6 +44,7 @@ pub fn probe(args: &ProbeArgs, device: &Device) -> Result<()> {
     let initial = mvmp_train::train::seeded_init(&mcfg, device, tcfg.seed);
     let models = [("trained", &pred.model), ("initial", &initial)];
     let mut scores = Vec::new();
+    let mut keypoints = serde_json::Map::new();
     let mut mean_mm = None;
     for (label, model) in models {
         let train = read(model, args.data, Split::Train, &opts, device, label)?;
@@ -56,6 +58,16 @@ pub fn probe(args: &ProbeArgs, device: &Device) -> Result<()> {
             );
             mean_mm = Some((train.len(), test.len(), mm));
         }
+        let k = keypoint_summary(&test, mcfg.heatmap_stride() as f32);
+        println!(
+            "2D keypoints ({label} HRNet, held out): median {:.1} px from the true joint, {:.1}% within one \
+             map pixel, {:.1}% within two ({} keypoints)",
+            k.median_px,
+            100.0 * k.within_one_map_pixel,
+            100.0 * k.within_two_map_pixels,
+            k.keypoints
+        );
+        keypoints.insert(label.to_string(), serde_json::to_value(&k)?);
         for s in rows(label, &train, &test)? {
             println!(
                 "{:<40} {:>6} features  R2 {:>7.3}  {:>6.1} mm  (ridge {})",
@@ -71,12 +83,19 @@ pub fn probe(args: &ProbeArgs, device: &Device) -> Result<()> {
             "lattice": args.lattice, "span_m": args.span, "views": opts.views,
             "train_people": train_people, "test_people": test_people,
             "mean_pose_mm": mean_pose_mm, "scores": scores,
+            "keypoints_held_out": keypoints,
         });
         mvmp_io::write_atomic_with(out, |w| {
             serde_json::to_writer_pretty(&mut *w, &report).map_err(std::io::Error::other)
         })?;
     }
     Ok(())
+}
+
+/// Every held-out person's keypoint errors together.
+fn keypoint_summary(people: &[ProbedPerson], stride: f32) -> KeypointSummary {
+    let all: Vec<f32> = people.iter().flat_map(|p| p.keypoint_px.clone()).collect();
+    summarise(&all, stride)
 }
 
 fn read(

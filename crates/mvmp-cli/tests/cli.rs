@@ -844,6 +844,22 @@ fn train_eval_infer_end_to_end() {
         rows.iter().all(|r| r["r2"].as_f64().unwrap().is_finite()),
         "{probe_report}"
     );
+    // HRNet's 2D keypoints on the held-out people, for both weights: every shown joint counted, each
+    // within the search window (3 map pixels: at most about 4.3 x 4 = 17 network pixels off).
+    for label in ["trained", "initial"] {
+        let k = &probe_report["keypoints_held_out"][label];
+        assert!(k["keypoints"].as_u64().unwrap() > 0, "{probe_report}");
+        let median = k["median_px"].as_f64().unwrap();
+        assert!((0.0..17.0).contains(&median), "{label}: {k}");
+        let (one, two) = (
+            k["within_one_map_pixel"].as_f64().unwrap(),
+            k["within_two_map_pixels"].as_f64().unwrap(),
+        );
+        assert!(
+            (0.0..=1.0).contains(&one) && one <= two && two <= 1.0,
+            "{label}: {k}"
+        );
+    }
     expect_error(
         &[&probe[..], &["--lattice", "0,3,8"]].concat(),
         &["--lattice", "0,3,8", "1 to 64"],

@@ -5,6 +5,7 @@ pub mod config;
 pub mod curves;
 pub mod diagnostics;
 pub mod error;
+pub mod keypoints;
 pub mod probe;
 pub mod pseudo;
 pub mod run;

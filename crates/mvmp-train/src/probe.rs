@@ -19,6 +19,7 @@ use mvmp_model::facing::facing_readout;
 use mvmp_model::{Detection, MvmpHmr, RigGrids};
 
 use crate::TrainError;
+use crate::keypoints::keypoint_errors;
 use crate::step::{HostGt, batch_grids, joint_heading, joint_heatmap_targets};
 
 /// Body joints after the pelvis (SMPL-X order) whose offsets make up the probed pose.
@@ -76,6 +77,9 @@ pub struct ProbedPerson {
     pub height: Vec<f32>,
     /// The body joints' offsets from the pelvis in the person's frame, metres, `21 * 3`.
     pub pose: Vec<f64>,
+    /// For each view and heatmap joint the person shows, how far (network pixels) HRNet's map puts its
+    /// peak from the true 2D joint ([`keypoint_errors`]).
+    pub keypoint_px: Vec<f32>,
 }
 
 /// The people of a split of an MVMP-HMR dataset, each as [`ProbedPerson`]. People whose heading the
@@ -174,6 +178,9 @@ fn probe_frame(
     let own_height = heights(own_roots.clone());
     let (fv, fh, ft) = (at(volume), at(hvol), at(tvol));
     let height = heights(roots.clone());
+    let [_, _, _, mh, mw] = det.heatmaps.dims();
+    let maps = host(det.heatmaps.clone());
+    let keypoints = |p: &PersonGt| keypoint_errors(&maps, [mh, mw], p, &cfg.heatmap_joints, stride);
     let (cv, ch, hw) = (fv.len() / k, fh.len() / k, HEIGHT_BUMPS + 1);
     // Person j's part of values of `w` per person.
     let part = |v: &[f32], j: usize, w: usize| v[j * w..(j + 1) * w].to_vec();
@@ -192,6 +199,7 @@ fn probe_frame(
             own_height: part(&own_height, j, hw),
             height: part(&height, j, hw),
             pose: body_frame_pose(&p.joints_3d, *h),
+            keypoint_px: keypoints(p),
         })
         .collect()
 }
