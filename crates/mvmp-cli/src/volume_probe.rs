@@ -6,6 +6,9 @@ use anyhow::{Context, Result, bail};
 use burn::tensor::Device;
 
 use mvmp_data::loader::Split;
+use mvmp_data::sequence::FramePeople;
+use mvmp_eval::drivers::EvalFrame;
+use mvmp_infer::PersonPrediction;
 use mvmp_infer::Predictor;
 use mvmp_model::MvmpHmr;
 use mvmp_train::RunDir;
@@ -13,6 +16,8 @@ use mvmp_train::keypoints::{KeypointSummary, summarise};
 use mvmp_train::probe::{
     ProbeOptions, ProbeScore, ProbedPerson, collect, mean_pose_mm, scene_count, score,
 };
+use mvmp_train::probe::{body_frame_offsets, pose_mm};
+use mvmp_train::step::joint_heading;
 
 use crate::progress::LazyBar;
 
@@ -76,6 +81,14 @@ pub fn probe(args: &ProbeArgs, device: &Device) -> Result<()> {
             scores.push(s);
         }
     }
+    let own = decoder_read(&pred, args.data, opts.views, device)?;
+    println!(
+        "the model's own prediction (held out, its own roots; {} of {} people matched within {} m)  {} mm",
+        own.matched,
+        own.people,
+        OWN_GATE,
+        own.mm.map_or("-".into(), |mm| format!("{mm:.1}"))
+    );
     let (train_people, test_people, mean_pose_mm) = mean_mm.unwrap_or_default();
     if let Some(out) = args.out {
         let report = serde_json::json!({
@@ -84,6 +97,7 @@ pub fn probe(args: &ProbeArgs, device: &Device) -> Result<()> {
             "train_people": train_people, "test_people": test_people,
             "mean_pose_mm": mean_pose_mm, "scores": scores,
             "keypoints_held_out": keypoints,
+            "model_prediction": own,
         });
         mvmp_io::write_atomic_with(out, |w| {
             serde_json::to_writer_pretty(&mut *w, &report).map_err(std::io::Error::other)
@@ -210,4 +224,72 @@ fn rows(label: &str, train: &[ProbedPerson], test: &[ProbedPerson]) -> Result<Ve
             score(&name, train, test, f).map_err(|e| anyhow::anyhow!("{}: {e}", name))
         })
         .collect()
+}
+
+/// Metres within which a prediction's pelvis is a held-out person's.
+const OWN_GATE: f64 = 0.5;
+
+/// The model's own body pose in the probe's terms: its predicted joints for each held-out person
+/// (the prediction whose pelvis is nearest theirs, within [`OWN_GATE`]) as offsets from its pelvis in the
+/// person's true frame, against the true ones. What the decoder reads, beside what a linear read could.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+struct DecoderRead {
+    people: usize,
+    matched: usize,
+    /// `None` when no prediction matched.
+    mm: Option<f64>,
+}
+
+fn decoder_read(
+    pred: &Predictor,
+    data: &Path,
+    views: usize,
+    device: &Device,
+) -> Result<DecoderRead> {
+    let (seqs, _) = mvmp_eval::drivers::mvmp_split(data, Split::Test, device)?;
+    let (mut guess, mut truth, mut people) = (Vec::new(), Vec::new(), 0);
+    let mut pb = LazyBar::new("predict", false);
+    let pairs = mvmp_data::sequence::frame_pairs(&seqs);
+    for (i, &(si, fi)) in pairs.iter().enumerate() {
+        pb.done(i, pairs.len());
+        let frame = seqs[si].frame(fi)?;
+        let FramePeople::Smplx(annotated) = &frame.people else {
+            continue;
+        };
+        let at = EvalFrame {
+            sequence: seqs[si].as_ref(),
+            index: fi,
+            frame: &frame,
+        };
+        let found = mvmp_eval::drivers::predict_frame(pred, views, &at)?;
+        for person in annotated {
+            let cover = vec![true; person.joints_3d.len()];
+            let Some(heading) = joint_heading(&person.joints_3d, &cover) else {
+                continue;
+            };
+            people += 1;
+            let joints = |p: &PersonPrediction| -> Vec<[f64; 3]> {
+                p.joints.iter().map(|j| j.map(f64::from)).collect()
+            };
+            let dist = |p: &PersonPrediction| {
+                (0..3)
+                    .map(|a| (p.pelvis[a] as f64 - person.pelvis[a]).powi(2))
+                    .sum::<f64>()
+                    .sqrt()
+            };
+            let nearest = (found.iter())
+                .filter(|p| dist(p) <= OWN_GATE)
+                .min_by(|a, b| dist(a).total_cmp(&dist(b)));
+            if let Some(p) = nearest {
+                guess.push(body_frame_offsets(&joints(p), heading));
+                truth.push(body_frame_offsets(&person.joints_3d, heading));
+            }
+        }
+    }
+    pb.finish();
+    Ok(DecoderRead {
+        people,
+        matched: guess.len(),
+        mm: (!guess.is_empty()).then(|| pose_mm(&guess, &truth)),
+    })
 }

@@ -291,11 +291,18 @@ fn centroids(samples: &[f32], lattice: &[[f32; 3]]) -> Vec<f32> {
 }
 
 /// The body joints' offsets from the pelvis, turned into the frame whose x axis is the heading.
-fn body_frame_pose(joints: &[[f32; 3]], [hx, hy]: [f64; 2]) -> Vec<f64> {
-    let pelvis = joints[0].map(f64::from);
+fn body_frame_pose(joints: &[[f32; 3]], heading: [f64; 2]) -> Vec<f64> {
+    let joints: Vec<[f64; 3]> = joints.iter().map(|j| j.map(f64::from)).collect();
+    body_frame_offsets(&joints, heading)
+}
+
+/// The probed pose of joints `[J >= 22][3]` (world, z up) seen with the heading `[hx, hy]`: the 21 body
+/// joints' offsets from the pelvis in the frame whose x axis is the heading, metres, `21 * 3`.
+pub fn body_frame_offsets(joints: &[[f64; 3]], [hx, hy]: [f64; 2]) -> Vec<f64> {
+    let pelvis = joints[0];
     POSE_JOINTS
         .flat_map(|j| {
-            let d: [f64; 3] = std::array::from_fn(|a| joints[j][a] as f64 - pelvis[a]);
+            let d: [f64; 3] = std::array::from_fn(|a| joints[j][a] - pelvis[a]);
             // Ahead (hx, hy), left (-hy, hx).
             [d[0] * hx + d[1] * hy, -d[0] * hy + d[1] * hx, d[2]]
         })
@@ -402,6 +409,16 @@ fn targets(people: &[ProbedPerson]) -> DMatrix<f64> {
 
 fn sse(a: &DMatrix<f64>, b: &DMatrix<f64>) -> f64 {
     (a - b).norm_squared()
+}
+
+/// The mean distance (mm) between predicted and true probed poses (rows of `21 * 3` metres), the
+/// probe's own error.
+pub fn pose_mm(pred: &[Vec<f64>], truth: &[Vec<f64>]) -> f64 {
+    let rows = |v: &[Vec<f64>]| {
+        let d = v.first().map_or(0, Vec::len);
+        DMatrix::from_fn(v.len(), d, |i, j| v[i][j])
+    };
+    joint_mm(&rows(pred), &rows(truth))
 }
 
 fn joint_mm(pred: &DMatrix<f64>, truth: &DMatrix<f64>) -> f64 {
@@ -511,6 +528,28 @@ mod tests {
             assert!((a - b).abs() < 1e-6, "{c:?}");
         }
         assert_eq!(centroids(&[0.0, -1.0], &lattice[..1]), vec![0.0; 6]);
+    }
+
+    /// A person at (1, 1, 0) facing +y: a joint 1 m to their +y is 1 m ahead, one at +x is 1 m to their
+    /// right (-y in their frame); the error is the mean joint distance in mm.
+    #[test]
+    fn body_frame_offsets_turn_with_the_heading_and_pose_mm_averages_joints() {
+        let mut joints = vec![[1.0, 1.0, 0.0]; 22];
+        joints[1] = [1.0, 2.0, 0.0];
+        joints[2] = [2.0, 1.0, 0.5];
+        let o = body_frame_offsets(&joints, [0.0, 1.0]);
+        assert_eq!(o.len(), 63);
+        let want = [1.0, 0.0, 0.0, 0.0, -1.0, 0.5];
+        for (a, b) in o[..6].iter().zip(want) {
+            assert!((a - b).abs() < 1e-12, "{o:?}");
+        }
+        assert!(o[6..].iter().all(|&x| x == 0.0));
+        // One joint 5 cm off (3 and 4 cm along two axes), the other 20 exact.
+        let mut other = o.clone();
+        other[0] += 0.03;
+        other[1] += 0.04;
+        let mm = pose_mm(&[other], &[o]);
+        assert!((mm - 50.0 / 21.0).abs() < 1e-9, "{mm}");
     }
 
     /// The held-back part starts at the first person of the last fifth of the scenes (at least one),
