@@ -82,12 +82,15 @@ pub fn probe(args: &ProbeArgs, device: &Device) -> Result<()> {
         }
     }
     let own = decoder_read(&pred, args.data, opts.views, device)?;
+    let mm = |x: Option<f64>| x.map_or("-".into(), |mm| format!("{mm:.1}"));
     println!(
-        "the model's own prediction (held out, its own roots; {} of {} people matched within {} m)  {} mm",
+        "the model's own prediction (held out, its own roots; {} of {} people matched within {} m): {} mm, \
+         {} mm turned with its own heading",
         own.matched,
         own.people,
         OWN_GATE,
-        own.mm.map_or("-".into(), |mm| format!("{mm:.1}"))
+        mm(own.mm),
+        mm(own.mm_own_heading)
     );
     let (train_people, test_people, mean_pose_mm) = mean_mm.unwrap_or_default();
     if let Some(out) = args.out {
@@ -238,6 +241,9 @@ struct DecoderRead {
     matched: usize,
     /// `None` when no prediction matched.
     mm: Option<f64>,
+    /// The same with the predicted joints turned with the heading of their own hips and shoulders: the
+    /// pose without the body's error of heading.
+    mm_own_heading: Option<f64>,
 }
 
 fn decoder_read(
@@ -247,7 +253,7 @@ fn decoder_read(
     device: &Device,
 ) -> Result<DecoderRead> {
     let (seqs, _) = mvmp_eval::drivers::mvmp_split(data, Split::Test, device)?;
-    let (mut guess, mut truth, mut people) = (Vec::new(), Vec::new(), 0);
+    let (mut guess, mut turned, mut truth, mut people) = (Vec::new(), Vec::new(), Vec::new(), 0);
     let mut pb = LazyBar::new("predict", false);
     let pairs = mvmp_data::sequence::frame_pairs(&seqs);
     for (i, &(si, fi)) in pairs.iter().enumerate() {
@@ -281,7 +287,10 @@ fn decoder_read(
                 .filter(|p| dist(p) <= OWN_GATE)
                 .min_by(|a, b| dist(a).total_cmp(&dist(b)));
             if let Some(p) = nearest {
-                guess.push(body_frame_offsets(&joints(p), heading));
+                let j = joints(p);
+                let own = joint_heading(&j, &vec![true; j.len()]).unwrap_or(heading);
+                guess.push(body_frame_offsets(&j, heading));
+                turned.push(body_frame_offsets(&j, own));
                 truth.push(body_frame_offsets(&person.joints_3d, heading));
             }
         }
@@ -291,5 +300,6 @@ fn decoder_read(
         people,
         matched: guess.len(),
         mm: (!guess.is_empty()).then(|| pose_mm(&guess, &truth)),
+        mm_own_heading: (!turned.is_empty()).then(|| pose_mm(&turned, &truth)),
     })
 }

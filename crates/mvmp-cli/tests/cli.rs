@@ -849,13 +849,11 @@ fn train_eval_infer_end_to_end() {
     assert_eq!(own["people"], 2, "{own}");
     let matched = own["matched"].as_u64().unwrap();
     assert!(matched <= 2, "{own}");
-    assert_eq!(own["mm"].as_f64().is_some(), matched > 0, "{own}");
-    assert!(
-        own["mm"]
-            .as_f64()
-            .is_none_or(|mm| mm.is_finite() && mm > 0.0),
-        "{own}"
-    );
+    for key in ["mm", "mm_own_heading"] {
+        let mm = own[key].as_f64();
+        assert_eq!(mm.is_some(), matched > 0, "{own}");
+        assert!(mm.is_none_or(|mm| mm.is_finite() && mm > 0.0), "{own}");
+    }
     // HRNet's 2D keypoints on the held-out people, for both weights: every shown joint counted, each
     // within the search window (3 map pixels: at most about 4.3 x 4 = 17 network pixels off).
     for label in ["trained", "initial"] {
