@@ -137,6 +137,17 @@ pub fn parameter_loss(
         + masked_mean((expression - gt_expression).abs(), mask)
 }
 
+/// The squared error of the 21 body rotations' matrices (slots 1 to 21 of the regressed `[B, K, 53, 3,
+/// 3]`), a mean over elements of the present people. Beside [`parameter_loss`]'s L1, whose gradient is
+/// the error's sign whatever its size, it pulls harder the further a rotation is off.
+pub fn body_pose_l2_loss(rot: Tensor<5>, gt_rot: Tensor<5>, mask: Tensor<2>) -> Tensor<1> {
+    let body = |r: Tensor<5>| r.narrow(2, 1, BODY_ROTATIONS);
+    masked_mean((body(rot) - body(gt_rot)).powi_scalar(2), mask)
+}
+
+/// Body joints among the regressed rotations, after the global orientation.
+const BODY_ROTATIONS: usize = 21;
+
 /// 3D mesh loss: L1 on points `[B, K, N, 3]` (joints and vertices, world metres).
 pub fn mesh_3d_loss(points: Tensor<4>, gt: Tensor<4>, mask: Tensor<2>) -> Tensor<1> {
     masked_mean((points - gt).abs(), mask)
@@ -441,6 +452,8 @@ pub struct LossWeights {
     /// about one voxel per person (0.25 m voxels: the neighbours get 0.46); a wider target gives the
     /// detector more voxels to learn from, and the sub-voxel offsets still place the root.
     pub detection_sigma: f64,
+    /// Weight of [`body_pose_l2_loss`], added to the parameter term (the paper: 0, the L1 alone).
+    pub parameters_body_l2: f32,
     /// Weight of the 2D heatmap loss of stage 1 (the pose network's pre-training; not one of the five).
     pub heatmap_2d: f32,
     /// Weight of the 2D heatmap loss in stage 2 (the paper: 0, stage 1 only). Without it HRNet, whose
@@ -484,6 +497,7 @@ impl Default for LossWeights {
             detection_offset: 1.0,
             detection_positive: 0.0,
             detection_sigma: 0.2,
+            parameters_body_l2: 0.0,
             heatmap_2d: 1.0,
             heatmap_2d_stage2: 0.0,
             heatmap_sigma: 2.0,
@@ -508,6 +522,7 @@ impl LossWeights {
         for (k, v) in [
             ("detection", self.detection),
             ("parameters", self.parameters),
+            ("parameters_body_l2", self.parameters_body_l2),
             ("mesh_3d", self.mesh_3d),
             ("mesh_2d", self.mesh_2d),
             ("orientation", self.orientation),

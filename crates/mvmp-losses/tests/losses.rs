@@ -41,6 +41,28 @@ fn parameter_loss_by_hand() {
     assert!((scalar(l) - want).abs() < 1e-6, "{} vs {want}", 0);
 }
 
+/// Only the 21 body slots count (1 to 21 of the 53), squared, over the present people's 21 x 9 elements.
+#[test]
+fn body_pose_l2_by_hand() {
+    let d = Device::flex();
+    let eye: Vec<f32> = (0..2 * 53)
+        .flat_map(|_| [1., 0., 0., 0., 1., 0., 0., 0., 1.])
+        .collect();
+    let mut other = eye.clone();
+    other[0] += 3.0; // the global orientation: not a body slot
+    other[9 + 1] += 0.5; // body slot 1 (the left hip)
+    other[21 * 9 + 8] -= 0.2; // body slot 21 (the right wrist)
+    other[22 * 9] += 4.0; // the first hand slot
+    other[53 * 9 + 9] += 5.0; // person 1 is masked out
+    let l = scalar(body_pose_l2_loss(
+        t(other, [1, 2, 53, 3, 3], &d),
+        t(eye, [1, 2, 53, 3, 3], &d),
+        mask(vec![1.0, 0.0], 1, 2, &d),
+    ));
+    let want = (0.25 + 0.04) / 189.0;
+    assert!((l - want).abs() < 1e-7, "{l} vs {want}");
+}
+
 #[test]
 fn orientation_by_hand() {
     let d = Device::flex();

@@ -8,10 +8,10 @@ use mvmp_fusion::roots::{gaussian_target, root_voxel_and_offset};
 use mvmp_geom::CameraTensors;
 use mvmp_geom::rotation::axis_angle_to_matrix;
 use mvmp_losses::{
-    LossTerms, LossWeights, MeshFrame, density_axis, density_loss, detection_loss_weighted,
-    detection_positive_loss, facing_bin_loss, facing_loss, heatmap_loss, heatmap_target,
-    mesh_2d_loss_weighted, mesh_3d_loss_weighted, orientation_loss, parameter_loss, to_body_frame,
-    translation_loss,
+    LossTerms, LossWeights, MeshFrame, body_pose_l2_loss, density_axis, density_loss,
+    detection_loss_weighted, detection_positive_loss, facing_bin_loss, facing_loss, heatmap_loss,
+    heatmap_target, mesh_2d_loss_weighted, mesh_3d_loss_weighted, orientation_loss, parameter_loss,
+    to_body_frame, translation_loss,
 };
 use mvmp_model::facing::{bin_labels, facing_readout, relative_heading};
 use mvmp_model::{Detection, ModelConfig, MvmpHmr, MvmpOutput, RigGrids, roots_tensor};
@@ -613,8 +613,8 @@ pub fn stage2_loss(
     let on = |w: f32| w > 0.0;
     let terms = LossTerms {
         detection: on(weights.detection).then(|| d * weights.detection),
-        parameters: on(weights.parameters)
-            .then(|| parameters_term(&out, batch, &t, device) * weights.parameters),
+        parameters: (on(weights.parameters) || on(weights.parameters_body_l2))
+            .then(|| parameters_term(&out, batch, &t, weights, device)),
         mesh: (on(weights.mesh_3d) || on(weights.mesh_2d) || on(weights.translation))
             .then(|| mesh_term(&out, batch, &t, frames.as_ref(), weights, device))
             .flatten(),
@@ -715,11 +715,13 @@ impl QueryTargets {
     }
 }
 
-/// The parameter loss: the regressed rotations, betas and expression against the ground truth's.
+/// The parameter loss (weighted): the regressed rotations, betas and expression against the ground
+/// truth's, and the body rotations' squared error at `parameters_body_l2`.
 fn parameters_term(
     out: &MvmpOutput,
     batch: &FrameBatch,
     t: &QueryTargets,
+    weights: &LossWeights,
     device: &Device,
 ) -> Tensor<1> {
     let (b, k, p) = (t.at.b, t.at.k, t.at.p);
@@ -736,15 +738,19 @@ fn parameters_term(
         .reshape([b * p, NUM_REGRESSED * 9])
         .select(0, t.at.rows.clone())
         .reshape([b, k, NUM_REGRESSED, 3, 3]);
-    parameter_loss(
+    let l1 = parameter_loss(
         out.rotmats.clone(),
-        gt_rot,
+        gt_rot.clone(),
         out.betas.clone(),
         t.at.pick3(batch.betas.clone()),
         out.expression.clone(),
         t.at.pick3(batch.expression.clone()),
         t.smplx.clone(),
-    )
+    ) * weights.parameters;
+    match weights.parameters_body_l2 {
+        w if w > 0.0 => l1 + body_pose_l2_loss(out.rotmats.clone(), gt_rot, t.smplx.clone()) * w,
+        _ => l1,
+    }
 }
 
 /// The mesh loss (weighted): 3D and reprojected 2D errors of the joints and, where the batch has ground

@@ -734,6 +734,10 @@ fn bad_configs_name_the_key() {
             "loss.heatmap_2d_positive",
         ),
         (
+            ("[stage1]", "[loss]\nparameters_body_l2 = inf\n[stage1]"),
+            "loss.parameters_body_l2",
+        ),
+        (
             ("lr = 1e-3", "lr = 1e-3\nfinal_lr_factor = 2.0"),
             "stage1.final_lr_factor",
         ),
@@ -1900,6 +1904,18 @@ fn body_frame_mesh_terms_run_on_smplx_and_joint_people() {
     );
     assert!(half > 0.0 && half.is_finite(), "{half}");
     assert!((one - 2.0 * half).abs() < 1e-4 * one, "{half} {one}");
+    // The body rotations' squared error joins the parameter term at its own weight, also linearly.
+    let w_params = w["parameters"];
+    let l2 = |w: f32| {
+        terms(&mvmp_losses::LossWeights {
+            parameters_body_l2: w,
+            ..world.clone()
+        })
+        .1["parameters"]
+            - w_params
+    };
+    let (a, b) = (l2(1.0), l2(3.0));
+    assert!(a > 0.0 && (b - 3.0 * a).abs() < 1e-4 * b, "{a} {b}");
     for frame in [MeshFrame::Pelvis, MeshFrame::Body] {
         let local = mvmp_losses::LossWeights {
             mesh_frame: frame,
