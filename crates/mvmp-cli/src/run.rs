@@ -186,8 +186,8 @@ pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, s
         && (matches!(args.source, Source::MeanPose) || args.format != SourceFormat::Mvmp)
     {
         bail!(
-            "--truth takes parameters from SMPL-X annotations into a run's or stored predictions \
-             (--run or --predictions on an mvmp dataset), not into a baseline or a joint-annotated dataset"
+            "--truth replaces parameters of predictions with those of SMPL-X annotations: it needs \
+             --run or --predictions on an mvmp dataset, not a baseline or a joint-annotated dataset"
         );
     }
     check_save_predictions(args)?;
