@@ -8,6 +8,7 @@ use burn::tensor::Device;
 use mvmp_data::loader::Split;
 use mvmp_data::sequence::FramePeople;
 use mvmp_eval::drivers::EvalFrame;
+use mvmp_eval::truth_parts::nearest_within;
 use mvmp_infer::PersonPrediction;
 use mvmp_infer::Predictor;
 use mvmp_model::MvmpHmr;
@@ -277,16 +278,8 @@ fn decoder_read(
             let joints = |p: &PersonPrediction| -> Vec<[f64; 3]> {
                 p.joints.iter().map(|j| j.map(f64::from)).collect()
             };
-            let dist = |p: &PersonPrediction| {
-                (0..3)
-                    .map(|a| (p.pelvis[a] as f64 - person.pelvis[a]).powi(2))
-                    .sum::<f64>()
-                    .sqrt()
-            };
-            let nearest = (found.iter())
-                .filter(|p| dist(p) <= OWN_GATE)
-                .min_by(|a, b| dist(a).total_cmp(&dist(b)));
-            if let Some(p) = nearest {
+            let pelvises = found.iter().map(|p| p.pelvis.map(f64::from));
+            if let Some(p) = nearest_within(pelvises, person.pelvis, OWN_GATE).map(|i| &found[i]) {
                 let j = joints(p);
                 let own = joint_heading(&j, &vec![true; j.len()]).unwrap_or(heading);
                 guess.push(body_frame_offsets(&j, heading));

@@ -133,21 +133,21 @@ pub fn pose_with_truth(
     crate::drivers::to_poses(out.joints, out.vertices, people.iter().map(|p| p.1))
 }
 
+/// The index of the point of `points` nearest `at`, if it lies within `gate` metres.
+pub fn nearest_within(
+    points: impl IntoIterator<Item = [f64; 3]>,
+    at: [f64; 3],
+    gate: f64,
+) -> Option<usize> {
+    let dist = |p: [f64; 3]| (0..3).map(|a| (p[a] - at[a]).powi(2)).sum::<f64>().sqrt();
+    (points.into_iter().map(dist).enumerate())
+        .filter(|(_, d)| *d <= gate)
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .map(|(i, _)| i)
+}
+
 fn nearest<'a>(truth: &'a [Person], at: &[f64; 3], gate: f64) -> Option<&'a Person> {
-    let d = |p: &Person| {
-        p.pelvis
-            .iter()
-            .zip(at)
-            .map(|(a, b)| (a - b).powi(2))
-            .sum::<f64>()
-            .sqrt()
-    };
-    truth
-        .iter()
-        .map(|p| (d(p), p))
-        .filter(|(dist, _)| *dist <= gate)
-        .min_by(|a, b| a.0.total_cmp(&b.0))
-        .map(|(_, p)| p)
+    nearest_within(truth.iter().map(|p| p.pelvis), *at, gate).map(|i| &truth[i])
 }
 
 #[cfg(test)]
