@@ -75,6 +75,17 @@ impl Monitor for BarMonitor {
             self.line(format!("checkpoint {}", path.display()));
         }
     }
+
+    fn pose_fit(&mut self, f: &mvmp_train::pose_fit::PoseFit) {
+        let what = match f.applied {
+            true => "set",
+            false => "kept the trained read",
+        };
+        self.line(format!(
+            "pose read fitted on {} frames ({} people): body rotations on the last fifth {:.2} deg as trained, {:.2} deg fitted, {:.2} deg at the mean; {what}",
+            f.frames, f.people, f.held_back_deg, f.held_back_fitted_deg, f.held_back_mean_deg
+        ));
+    }
 }
 
 impl Drop for BarMonitor {

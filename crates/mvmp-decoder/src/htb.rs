@@ -339,6 +339,9 @@ pub struct DecoderOutput {
     pub expression: Tensor<3>,
     /// `[B, K, 3]` root + offset: the pelvis in the world (T_wld).
     pub transl: Tensor<3>,
+    /// `[B, K, W]` the joint samples the linear pose read took, when the decoder has one
+    /// ([`DecoderOptions::pose_read`]).
+    pub pose_inputs: Option<Tensor<3>>,
 }
 
 /// Body joints among the regressed rotations (slots 1..=21, after the global orientation).
@@ -742,8 +745,9 @@ impl Decoder {
         let joint_part = joints.map(|j| self.joint_inputs(j, roots.clone(), heading.clone(), grid));
         // Scaled by 1 / sqrt(inputs): Adam moves every weight by about the learning rate whatever its
         // gradient, so thousands of unit inputs would otherwise move the rotations by whole units per step.
+        let pose_inputs = joint_part.clone().filter(|_| self.pose_read.is_some());
         let pose_read = (self.pose_read.as_ref())
-            .zip(joint_part.clone())
+            .zip(pose_inputs.clone())
             .map(|(p, j)| p.forward(j) / (p.weight.dims()[0] as f64).sqrt());
         let mut skip_in = sampled.clone();
         if let Some(j) = joint_part {
@@ -829,6 +833,7 @@ impl Decoder {
             betas,
             expression: expr,
             transl: roots + offset,
+            pose_inputs,
         }
     }
 }

@@ -691,6 +691,18 @@ fn pose_read_adds_its_linear_read_to_the_body_rotations() {
     without.pose_read = None;
     assert_eq!(at_zero, run(&without));
     let x = vals(dec.joint_inputs(joints.clone(), roots.clone(), None, &g));
+    // The output hands back what the read took (the pose fit's rows), and nothing without a read.
+    let inputs = |dec: &Decoder| {
+        let q = QueryInputs {
+            heading: None,
+            joints: Some(joints.clone()),
+        };
+        (dec.forward_with(volume.clone(), q, &g, roots.clone(), present.clone()))
+            .pose_inputs
+            .map(vals)
+    };
+    assert_eq!(inputs(&dec), Some(x.clone()));
+    assert_eq!(inputs(&without), None);
     let (n, out) = (12, 21 * 6);
     let w: Vec<f32> = (0..n * out)
         .map(|i| ((i * 7) % 11) as f32 * 0.1 - 0.5)

@@ -148,6 +148,8 @@ pub struct MvmpOutput {
     /// `[B, K, V, 3]`, `[B, K, J, 3]`
     pub vertices: Tensor<4>,
     pub joints: Tensor<4>,
+    /// `[B, K, W]` what the decoder's linear pose read took, when it has one.
+    pub pose_inputs: Option<Tensor<3>>,
 }
 
 impl ModelConfig {
@@ -448,6 +450,7 @@ impl MvmpHmr {
             transl: dec.transl,
             vertices: body.vertices.reshape([b, kk, nv, 3]),
             joints: body.joints.reshape([b, kk, nj, 3]),
+            pose_inputs: dec.pose_inputs,
         }
     }
 }

@@ -131,6 +131,13 @@ pub struct StageConfig {
     /// the average is checkpointed beside them (docs/architecture.md, Weight averaging).
     #[serde(default)]
     pub average_decay: f64,
+    /// At the stage's end, fit the decoder's linear pose read (`decoder.pose_read`) in closed form on this
+    /// many training frames spread over the set (0 = off; stage 2 only): a ridge regression from the joint
+    /// samples it reads to what the rest of the decoder leaves of the body's rotations, kept where it
+    /// lowers their error on the last fifth of the frames (docs/architecture.md, The pose read in closed
+    /// form).
+    #[serde(default)]
+    pub pose_fit_frames: usize,
 }
 
 impl StageConfig {
@@ -282,6 +289,18 @@ impl TrainConfig {
             });
         }
         check_vit_heatmaps(path, &model_path, &model, &cfg.loss)?;
+        let read = model.decoder.pose_read && model.decoder.joint_samples;
+        if cfg.stage2.pose_fit_frames > 0 && !read {
+            return Err(TrainError::Config {
+                path: path.into(),
+                key: "stage2.pose_fit_frames".into(),
+                what: format!(
+                    "{}, but the model ({}) has no linear pose read to fit (`decoder.pose_read` and `decoder.joint_samples`)",
+                    cfg.stage2.pose_fit_frames,
+                    model_path.display()
+                ),
+            });
+        }
         Ok((cfg, model))
     }
 
@@ -402,6 +421,24 @@ impl TrainConfig {
             return bad(
                 "stage1.detection_lr".into(),
                 format!("{d}: stage 1 trains detection alone, at its lr; set it in stage2"),
+            );
+        }
+        if self.stage1.pose_fit_frames > 0 {
+            return bad(
+                "stage1.pose_fit_frames".into(),
+                format!(
+                    "{}: stage 1 does not train the decoder; set it in stage2",
+                    self.stage1.pose_fit_frames
+                ),
+            );
+        }
+        if self.stage2.pose_fit_frames > MAX_EPOCHS {
+            return bad(
+                "stage2.pose_fit_frames".into(),
+                format!(
+                    "{}: expected at most {MAX_EPOCHS}",
+                    self.stage2.pose_fit_frames
+                ),
             );
         }
         if self.stage2.freeze_detection && self.stage2.detection_lr.is_some() {
@@ -587,6 +624,7 @@ mod tests {
             freeze_backbone: false,
             freeze_detection: false,
             average_decay: 0.0,
+            pose_fit_frames: 0,
         }
     }
 

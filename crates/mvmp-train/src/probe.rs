@@ -8,7 +8,7 @@ use std::path::Path;
 
 use burn::data::dataloader::batcher::Batcher;
 use burn::tensor::{Bool, Device, Tensor, TensorData};
-use nalgebra::{DMatrix, RowDVector, SymmetricEigen};
+use nalgebra::DMatrix;
 
 use mvmp_data::dataset::FrameDataset;
 use mvmp_data::loader::{FrameBatch, FrameBatcher, PersonGt, Split, ViewChoice};
@@ -20,6 +20,7 @@ use mvmp_model::{Detection, MvmpHmr, RigGrids};
 
 use crate::TrainError;
 use crate::keypoints::keypoint_errors;
+use crate::ridge::{Ridge, sse};
 use crate::step::{HostGt, batch_grids, joint_heading, joint_heatmap_targets};
 
 /// Body joints after the pelvis (SMPL-X order) whose offsets make up the probed pose.
@@ -28,8 +29,6 @@ const POSE_JOINTS: std::ops::Range<usize> = 1..22;
 const HEIGHT_BUMPS: usize = 8;
 /// Metres from a person's true root within which the nearest detected root is theirs.
 const OWN_ROOT_GATE: f64 = 0.5;
-/// Ridge strengths tried, as multiples of the mean squared norm of a standardised feature row.
-const RIDGE: [f64; 7] = [1e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0, 3.0];
 
 /// Where the volumes are sampled and on what.
 #[derive(Debug, Clone)]
@@ -347,11 +346,7 @@ pub fn score(
         x.rows(cut, x.nrows() - cut).into_owned(),
         y.rows(cut, y.nrows() - cut).into_owned(),
     );
-    let fold = Ridge::fit(&fit_x, &fit_y);
-    let best = (RIDGE.iter())
-        .map(|&r| (r, sse(&fold.predict(&val_x, r), &val_y)))
-        .min_by(|a, b| a.1.total_cmp(&b.1))
-        .map_or(1.0, |(r, _)| r);
+    let best = Ridge::fit(&fit_x, &fit_y).choose(&val_x, &val_y);
     let pred = Ridge::fit(&x, &y).predict(&xt, best);
     let mean = y.row_mean();
     let sst: f64 = (0..yt.nrows())
@@ -407,10 +402,6 @@ fn targets(people: &[ProbedPerson]) -> DMatrix<f64> {
     DMatrix::from_fn(people.len(), d, |i, j| people[i].pose[j])
 }
 
-fn sse(a: &DMatrix<f64>, b: &DMatrix<f64>) -> f64 {
-    (a - b).norm_squared()
-}
-
 /// The mean distance (mm) between predicted and true probed poses (rows of `21 * 3` metres), the
 /// probe's own error.
 pub fn pose_mm(pred: &[Vec<f64>], truth: &[Vec<f64>]) -> f64 {
@@ -431,86 +422,6 @@ fn joint_mm(pred: &DMatrix<f64>, truth: &DMatrix<f64>) -> f64 {
         }
     }
     1000.0 * sum / (truth.nrows() * joints).max(1) as f64
-}
-
-/// Ridge regression on standardised features, in whichever form has the smaller matrix to decompose:
-/// the primal `Z^T Z` (features x features) when the people outnumber the features, else the dual
-/// `Z Z^T` (people x people). Either is decomposed once, `Q Lambda Q^T`, so each strength costs one
-/// product: the weights are `B (Lambda + lambda I)^-1 Q^T Z'^T (Y - mean)` with `B = Q`, `Z' = Z`
-/// (primal) or `B = Z^T Q`, `Z' = I` (dual).
-struct Ridge {
-    mean: RowDVector<f64>,
-    scale: RowDVector<f64>,
-    eigenvalues: nalgebra::DVector<f64>,
-    /// `B` above: features x rank.
-    basis: DMatrix<f64>,
-    /// `Q^T Z'^T (Y - mean)`: rank x targets.
-    projected: DMatrix<f64>,
-    y_mean: RowDVector<f64>,
-    /// The mean squared norm of a standardised row, the unit of the strengths.
-    unit: f64,
-}
-
-impl Ridge {
-    fn fit(x: &DMatrix<f64>, y: &DMatrix<f64>) -> Ridge {
-        let n = x.nrows() as f64;
-        let mean = x.row_mean();
-        let var = RowDVector::from_fn(x.ncols(), |_, j| {
-            x.column(j)
-                .iter()
-                .map(|v| (v - mean[j]).powi(2))
-                .sum::<f64>()
-                / n
-        });
-        // A constant feature carries nothing; dividing it by 1 keeps it at zero once centred. The bar is
-        // relative, so that features that are all small (an untrained head's) are still read.
-        let floor = 1e-12 * var.max().max(f64::MIN_POSITIVE);
-        let scale = var.map(|v| if v > floor { v.sqrt().recip() } else { 1.0 });
-        let z = standardise(x, &mean, &scale);
-        let y_mean = y.row_mean();
-        let yc = DMatrix::from_fn(y.nrows(), y.ncols(), |i, j| y[(i, j)] - y_mean[j]);
-        let (eigen, basis, projected) = if z.ncols() <= z.nrows() {
-            let eigen = SymmetricEigen::new(z.transpose() * &z);
-            let projected = eigen.eigenvectors.transpose() * (z.transpose() * yc);
-            let basis = eigen.eigenvectors.clone();
-            (eigen, basis, projected)
-        } else {
-            let eigen = SymmetricEigen::new(&z * z.transpose());
-            let projected = eigen.eigenvectors.transpose() * yc;
-            let basis = z.transpose() * &eigen.eigenvectors;
-            (eigen, basis, projected)
-        };
-        Ridge {
-            unit: eigen.eigenvalues.sum() / n,
-            mean,
-            scale,
-            eigenvalues: eigen.eigenvalues,
-            basis,
-            projected,
-            y_mean,
-        }
-    }
-
-    /// Predictions for the rows of `x` at strength `r` (times [`Ridge::unit`]).
-    fn predict(&self, x: &DMatrix<f64>, r: f64) -> DMatrix<f64> {
-        let lambda = r * self.unit.max(f64::MIN_POSITIVE);
-        let mut a = self.projected.clone();
-        for (i, mut row) in a.row_iter_mut().enumerate() {
-            row /= self.eigenvalues[i].max(0.0) + lambda;
-        }
-        let weights = &self.basis * a;
-        let mut pred = standardise(x, &self.mean, &self.scale) * weights;
-        for mut row in pred.row_iter_mut() {
-            row += &self.y_mean;
-        }
-        pred
-    }
-}
-
-fn standardise(x: &DMatrix<f64>, mean: &RowDVector<f64>, scale: &RowDVector<f64>) -> DMatrix<f64> {
-    DMatrix::from_fn(x.nrows(), x.ncols(), |i, j| {
-        (x[(i, j)] - mean[j]) * scale[j]
-    })
 }
 
 #[cfg(test)]

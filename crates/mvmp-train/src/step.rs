@@ -589,17 +589,7 @@ pub fn stage2_loss(
         gate,
     } = *setup;
     let gt = HostGt::new(batch);
-    let grids = batch_grids(cfg, batch, device);
-    let gt_roots = gt.roots(cfg.primary_joint.joint());
-    let mut slots: Vec<Vec<([f64; 3], usize)>> = Vec::new();
-    let select = |det: &[Vec<Root>]| {
-        slots = choose_queries(det, &gt_roots, mode, gate);
-        let roots = exact_roots(slots.iter().map(|s| s.iter().map(|q| q.0).collect()));
-        let k = slots.iter().map(Vec::len).max().unwrap_or(0);
-        roots_tensor(&roots, k, device)
-    };
-    let images = batch.images.clone();
-    let out = model.forward_posed(images, &grids, select, weights.mesh_pose);
+    let (out, slots) = forward_at_queries(model, batch, (mode, gate), weights.mesh_pose, device);
     let queries: usize = slots.iter().map(Vec::len).sum();
     let t = QueryTargets::new(batch, &slots, out.roots.dims()[1], device);
     let det = Detection {
@@ -628,6 +618,33 @@ pub fn stage2_loss(
         vit_heatmap: vit_heatmap_term(&out, &gt, cfg, weights, device),
     };
     finish(terms.named(), queries, diag, device)
+}
+
+/// A query: where it is decoded and the index of the ground-truth person it is compared with.
+pub type Query = ([f64; 3], usize);
+
+/// The model's forward at the queries `mode` chooses (detections matched to the ground truth within
+/// `gate` metres, see [`choose_queries`]), posed as [`MvmpHmr::forward_posed`] with `pose_grad`, and each
+/// query's (root, ground-truth index) per item.
+pub fn forward_at_queries(
+    model: &MvmpHmr,
+    batch: &FrameBatch,
+    (mode, gate): (QueryMode, f64),
+    pose_grad: bool,
+    device: &Device,
+) -> (MvmpOutput, Vec<Vec<Query>>) {
+    let cfg = &model.config;
+    let grids = batch_grids(cfg, batch, device);
+    let gt_roots = HostGt::new(batch).roots(cfg.primary_joint.joint());
+    let mut slots: Vec<Vec<([f64; 3], usize)>> = Vec::new();
+    let select = |det: &[Vec<Root>]| {
+        slots = choose_queries(det, &gt_roots, mode, gate);
+        let roots = exact_roots(slots.iter().map(|s| s.iter().map(|q| q.0).collect()));
+        let k = slots.iter().map(Vec::len).max().unwrap_or(0);
+        roots_tensor(&roots, k, device)
+    };
+    let out = model.forward_posed(batch.images.clone(), &grids, select, pose_grad);
+    (out, slots)
 }
 
 /// Where each query slot's ground truth sits among the batch's padded people.

@@ -28,6 +28,7 @@ use mvmp_smplx::{BodyModel, SmplxLayer};
 use crate::TrainError;
 use crate::average::WeightAverage;
 use crate::config::{Stage, StageConfig, TrainConfig};
+use crate::pose_fit::{PoseFit, ReadWeights, fit_pose_read, set_read};
 use crate::run::{RunDir, RunState, STATE_FORMAT, file_hash};
 use crate::step::{Stage2, StepLoss, stage1_loss, stage2_loss};
 use crate::validation::{check_validation_source, source_cameras, validate};
@@ -99,6 +100,8 @@ pub trait Monitor {
     fn step(&mut self, _s: &StepRecord) {}
     fn validation(&mut self, _v: &ValRecord) {}
     fn checkpoint(&mut self, _path: &Path) {}
+    /// The decoder's pose read was fitted before the final weights (`stage2.pose_fit_frames`).
+    fn pose_fit(&mut self, _fit: &PoseFit) {}
 }
 
 /// A monitor that reports nothing.
@@ -614,7 +617,11 @@ impl<'a> Trainer<'a> {
             }
         }
         let fin = self.run.root.join("model.bpk");
-        mvmp_io::checkpoint::save(self.averaged(&model).as_ref(), &fin)?;
+        let mut last = self.averaged(&model);
+        if let Some(read) = self.fit_pose(last.as_ref(), mon)? {
+            set_read(last.to_mut(), &read);
+        }
+        mvmp_io::checkpoint::save(last.as_ref(), &fin)?;
         let mut s = self
             .run
             .state()?
@@ -622,6 +629,49 @@ impl<'a> Trainer<'a> {
         s.finished = true;
         self.run.write_state(&s)?;
         Ok(Outcome::Finished)
+    }
+
+    /// The decoder's pose read of `model` fitted in closed form on `stage2.pose_fit_frames` training
+    /// frames spread over the set (see [`fit_pose_read`]), the fit logged to `metrics.jsonl`; the
+    /// weights only where they lower the held-back error. The frames' views and jitter are drawn as for
+    /// one epoch past the stage's last, so that a resumed run fits the same.
+    fn fit_pose(
+        &self,
+        model: &MvmpHmr,
+        mon: &mut dyn Monitor,
+    ) -> Result<Option<ReadWeights>, TrainError> {
+        let total = self.data.total();
+        let n = self.cfg.stage2.pose_fit_frames.min(total);
+        if n == 0 {
+            return Ok(None);
+        }
+        let plain = model.clone().valid();
+        self.data
+            .set_epoch(epoch_key(Stage::Whole, self.cfg.stage2.epochs));
+        let batcher = FrameBatcher::default();
+        let mut failed = None;
+        let batches = (0..n).map_while(|i| match self.data.load(i * total / n) {
+            Ok(sample) => Some(batcher.batch(vec![sample], &self.plain)),
+            Err(e) => {
+                failed = Some(e);
+                None
+            }
+        });
+        let queries = (self.cfg.queries, self.cfg.match_gate);
+        let t0 = Instant::now();
+        let fit = fit_pose_read(&plain, batches, queries, &self.plain);
+        if let Some(e) = failed {
+            return Err(e.into());
+        }
+        let Some((fit, weights)) = fit else {
+            return Ok(None);
+        };
+        let mut line = json!({"kind": "pose_fit", "global_step": self.cursor.global});
+        line["fit"] = json!(fit);
+        line["seconds"] = json!(t0.elapsed().as_secs_f64());
+        self.run.log(&line)?;
+        mon.pose_fit(&fit);
+        Ok(weights)
     }
 
     /// The current stage's remaining epochs, each validated and checkpointed. `Some` when training stops

@@ -598,6 +598,73 @@ fn a_weight_average_ends_the_run_and_survives_a_resume() {
     );
 }
 
+/// `stage2.pose_fit_frames` fits the decoder's linear pose read in closed form before the final weights:
+/// the fit is logged, and it changes the read alone (every other weight is the weight of the same run
+/// without it), setting it only where it lowered the held-back error.
+#[test]
+fn the_pose_read_is_fitted_before_the_final_weights() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut finals = Vec::new();
+    for (name, frames) in [("plain", 0), ("fit", 6)] {
+        let d = dir.path().join(name);
+        std::fs::create_dir(&d).unwrap();
+        let stage2 = format!("[stage2]\npose_fit_frames = {frames}\n");
+        let path = write_configs(&d, &|s| s.replace("[stage2]\n", &stage2));
+        let model_path = d.join("model.toml");
+        let text = std::fs::read_to_string(&model_path).unwrap();
+        assert!(text.contains("pose_read = false"), "{text}");
+        std::fs::write(
+            &model_path,
+            text.replace("pose_read = false", "pose_read = true"),
+        )
+        .unwrap();
+        let (cfg, model) = TrainConfig::read(&path).unwrap();
+        let run = RunDir::create(&d.join("run"), &cfg, &model, Some(dataset())).unwrap();
+        let out = mvmp_train::train(&run, &cfg, &model, &options(None), &mut Quiet).unwrap();
+        assert_eq!(out, Outcome::Finished);
+        let mut m = mvmp_train::seeded_init(&model, &Device::flex(), 0);
+        load_weights(&mut m, &run.root.join("model.bpk")).unwrap();
+        let log = std::fs::read_to_string(run.metrics_path()).unwrap();
+        let fits: Vec<serde_json::Value> = (log.lines())
+            .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+            .filter(|v| v["kind"] == "pose_fit")
+            .collect();
+        finals.push((m, fits));
+    }
+    let (plain, none) = &finals[0];
+    let (fitted, fits) = &finals[1];
+    assert!(none.is_empty(), "{none:?}");
+    assert_eq!(fits.len(), 1, "{fits:?}");
+    let fit = &fits[0]["fit"];
+    let (frames, people) = (
+        fit["frames"].as_u64().unwrap(),
+        fit["people"].as_u64().unwrap(),
+    );
+    // The dataset's training frames, 2 to 3 people each.
+    assert!((2..=6).contains(&frames), "{fit}");
+    assert!(people >= 2 * frames, "{fit}");
+    let before = fit["held_back_deg"].as_f64().unwrap();
+    let after = fit["held_back_fitted_deg"].as_f64().unwrap();
+    assert!(before.is_finite() && after.is_finite(), "{fit}");
+    let applied = fit["applied"].as_bool().unwrap();
+    assert_eq!(applied, after < before, "{fit}");
+    let read = |m: &MvmpHmr| weights(m.decoder.pose_read.as_ref().unwrap());
+    assert_eq!(read(fitted) != read(plain), applied, "{fit}");
+    let rest = |m: &MvmpHmr| {
+        let mut m = m.clone();
+        m.decoder.pose_read = None;
+        weights(&m)
+    };
+    let (a, b) = (rest(plain), rest(fitted));
+    assert_eq!(a.len(), b.len());
+    let gap = a
+        .iter()
+        .zip(&b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0f32, f32::max);
+    assert!(gap <= 1e-6, "the fit moved other weights by {gap}");
+}
+
 /// With `term_gradients`, each epoch's first step logs every term's module gradient norms: the 2D heatmap
 /// loss reaches HRNet but not the RootNet, the parameter loss the decoder but not the RootNet (roots are
 /// detached), the detection loss the RootNet but not the decoder.
@@ -753,6 +820,15 @@ fn bad_configs_name_the_key() {
         (
             ("lr = 1e-3", "lr = 1e-3\nfreeze_detection = true"),
             "stage1.freeze_detection",
+        ),
+        // The model has no linear pose read (`decoder.pose_read`) to fit.
+        (
+            ("[stage2]", "[stage2]\npose_fit_frames = 4"),
+            "stage2.pose_fit_frames",
+        ),
+        (
+            ("lr = 1e-3", "lr = 1e-3\npose_fit_frames = 4"),
+            "stage1.pose_fit_frames",
         ),
         (
             ("lr = 1e-3", "lr = 1e-3\ndetection_lr = 1e-4"),
