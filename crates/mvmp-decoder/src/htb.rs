@@ -85,6 +85,13 @@ pub struct DecoderOptions {
     /// zero, the map changes nothing at first and grows only along what lowers the loss. false (the
     /// paper) has the heads alone.
     pub pose_read: bool,
+    /// With `joint_samples`: a head and a zero-started linear read of the joint samples give a
+    /// correction to the 21 body joints' offsets from the pelvis in the person's heading frame (x ahead,
+    /// y left, z up, metres), which the model adds to the offsets its own posed joints have
+    /// ([`DecoderOutput::joint_offsets`]). A linear read of the samples places the joints better than
+    /// the rotations the decoder regresses do (docs/architecture.md, Joints, then rotations). false
+    /// (the paper) regresses rotations alone.
+    pub joint_offsets: bool,
     /// Only the body-pose head trains the shared query path (projection, blocks, final norm): the
     /// global orientation, the hands and face, betas, expression and the root offset get heads of
     /// their own that read it detached. Residuals the queries cannot explain (the heading's error,
@@ -125,6 +132,7 @@ impl Default for DecoderOptions {
             joint_span: [1.0, 1.0, 1.75],
             joint_samples: false,
             pose_read: false,
+            joint_offsets: false,
             pose_trunk: false,
             height_features: 0,
         }
@@ -281,6 +289,10 @@ pub struct Decoder {
     pub sample_proj: Option<Linear>,
     /// Present with [`DecoderOptions::pose_read`]: joint samples -> the body's 21 rotations (6D).
     pub pose_read: Option<Linear>,
+    /// Present with [`DecoderOptions::joint_offsets`]: the query -> the joint offsets' correction, and
+    /// the joint samples -> the same, started at zero.
+    pub offsets_head: Option<Head>,
+    pub offsets_read: Option<Linear>,
     /// See [`DecoderOptions::volume_norm`].
     #[module(skip)]
     pub volume_norm: bool,
@@ -342,6 +354,9 @@ pub struct DecoderOutput {
     /// `[B, K, W]` the joint samples the linear pose read took, when the decoder has one
     /// ([`DecoderOptions::pose_read`]).
     pub pose_inputs: Option<Tensor<3>>,
+    /// `[B, K, 21 * 3]` with [`DecoderOptions::joint_offsets`]: the correction to the body joints'
+    /// offsets from the pelvis in each query's heading frame (metres).
+    pub joint_offsets: Option<Tensor<3>>,
 }
 
 /// Body joints among the regressed rotations (slots 1..=21, after the global orientation).
@@ -453,6 +468,14 @@ impl DecoderConfig {
                 .then(|| LinearConfig::new(self.skip_width(), d).init(device)),
             pose_read: (o.pose_read && o.joint_samples).then(|| {
                 LinearConfig::new(self.joint_width(), BODY_SLOTS * 6)
+                    .with_initializer(burn::nn::Initializer::Zeros)
+                    .init(device)
+            }),
+            offsets_head: o
+                .joint_offsets
+                .then(|| Head::new(d, BODY_SLOTS * 3, device)),
+            offsets_read: (o.joint_offsets && o.joint_samples).then(|| {
+                LinearConfig::new(self.joint_width(), BODY_SLOTS * 3)
                     .with_initializer(burn::nn::Initializer::Zeros)
                     .init(device)
             }),
@@ -745,6 +768,9 @@ impl Decoder {
         let joint_part = joints.map(|j| self.joint_inputs(j, roots.clone(), heading.clone(), grid));
         // Scaled by 1 / sqrt(inputs): Adam moves every weight by about the learning rate whatever its
         // gradient, so thousands of unit inputs would otherwise move the rotations by whole units per step.
+        let offsets_read = (self.offsets_read.as_ref())
+            .zip(joint_part.clone())
+            .map(|(p, j)| p.forward(j) / (p.weight.dims()[0] as f64).sqrt());
         let pose_inputs = joint_part.clone().filter(|_| self.pose_read.is_some());
         let pose_read = (self.pose_read.as_ref())
             .zip(pose_inputs.clone())
@@ -807,6 +833,10 @@ impl Decoder {
         } else {
             q.clone()
         };
+        let joint_offsets = self.offsets_head.as_ref().map(|h| match offsets_read {
+            Some(read) => h.forward(q.clone()) + read,
+            None => h.forward(q.clone()),
+        });
         let mean = mean.reshape([1, 1, PARAM_DIM]);
         let mut rot =
             mean.clone().narrow(2, 0, NUM_REGRESSED * 6) + self.rotations(q, side.clone());
@@ -834,6 +864,7 @@ impl Decoder {
             expression: expr,
             transl: roots + offset,
             pose_inputs,
+            joint_offsets,
         }
     }
 }

@@ -454,6 +454,9 @@ pub struct LossWeights {
     pub detection_sigma: f64,
     /// Weight of [`body_pose_l2_loss`], added to the parameter term (the paper: 0, the L1 alone).
     pub parameters_body_l2: f32,
+    /// Weight of the L1 between the body joints' offsets from the pelvis a decoder with
+    /// `joint_offsets` gives and the true ones (not in the paper, which regresses rotations alone).
+    pub joint_offsets: f32,
     /// Weight of the 2D heatmap loss of stage 1 (the pose network's pre-training; not one of the five).
     pub heatmap_2d: f32,
     /// Weight of the 2D heatmap loss in stage 2 (the paper: 0, stage 1 only). Without it HRNet, whose
@@ -498,6 +501,7 @@ impl Default for LossWeights {
             detection_positive: 0.0,
             detection_sigma: 0.2,
             parameters_body_l2: 0.0,
+            joint_offsets: 0.0,
             heatmap_2d: 1.0,
             heatmap_2d_stage2: 0.0,
             heatmap_sigma: 2.0,
@@ -523,6 +527,7 @@ impl LossWeights {
             ("detection", self.detection),
             ("parameters", self.parameters),
             ("parameters_body_l2", self.parameters_body_l2),
+            ("joint_offsets", self.joint_offsets),
             ("mesh_3d", self.mesh_3d),
             ("mesh_2d", self.mesh_2d),
             ("orientation", self.orientation),
@@ -593,6 +598,8 @@ pub struct LossTerms {
     pub facing: Option<Tensor<1>>,
     /// The 2D joint heatmap term on the ViT's features, for a model with a `vit_heatmaps` head.
     pub vit_heatmap: Option<Tensor<1>>,
+    /// The body joints' offsets from the pelvis, for a decoder that gives them (`joint_offsets`).
+    pub joint_offsets: Option<Tensor<1>>,
 }
 
 impl LossTerms {
@@ -613,6 +620,7 @@ impl LossTerms {
             ("heatmap_2d", &self.heatmap_2d),
             ("facing", &self.facing),
             ("vit_heatmap", &self.vit_heatmap),
+            ("joint_offsets", &self.joint_offsets),
         ]
         .into_iter()
         .filter_map(|(n, t)| t.clone().map(|t| (n, t)))

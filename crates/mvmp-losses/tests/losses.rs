@@ -299,6 +299,7 @@ fn weights_default_to_the_paper_and_terms_add_up() {
         heatmap_2d: None,
         facing: one(0.25),
         vit_heatmap: None,
+        joint_offsets: None,
     };
     assert_eq!(scalar(terms.total().unwrap()), 4.25);
     assert_eq!(

@@ -456,6 +456,12 @@ impl ModelConfig {
                     .into(),
             ));
         }
+        if d.joint_offsets && !(d.joint_samples && self.facing) {
+            return Err((
+                "decoder.joint_offsets",
+                "true: its read takes the joint heatmap samples and its offsets are in the facing head's heading frame, so it needs `joint_samples = true` and `facing = true`".into(),
+            ));
+        }
         // Each feature is one input of `height_proj`: a count past this only sizes an allocation.
         if d.height_features > MAX_HEIGHT_FEATURES {
             return Err((

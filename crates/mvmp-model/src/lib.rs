@@ -2,6 +2,7 @@
 pub mod body;
 pub mod config;
 pub mod facing;
+pub mod ik;
 pub mod model;
 pub mod summary;
 

@@ -19,6 +19,7 @@ use burn::tensor::{Bool, Device, Tensor, TensorData};
 use crate::ModelConfig;
 use crate::body::BodyLayers;
 use crate::facing::{FacingHead, facing_readout, mirror_headings, turn_to_heading};
+use crate::ik::{corrected_offsets, swing_body};
 use mvmp_backbone::vit::PATCH;
 use mvmp_backbone::{HRNet, ViT};
 use mvmp_decoder::{Decoder, DecoderConfig, QueryInputs};
@@ -150,6 +151,10 @@ pub struct MvmpOutput {
     pub joints: Tensor<4>,
     /// `[B, K, W]` what the decoder's linear pose read took, when it has one.
     pub pose_inputs: Option<Tensor<3>>,
+    /// `[B, K, 21, 3]` with `decoder.joint_offsets`: the body joints' offsets from the pelvis (world
+    /// axes, metres) that the posed joints have plus the decoder's correction; outside training the
+    /// body's rotations are swung to them ([`crate::ik`]).
+    pub joint_offsets: Option<Tensor<4>>,
 }
 
 impl ModelConfig {
@@ -416,8 +421,8 @@ impl MvmpHmr {
             3,
             3,
         ]);
-        let rotmats = match heading {
-            Some(h) => turn_to_heading(rotmats, h.reshape([n, 2])),
+        let rotmats = match &heading {
+            Some(h) => turn_to_heading(rotmats, h.clone().reshape([n, 2])),
             None => rotmats,
         };
         let posed = if pose_grad {
@@ -425,13 +430,35 @@ impl MvmpHmr {
         } else {
             detach_body_pose(rotmats.clone())
         };
-        let body = layer.forward(
-            regressed_to_full_pose(posed),
+        let (betas, expression) = (
             dec.betas.clone().reshape([n, NUM_BETAS]),
             dec.expression.clone().reshape([n, NUM_EXPRESSION]),
-            dec.transl.clone().reshape([n, 3]),
-            Translation::Pelvis,
         );
+        let pose = |r: Tensor<4>| {
+            layer.forward(
+                regressed_to_full_pose(r),
+                betas.clone(),
+                expression.clone(),
+                dec.transl.clone().reshape([n, 3]),
+                Translation::Pelvis,
+            )
+        };
+        let mut body = pose(posed);
+        let joint_offsets = match (dec.joint_offsets, &heading) {
+            (Some(c), Some(h)) => Some(corrected_offsets(
+                body.joints.clone(),
+                c.reshape([n, NUM_BODY * 3]),
+                h.clone().reshape([n, 2]),
+            )),
+            _ => None,
+        };
+        // Outside training the body's bones are swung onto the corrected joints.
+        let mut rotmats = rotmats;
+        if let Some(o) = joint_offsets.as_ref().filter(|o| !o.is_autodiff()) {
+            let rest = layer.rest_joints(betas.clone(), expression.clone());
+            rotmats = swing_body(rotmats, rest, o.clone());
+            body = pose(rotmats.clone());
+        }
         let nv = layer.num_vertices();
         let nj = layer.num_joints();
         MvmpOutput {
@@ -451,6 +478,7 @@ impl MvmpHmr {
             vertices: body.vertices.reshape([b, kk, nv, 3]),
             joints: body.joints.reshape([b, kk, nj, 3]),
             pose_inputs: dec.pose_inputs,
+            joint_offsets: joint_offsets.map(|o| o.reshape([b, kk, NUM_BODY, 3])),
         }
     }
 }

@@ -210,7 +210,12 @@ fn decoder_macs(cfg: &ModelConfig, z: &Sizes) -> f64 {
         true => dc.joint_width() as f64 * 21.0 * 6.0,
         false => 0.0,
     };
-    let query_macs = k * (inputs as f64 * d + pose_read);
+    // The offsets' head (two layers) and their read of the samples.
+    let joint_offsets = match cfg.decoder.joint_offsets {
+        true => d * d + d * 63.0 + dc.joint_width() as f64 * 63.0,
+        false => 0.0,
+    };
+    let query_macs = k * (inputs as f64 * d + pose_read + joint_offsets);
     tokens * z.cf * d
         + query_macs
         + if cfg.decoder.use_htb {

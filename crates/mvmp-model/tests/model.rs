@@ -288,7 +288,7 @@ type Edit = fn(&mut ModelConfig);
 
 #[test]
 fn unusable_people_caps_thresholds_and_lattices_name_the_key() {
-    let cases: [(&str, Edit); 13] = [
+    let cases: [(&str, Edit); 14] = [
         ("max_people", |c| c.max_people = 100_000_000),
         ("max_people", |c| c.max_people = 0),
         ("root_threshold", |c| c.root_threshold = f32::NAN),
@@ -322,6 +322,12 @@ fn unusable_people_caps_thresholds_and_lattices_name_the_key() {
         ("decoder.pose_read", |c| {
             c.decoder.query_joints = true;
             c.decoder.pose_read = true;
+        }),
+        // Offsets in a heading frame, without a facing head to give it.
+        ("decoder.joint_offsets", |c| {
+            c.decoder.query_joints = true;
+            c.decoder.joint_samples = true;
+            c.decoder.joint_offsets = true;
         }),
     ];
     for (key, edit) in cases {
@@ -644,4 +650,95 @@ fn heading_bins_read_as_directions_and_label_as_von_mises() {
     }
     assert!((got.iter().sum::<f32>() - 1.0).abs() < 1e-5);
     assert!((0..n).all(|k| got[k] <= got[2]));
+}
+
+/// With `decoder.joint_offsets`, outside training the body's bones are swung onto the corrected joints:
+/// every bone from a body joint to its child (the spine's top to the neck) points along the offsets the
+/// output holds, though the correction (set here through the read's bias) moves them well away from the
+/// decoder's own rotations.
+#[test]
+fn joint_offsets_swing_the_body_onto_the_corrected_joints_outside_training() {
+    let d = Device::flex();
+    let mut cfg = small_config();
+    cfg.decoder.joint_offsets = true;
+    cfg.validate().unwrap();
+    let mut net = cfg.init(&d).with_body(Arc::new(standin_model(0)));
+    let read = net
+        .decoder
+        .offsets_read
+        .as_mut()
+        .expect("a read of the samples");
+    let n = read.weight.dims()[0] as f32;
+    let bias: Vec<f32> = (0..63)
+        .map(|i| 0.15 * ((i * 7 % 11) as f32 / 10.0 - 0.5) * n.sqrt())
+        .collect();
+    read.bias = Some(Param::from_tensor(Tensor::from_data(
+        TensorData::new(bias, [63]),
+        &d,
+    )));
+    let grids = grids_on(&cfg, &d);
+    let roots = Tensor::<3>::from_data(
+        TensorData::new(vec![0.5f32, 0.2, 0.9, -1.0, 1.0, 1.0], [1, 2, 3]),
+        &d,
+    );
+    let present = Tensor::<2, Bool>::from_data(TensorData::new(vec![true, true], [1, 2]), &d);
+    let run = |net: &mvmp_model::MvmpHmr| {
+        net.forward(images(&d), &grids, Some((roots.clone(), present.clone())))
+    };
+    let out = run(&net);
+    // Without the bias the swing has next to nothing to do: the rotations differ by far more with it.
+    let mut plain = net.clone();
+    plain.decoder.offsets_read.as_mut().unwrap().bias = None;
+    let rot =
+        |o: &mvmp_model::MvmpOutput| o.rotmats.clone().into_data().try_to_vec::<f32>().unwrap();
+    let moved = (rot(&out).iter().zip(rot(&run(&plain))))
+        .map(|(a, b)| (a - b).abs())
+        .fold(0f32, f32::max);
+    assert!(moved > 0.05, "{moved}");
+    let offsets: Vec<f32> = out
+        .joint_offsets
+        .expect("offsets")
+        .into_data()
+        .try_to_vec()
+        .unwrap();
+    let joints: Vec<f32> = out.joints.into_data().try_to_vec().unwrap();
+    let bones = [
+        (1, 4),
+        (2, 5),
+        (3, 6),
+        (4, 7),
+        (5, 8),
+        (6, 9),
+        (7, 10),
+        (8, 11),
+        (9, 12),
+        (12, 15),
+        (13, 16),
+        (14, 17),
+        (16, 18),
+        (17, 19),
+        (18, 20),
+        (19, 21),
+    ];
+    for k in 0..2 {
+        let joint = |j: usize| {
+            let at = (k * 127 + j) * 3;
+            Vector3::new(joints[at], joints[at + 1], joints[at + 2])
+        };
+        let offset = |j: usize| match j {
+            0 => Vector3::zeros(),
+            _ => {
+                let at = (k * 21 + j - 1) * 3;
+                Vector3::new(offsets[at], offsets[at + 1], offsets[at + 2])
+            }
+        };
+        for (j, c) in bones {
+            let (got, want) = (joint(c) - joint(j), offset(c) - offset(j));
+            let cos = got.normalize().dot(&want.normalize());
+            assert!(
+                cos > 1.0 - 1e-5,
+                "person {k}, bone {j}->{c}: {got} against {want}"
+            );
+        }
+    }
 }

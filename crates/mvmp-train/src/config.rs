@@ -289,6 +289,18 @@ impl TrainConfig {
             });
         }
         check_vit_heatmaps(path, &model_path, &model, &cfg.loss)?;
+        if model.decoder.joint_offsets != (cfg.loss.joint_offsets > 0.0) {
+            return Err(TrainError::Config {
+                path: path.into(),
+                key: "loss.joint_offsets".into(),
+                what: format!(
+                    "{}, but the model ({}) has `decoder.joint_offsets = {}`: the offsets' head and their loss go together (only this loss trains the head)",
+                    cfg.loss.joint_offsets,
+                    model_path.display(),
+                    model.decoder.joint_offsets
+                ),
+            });
+        }
         let read = model.decoder.pose_read && model.decoder.joint_samples;
         if cfg.stage2.pose_fit_frames > 0 && !read {
             return Err(TrainError::Config {

@@ -821,6 +821,11 @@ fn bad_configs_name_the_key() {
             ("lr = 1e-3", "lr = 1e-3\nfreeze_detection = true"),
             "stage1.freeze_detection",
         ),
+        // The model has no joint offsets' head for the term to train.
+        (
+            ("[stage1]", "[loss]\njoint_offsets = 100.0\n[stage1]"),
+            "loss.joint_offsets",
+        ),
         // The model has no linear pose read (`decoder.pose_read`) to fit.
         (
             ("[stage2]", "[stage2]\npose_fit_frames = 4"),
@@ -1472,6 +1477,53 @@ fn two_kinds() -> TwoKinds {
         ad,
         smplx,
         joints,
+    }
+}
+
+/// A decoder with `joint_offsets` gets the offsets' term at its weight (linear in it, absent at 0) on
+/// SMPL-X and joint-annotated people alike, and the term's gradient reaches the offsets' head and read.
+#[test]
+fn the_joint_offsets_term_trains_the_offsets_head() {
+    let k = two_kinds();
+    let mut cfg = model_config();
+    cfg.decoder.joint_offsets = true;
+    let body = k.smplx.layout().unwrap().body_model().unwrap();
+    let model = mvmp_train::seeded_init(&cfg, &k.ad, 2).with_body(Arc::new(body));
+    let batch = k.batcher.batch(
+        vec![k.smplx.load(0).unwrap(), k.joints.load(0).unwrap()],
+        &k.ad,
+    );
+    let loss = |w: f32| {
+        let weights = mvmp_losses::LossWeights {
+            joint_offsets: w,
+            ..Default::default()
+        };
+        stage2_loss(&model, &batch, &Stage2::at_true_roots(&weights), &k.ad)
+    };
+    assert!(!term_values(&loss(0.0)).contains_key("joint_offsets"));
+    let (one, three) = (loss(1.0), loss(3.0));
+    let (a, b) = (
+        term_values(&one)["joint_offsets"],
+        term_values(&three)["joint_offsets"],
+    );
+    assert!(a > 0.0 && a.is_finite(), "{a}");
+    assert!((b - 3.0 * a).abs() < 1e-5 * b, "{a} {b}");
+    let term = one
+        .terms
+        .iter()
+        .find(|(n, _)| *n == "joint_offsets")
+        .unwrap()
+        .1
+        .clone();
+    let grads = term.backward();
+    let head = &model.decoder.offsets_head.as_ref().unwrap().fc2.weight;
+    let read = &model.decoder.offsets_read.as_ref().unwrap().weight;
+    for (name, g) in [("head", head.grad(&grads)), ("read", read.grad(&grads))] {
+        let g: Vec<f32> = g.expect(name).into_data().try_to_vec().unwrap();
+        assert!(
+            g.iter().all(|x| x.is_finite()) && g.iter().any(|&x| x != 0.0),
+            "{name}"
+        );
     }
 }
 
