@@ -86,8 +86,8 @@ pub struct DecoderOptions {
     /// paper) has the heads alone.
     pub pose_read: bool,
     /// With `joint_samples`: a head and a zero-started linear read of the joint samples give a
-    /// correction to the 21 body joints' offsets from the pelvis in the person's heading frame (x ahead,
-    /// y left, z up, metres), which the model adds to the offsets its own posed joints have
+    /// correction to the 21 body joints' offsets from the pelvis in the body's own frame (its global
+    /// rotation's, metres), which the model adds to the offsets its own posed joints have
     /// ([`DecoderOutput::joint_offsets`]). A linear read of the samples places the joints better than
     /// the rotations the decoder regresses do (docs/architecture.md, Joints, then rotations). false
     /// (the paper) regresses rotations alone.
@@ -355,7 +355,7 @@ pub struct DecoderOutput {
     /// ([`DecoderOptions::pose_read`]).
     pub pose_inputs: Option<Tensor<3>>,
     /// `[B, K, 21 * 3]` with [`DecoderOptions::joint_offsets`]: the correction to the body joints'
-    /// offsets from the pelvis in each query's heading frame (metres).
+    /// offsets from the pelvis in each body's own frame (metres).
     pub joint_offsets: Option<Tensor<3>>,
 }
 

@@ -110,28 +110,17 @@ pub fn pose_joints(
 }
 
 /// The body joints' offsets from the pelvis, world axes `[N, 21, 3]`: those of the posed `joints`
-/// `[N, J >= 22, 3]` (detached: a target, not a path into the rotations) plus `correction` `[N, 21 * 3]`
-/// given in each person's heading frame (`heading` `[N, 2]`, a horizontal unit vector: x ahead, y left,
-/// z up).
-pub fn corrected_offsets(
-    joints: Tensor<3>,
-    correction: Tensor<2>,
-    heading: Tensor<2>,
-) -> Tensor<3> {
+/// `[N, J >= 22, 3]` plus `correction` `[N, 21 * 3]` given in the body's own frame (its global rotation
+/// `global` `[N, 3, 3]`, body to world). The posed joints and the rotation are detached: the offsets are a
+/// target for the body's rotations, not a path into them.
+pub fn corrected_offsets(joints: Tensor<3>, correction: Tensor<2>, global: Tensor<3>) -> Tensor<3> {
     let n = joints.dims()[0];
     let own = joints.clone().narrow(1, 1, NUM_BODY) - joints.narrow(1, 0, 1);
-    let c = correction.reshape([n, NUM_BODY, 3]);
-    let (ahead, left, up) = (
-        c.clone().narrow(2, 0, 1),
-        c.clone().narrow(2, 1, 1),
-        c.narrow(2, 2, 1),
-    );
-    let hx = heading.clone().narrow(1, 0, 1).reshape([n, 1, 1]);
-    let hy = heading.narrow(1, 1, 1).reshape([n, 1, 1]);
-    // Ahead (hx, hy), left (-hy, hx).
-    let x = ahead.clone() * hx.clone() - left.clone() * hy.clone();
-    let y = ahead * hy + left * hx;
-    own.detach() + Tensor::cat(vec![x, y, up], 2)
+    // Row vectors: (R c)^T = c^T R^T.
+    let turned = correction
+        .reshape([n, NUM_BODY, 3])
+        .matmul(global.detach().swap_dims(1, 2));
+    own.detach() + turned
 }
 
 /// The regressed rotations `[N, 53, 3, 3]` (slot 0 the global orientation, 1 to 21 the body) with the
@@ -256,6 +245,34 @@ mod tests {
         twisted[4] = local[4] * Rotation3::from_axis_angle(&bone, 0.7).into_inner();
         let swung = swing_to_joints(&twisted, &rest, &target);
         assert!((swung[4] - twisted[4]).abs().max() < 1e-9);
+    }
+
+    /// The posed joints' offsets from the pelvis, plus the correction turned from the body's frame into
+    /// the world: a body turned a quarter about z moves its "ahead" (x) correction along world y.
+    #[test]
+    fn corrections_turn_from_the_body_frame_into_the_world() {
+        let d = burn::tensor::Device::flex();
+        let joints: Vec<f32> = (0..22 * 3).map(|i| i as f32 * 0.01).collect();
+        let joints = Tensor::<3>::from_data(TensorData::new(joints.clone(), [1, 22, 3]), &d);
+        let mut corr = vec![0.0f32; 63];
+        corr[3] = 0.5; // joint 2, x
+        let corr = Tensor::<2>::from_data(TensorData::new(corr, [1, 63]), &d);
+        let quarter = Tensor::<3>::from_data(
+            TensorData::new(
+                vec![0.0f32, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+                [1, 3, 3],
+            ),
+            &d,
+        );
+        let got = host(corrected_offsets(joints, corr, quarter));
+        for j in 1..22 {
+            for a in 0..3 {
+                let own = (j * 3 + a) as f32 * 0.01 - a as f32 * 0.01;
+                let add = if j == 2 && a == 1 { 0.5 } else { 0.0 };
+                let v = got[(j - 1) * 3 + a];
+                assert!((v - own - add).abs() < 1e-6, "joint {j} axis {a}: {v}");
+            }
+        }
     }
 
     #[test]

@@ -444,14 +444,13 @@ impl MvmpHmr {
             )
         };
         let mut body = pose(posed);
-        let joint_offsets = match (dec.joint_offsets, &heading) {
-            (Some(c), Some(h)) => Some(corrected_offsets(
+        let joint_offsets = dec.joint_offsets.map(|c| {
+            corrected_offsets(
                 body.joints.clone(),
                 c.reshape([n, NUM_BODY * 3]),
-                h.clone().reshape([n, 2]),
-            )),
-            _ => None,
-        };
+                rotmats.clone().narrow(1, 0, 1).reshape([n, 3, 3]),
+            )
+        });
         // Outside training the body's bones are swung onto the corrected joints.
         let mut rotmats = rotmats;
         if let Some(o) = joint_offsets.as_ref().filter(|o| !o.is_autodiff()) {

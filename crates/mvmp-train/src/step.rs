@@ -616,22 +616,28 @@ pub fn stage2_loss(
         heatmap_2d: heatmap_2d_term(&det, &gt, cfg, weights, weights.heatmap_2d_stage2, device),
         facing: facing_weighted(&det, &gt, batch, weights, device),
         vit_heatmap: vit_heatmap_term(&out, &gt, cfg, weights, device),
-        joint_offsets: joint_offsets_term(&out, &t, weights),
+        joint_offsets: joint_offsets_term(&out, batch, &t, weights),
     };
     finish(terms.named(), queries, diag, device)
 }
 
 /// The body joints' offsets from the pelvis that the decoder gives (`joint_offsets`) against the
-/// truth's: the L1 mean over the coordinates of the joints annotated with their pelvis, weighted.
-/// `None` without the weight or the offsets.
+/// truth's, each in its body's own frame (the truth turned by its own global rotation; people without
+/// SMPL-X ground truth by the prediction's, as [`BodyFrames`] does): the L1 mean over the coordinates
+/// of the joints annotated with their pelvis, weighted. `None` without the weight or the offsets.
 fn joint_offsets_term(
     out: &MvmpOutput,
+    batch: &FrameBatch,
     t: &QueryTargets,
     weights: &LossWeights,
 ) -> Option<Tensor<1>> {
     let pred = (out.joint_offsets.clone()).filter(|_| weights.joint_offsets > 0.0)?;
-    let n = pred.dims()[2];
+    let [b, k, n, _] = pred.dims();
+    let (pred_rot, gt_rot) = BodyFrames::rotations(out, batch, t);
+    let zero = Tensor::<3>::zeros([b, k, 3], &pred.device());
+    let pred = to_body_frame(pred, zero.clone(), pred_rot.detach());
     let truth = t.joints.clone().narrow(2, 1, n) - t.joints.clone().narrow(2, 0, 1);
+    let truth = to_body_frame(truth, zero, gt_rot);
     let w = t.joint_weight.clone();
     let weight = w.clone().narrow(2, 1, n) * w.narrow(2, 0, 1);
     Some(mesh_3d_loss_weighted(pred, truth, weight) * weights.joint_offsets)
