@@ -14,6 +14,7 @@ use mvmp_model::MvmpHmr;
 use mvmp_smplx::names::REGRESSED_TO_JOINT;
 
 use crate::config::QueryMode;
+use crate::probe::host;
 use crate::ridge::Ridge;
 use crate::step::forward_at_queries;
 
@@ -123,17 +124,21 @@ pub fn body_rot6d(pose: &[f32]) -> Vec<f64> {
     BODY.flat_map(|s| {
         let j = REGRESSED_TO_JOINT[s];
         let aa = Vector3::from_fn(|a, _| pose[3 * j + a] as f64);
-        let m = axis_angle_to_matrix_f64(aa);
-        [
-            m[(0, 0)],
-            m[(1, 0)],
-            m[(2, 0)],
-            m[(0, 1)],
-            m[(1, 1)],
-            m[(2, 1)],
-        ]
+        six(&axis_angle_to_matrix_f64(aa))
     })
     .collect()
+}
+
+/// A rotation's 6D numbers: its first column, then its second.
+fn six(m: &Matrix3<f64>) -> [f64; 6] {
+    [
+        m[(0, 0)],
+        m[(1, 0)],
+        m[(2, 0)],
+        m[(0, 1)],
+        m[(1, 1)],
+        m[(2, 1)],
+    ]
 }
 
 /// The rotation 6D numbers stand for (Gram-Schmidt on the two columns, as the model turns its own).
@@ -276,13 +281,6 @@ pub fn fitted_linear(layer: Linear, (w, b): &ReadWeights) -> Linear {
     Linear { weight, bias }
 }
 
-/// A float tensor's values on the host.
-fn host<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-    t.into_data_as::<f32>()
-        .try_into_vec::<f32>()
-        .unwrap_or_default()
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -292,16 +290,7 @@ mod tests {
     #[test]
     fn angles_between_6d_rotations() {
         let r = axis_angle_to_matrix_f64(Vector3::new(0.3, -0.2, 0.5));
-        let six = |m: Matrix3<f64>| {
-            vec![
-                m[(0, 0)],
-                m[(1, 0)],
-                m[(2, 0)],
-                m[(0, 1)],
-                m[(1, 1)],
-                m[(2, 1)],
-            ]
-        };
+        let six = |m: Matrix3<f64>| super::six(&m).to_vec();
         assert!((rot6d_matrix(&six(r)) - r).abs().max() < 1e-12);
         let turn = axis_angle_to_matrix_f64(Vector3::new(0.0, 0.0, 30f64.to_radians()));
         let a: Vec<f64> = (0..21).flat_map(|_| six(r)).collect();

@@ -267,7 +267,7 @@ fn heights(roots: Tensor<3>) -> Vec<f32> {
 }
 
 /// A float tensor's values on the host.
-fn host<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+pub(crate) fn host<const D: usize>(t: Tensor<D>) -> Vec<f32> {
     t.into_data_as::<f32>()
         .try_into_vec::<f32>()
         .unwrap_or_default()
