@@ -523,6 +523,13 @@ impl DecoderConfig {
     }
 }
 
+/// A linear read of many inputs (`pose_read`, `offsets_read`) scaled by 1 / sqrt(inputs): Adam moves
+/// every weight by about the learning rate whatever its gradient, so thousands of unit inputs would
+/// otherwise move the outputs by whole units per step.
+pub fn scaled_read(layer: &Linear, x: Tensor<3>) -> Tensor<3> {
+    layer.forward(x) / (layer.weight.dims()[0] as f64).sqrt()
+}
+
 /// Each channel of `volume` `[B, C, X, Y, Z]` less its mean over the voxels, divided by their standard
 /// deviation (at least 1e-3 of it, so that a constant channel stays finite).
 pub fn standardise_channels(volume: Tensor<5>) -> Tensor<5> {
@@ -766,15 +773,13 @@ impl Decoder {
             sampled = norm.forward(sampled);
         }
         let joint_part = joints.map(|j| self.joint_inputs(j, roots.clone(), heading.clone(), grid));
-        // Scaled by 1 / sqrt(inputs): Adam moves every weight by about the learning rate whatever its
-        // gradient, so thousands of unit inputs would otherwise move the rotations by whole units per step.
         let offsets_read = (self.offsets_read.as_ref())
             .zip(joint_part.clone())
-            .map(|(p, j)| p.forward(j) / (p.weight.dims()[0] as f64).sqrt());
+            .map(|(p, j)| scaled_read(p, j));
         let pose_inputs = joint_part.clone().filter(|_| self.pose_read.is_some());
         let pose_read = (self.pose_read.as_ref())
             .zip(pose_inputs.clone())
-            .map(|(p, j)| p.forward(j) / (p.weight.dims()[0] as f64).sqrt());
+            .map(|(p, j)| scaled_read(p, j));
         let mut skip_in = sampled.clone();
         if let Some(j) = joint_part {
             if self.joint_samples {

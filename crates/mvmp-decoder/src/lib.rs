@@ -5,6 +5,7 @@ pub mod queries;
 
 pub use htb::{
     Decoder, DecoderConfig, DecoderOptions, DecoderOutput, HumanTransformerBlock, QueryInputs,
-    height_features, lattice_offsets, point_encoding, sample_turned, standardise_channels,
+    height_features, lattice_offsets, point_encoding, sample_turned, scaled_read,
+    standardise_channels,
 };
 pub use queries::{mean_params, params_vector, trilinear_sample};

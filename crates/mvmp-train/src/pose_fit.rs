@@ -9,6 +9,7 @@ use nalgebra::{DMatrix, Matrix3, RowDVector, Vector3};
 use serde::Serialize;
 
 use mvmp_data::loader::FrameBatch;
+use mvmp_decoder::scaled_read;
 use mvmp_geom::rotation::axis_angle_to_matrix_f64;
 use mvmp_model::MvmpHmr;
 use mvmp_smplx::names::REGRESSED_TO_JOINT;
@@ -88,8 +89,7 @@ pub fn batch_rows(
         return PoseRows::default();
     };
     let [b, k, w] = x.dims();
-    let scale = (read.weight.dims()[0] as f64).sqrt();
-    let part = read.forward(x.clone()) / scale; // [B, K, 126]
+    let part = scaled_read(read, x.clone()); // [B, K, 126]
     let body = out
         .rot6d
         .narrow(2, BODY.start, BODY.len())
