@@ -200,8 +200,9 @@ pub fn bench_learn(args: &LearnArgs, device: &Device) -> Result<()> {
 }
 
 /// Go on with the benchmark stopped in `out`: its runs scored stay, a run stopped resumes from its
-/// checkpoint, and the rest train as planned.
-pub fn resume_learn(out: &Path, device: &Device) -> Result<()> {
+/// checkpoint, and the rest train as planned. `more` adds variants to the plan (comma-separated), trained
+/// on its schedule: a benchmark of the full model alone can take its comparisons later.
+pub fn resume_learn(out: &Path, more: Option<&str>, device: &Device) -> Result<()> {
     let path = out.join(PLAN);
     let text = std::fs::read_to_string(&path).with_context(|| {
         format!(
@@ -209,10 +210,15 @@ pub fn resume_learn(out: &Path, device: &Device) -> Result<()> {
             path.display()
         )
     })?;
-    let plan: Plan =
+    let mut plan: Plan =
         serde_json::from_str(&text).with_context(|| format!("{}: not a plan", path.display()))?;
-    let variants = select(Some(&plan.variants.join(",")))
+    let mut variants = select(Some(&plan.variants.join(",")))
         .with_context(|| format!("{}: key `variants`", path.display()))?;
+    if let Some(more) = more {
+        variants = with_added(&variants, &select(Some(more))?);
+        plan.variants = variants.iter().map(|v| v.name.to_string()).collect();
+        write_atomic(&path, serde_json::to_string_pretty(&plan)?.as_bytes())?;
+    }
     if plan.seeds.is_empty() || plan.epochs.contains(&0) {
         bail!(
             "{}: key `seeds` is empty or `epochs` holds 0 ({:?}, {:?})",
@@ -223,6 +229,12 @@ pub fn resume_learn(out: &Path, device: &Device) -> Result<()> {
     }
     eprintln!("resuming the benchmark in {}", out.display());
     run_plan(out, &plan, &variants, device).map_err(|e| kept(out, e))
+}
+
+/// The variants of `planned` and of `more`, each once, in the benchmark's own order.
+fn with_added(planned: &[&'static Variant], more: &[&'static Variant]) -> Vec<&'static Variant> {
+    let named = |v: &Variant| planned.iter().chain(more).any(|p| p.name == v.name);
+    VARIANTS.iter().filter(|v| named(v)).collect()
 }
 
 /// `err` of a benchmark whose plan is made: what is done stays to go on from.

@@ -497,9 +497,10 @@ enum BenchCommand {
         #[arg(long, default_value = "out/learn")]
         out: PathBuf,
         /// Go on with the benchmark stopped in --out (by Ctrl-C or an error once its schedule was
-        /// planned): runs scored stay, a stopped run resumes from its checkpoint, the rest train as
-        /// planned; its minutes, scenes, variants and seeds are the plan's.
-        #[arg(long, conflicts_with_all = ["minutes", "scenes", "variants", "seeds"])]
+        /// planned), or add to one that finished: runs scored stay, a stopped run resumes from its
+        /// checkpoint, the rest train as planned; its minutes, scenes and seeds are the plan's. With
+        /// --variants, those variants join the plan and train on its schedule.
+        #[arg(long, conflicts_with_all = ["minutes", "scenes", "seeds"])]
         resume: bool,
     },
     /// Seconds per training step of each stage and their split (load, forward, backward, gradient
@@ -807,8 +808,11 @@ fn bench_command(cmd: BenchCommand, device: &Device, host: bool) -> anyhow::Resu
             device,
         ),
         BenchCommand::Learn {
-            out, resume: true, ..
-        } => learn::resume_learn(&out, device),
+            out,
+            resume: true,
+            variants,
+            ..
+        } => learn::resume_learn(&out, variants.as_deref(), device),
         BenchCommand::Learn {
             minutes,
             scenes,

@@ -1460,8 +1460,8 @@ fn the_learning_benchmark_compares_variants() {
 
 /// A benchmark stopped with runs scored, one trained but not scored and one not begun (as an
 /// interrupt leaves it) goes on with `--resume`: the scored run is read back, not trained again, the
-/// others are finished, and the report has all four. Without a plan there is nothing to resume, and the
-/// plan's settings cannot be given again.
+/// others are finished, and the report has all four. A variant added then trains on the same plan beside
+/// them. Without a plan there is nothing to resume, and the plan's settings cannot be given again.
 fn resume_goes_on_from_what_is_done(out: &Path) {
     let runs = out.join("runs");
     let kept = std::fs::read_to_string(runs.join("full-s3/bench.json")).unwrap();
@@ -1486,6 +1486,50 @@ fn resume_goes_on_from_what_is_done(out: &Path) {
     ] {
         assert!(report.contains(run), "{run:?} not in {report}");
     }
+    // A finished benchmark takes more variants on its schedule; the runs done stay.
+    let o = mvmp(&[
+        "bench",
+        "learn",
+        "--resume",
+        "--variants",
+        "voxelsmplx",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    for run in ["full-s3", "full-s5", "no_density-s3", "no_density-s5"] {
+        let before = format!("[{run}] trained and scored before");
+        assert!(stderr(&o).contains(&before), "{before:?}: {}", stderr(&o));
+    }
+    let plan = std::fs::read_to_string(out.join("plan.json")).unwrap();
+    let plan: serde_json::Value = serde_json::from_str(&plan).unwrap();
+    assert_eq!(
+        plan["variants"],
+        serde_json::json!(["full", "voxelsmplx", "no_density"])
+    );
+    let report = std::fs::read_to_string(out.join("learning.md")).unwrap();
+    assert!(report.contains("| voxelsmplx | 5 |"), "{report}");
+    assert!(
+        report.contains("the full model beats VoxelSMPLX"),
+        "{report}"
+    );
+    expect_error(
+        &[
+            "bench",
+            "learn",
+            "--resume",
+            "--variants",
+            "huge",
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        &["--variants", "huge"],
+    );
+    let unchanged = std::fs::read_to_string(out.join("plan.json")).unwrap();
+    assert_eq!(
+        serde_json::from_str::<serde_json::Value>(&unchanged).unwrap(),
+        plan
+    );
     let none = out.with_file_name("none");
     expect_error(
         &[
