@@ -214,11 +214,6 @@ pub fn resume_learn(out: &Path, more: Option<&str>, device: &Device) -> Result<(
         serde_json::from_str(&text).with_context(|| format!("{}: not a plan", path.display()))?;
     let mut variants = select(Some(&plan.variants.join(",")))
         .with_context(|| format!("{}: key `variants`", path.display()))?;
-    if let Some(more) = more {
-        variants = with_added(&variants, &select(Some(more))?);
-        plan.variants = variants.iter().map(|v| v.name.to_string()).collect();
-        write_atomic(&path, serde_json::to_string_pretty(&plan)?.as_bytes())?;
-    }
     if plan.seeds.is_empty() || plan.epochs.contains(&0) {
         bail!(
             "{}: key `seeds` is empty or `epochs` holds 0 ({:?}, {:?})",
@@ -226,6 +221,12 @@ pub fn resume_learn(out: &Path, more: Option<&str>, device: &Device) -> Result<(
             plan.seeds,
             plan.epochs
         );
+    }
+    // Only a usable plan takes more variants.
+    if let Some(more) = more {
+        variants = with_added(&variants, &select(Some(more))?);
+        plan.variants = variants.iter().map(|v| v.name.to_string()).collect();
+        write_atomic(&path, serde_json::to_string_pretty(&plan)?.as_bytes())?;
     }
     eprintln!("resuming the benchmark in {}", out.display());
     run_plan(out, &plan, &variants, device).map_err(|e| kept(out, e))
