@@ -17,6 +17,7 @@ mod bench_attention;
 mod bench_train;
 mod body;
 mod data;
+mod decoder_fit;
 mod device;
 mod import;
 mod interrupt;
@@ -240,6 +241,63 @@ enum ModelCommand {
         #[arg(long)]
         out: Option<PathBuf>,
     },
+    /// The run's decoder alone, from fresh weights, trained on a joint heatmap volume with every
+    /// person at their true root and heading (a zero image-feature volume), and the mean angle of its
+    /// 21 body rotations from the truth on held-out people: how much of the pose a volume lets the
+    /// decoder learn, in seconds.
+    FitDecoder {
+        /// Run directory made by `mvmp train` (its model config; its HRNet with --maps model).
+        #[arg(long)]
+        run: PathBuf,
+        /// Dataset root (mvmp layout) with train and test splits.
+        #[arg(long)]
+        data: PathBuf,
+        /// The joint volume: the truth's heatmap targets fused (a perfect HRNet), the run's HRNet maps, or
+        /// zeros (the root's height and the heading alone).
+        #[arg(long, value_enum, default_value = "truth")]
+        maps: FitMaps,
+        /// The training loss: the body rotations' L1 alone, or the parameter loss as training has it.
+        #[arg(long, value_enum, default_value = "parameters")]
+        loss: FitLossArg,
+        /// One-frame steps.
+        #[arg(long, allow_negative_numbers = true, default_value_t = 864, value_parser = up_to(10_000_000))]
+        steps: usize,
+        /// Adam's rate (default: the run's stage-2 rate).
+        #[arg(long, allow_negative_numbers = true, value_parser = positive_rate)]
+        lr: Option<f64>,
+        /// Held-out frames scored, spread over the split.
+        #[arg(long, allow_negative_numbers = true, default_value_t = 48, value_parser = up_to(1_000_000))]
+        test_frames: usize,
+        /// Score every N steps.
+        #[arg(long, allow_negative_numbers = true, default_value_t = 288, value_parser = up_to(10_000_000))]
+        every: usize,
+        /// Also write the scores as JSON here.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
+}
+
+/// `mvmp model fit-decoder --maps`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum FitMaps {
+    Truth,
+    Model,
+    Zero,
+}
+
+/// `mvmp model fit-decoder --loss`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum FitLossArg {
+    Body,
+    Parameters,
+}
+
+/// A learning rate: finite and above zero.
+fn positive_rate(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(x) if x.is_finite() && x > 0.0 => Ok(x),
+        _ => Err(format!("{s}: not a positive learning rate")),
+    }
 }
 
 /// `--lattice`: three positive counts.
@@ -653,6 +711,37 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 span: span.0,
                 views,
                 frames,
+                out: out.as_deref(),
+            },
+            &device,
+        ),
+        Command::Model(ModelCommand::FitDecoder {
+            run,
+            data,
+            maps,
+            loss,
+            steps,
+            lr,
+            test_frames,
+            every,
+            out,
+        }) => decoder_fit::fit_decoder(
+            &decoder_fit::FitArgs {
+                run: &run,
+                data: &data,
+                maps: match maps {
+                    FitMaps::Truth => mvmp_train::decoder_fit::JointMaps::Truth,
+                    FitMaps::Model => mvmp_train::decoder_fit::JointMaps::Model,
+                    FitMaps::Zero => mvmp_train::decoder_fit::JointMaps::Zero,
+                },
+                loss: match loss {
+                    FitLossArg::Body => mvmp_train::decoder_fit::FitLoss::Body,
+                    FitLossArg::Parameters => mvmp_train::decoder_fit::FitLoss::Parameters,
+                },
+                steps,
+                lr,
+                test_frames,
+                every,
                 out: out.as_deref(),
             },
             &device,

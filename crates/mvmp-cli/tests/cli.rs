@@ -890,6 +890,48 @@ fn train_eval_infer_end_to_end() {
         &[&probe[..], &["--out", nowhere.as_str()]].concat(),
         &["--out", "missing", "not a directory"],
     );
+    // The decoder alone on the truth's joint volume, from fresh weights: on its training frame the body
+    // rotations come closer to the truth than the fresh decoder's (measured: 11.2 to 2.1 degrees).
+    let fit = [
+        "model",
+        "fit-decoder",
+        "--run",
+        run.as_str(),
+        "--data",
+        ds.as_str(),
+    ];
+    let report = p("fit.json");
+    let args = [
+        "--loss",
+        "body",
+        "--steps",
+        "60",
+        "--every",
+        "30",
+        "--out",
+        report.as_str(),
+    ];
+    let o = mvmp(&[&fit[..], &args[..]].concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let f: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    let points = f["points"].as_array().unwrap();
+    let steps: Vec<u64> = points.iter().map(|p| p["step"].as_u64().unwrap()).collect();
+    assert_eq!(steps, [0, 30, 60], "{f}");
+    let deg = |i: usize, k: &str| points[i][k].as_f64().unwrap();
+    eprintln!("fit-decoder: {}", f["points"]);
+    assert!(deg(2, "train_deg") < 0.5 * deg(0, "train_deg"), "{f}");
+    assert!(deg(2, "held_out_deg").is_finite(), "{f}");
+    let o = mvmp(&[&fit[..], &["--maps", "model", "--steps", "2"]].concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    expect_error(
+        &[&fit[..], &["--lr", "-1"]].concat(),
+        &["--lr", "-1", "not a positive learning rate"],
+    );
+    expect_error(
+        &[&fit[..], &["--out", nowhere.as_str()]].concat(),
+        &["--out", "missing", "not a directory"],
+    );
     // The diagnostic that zeroes the image-feature volume is recorded in its report, and refused for
     // predictions, whose model is not at hand.
     let z = scored(&["--run", &p("run"), "--zero-volume"], &p("zero.json"));

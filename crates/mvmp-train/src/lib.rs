@@ -3,6 +3,7 @@
 pub mod average;
 pub mod config;
 pub mod curves;
+pub mod decoder_fit;
 pub mod diagnostics;
 pub mod error;
 pub mod keypoints;

@@ -14,14 +14,13 @@ use mvmp_data::dataset::FrameDataset;
 use mvmp_data::loader::{FrameBatch, FrameBatcher, PersonGt, Split, ViewChoice};
 use mvmp_decoder::{height_features, lattice_offsets, sample_turned};
 use mvmp_fusion::Root;
-use mvmp_fusion::{FusionMode, SamplingGrid, fuse_views};
 use mvmp_model::facing::facing_readout;
 use mvmp_model::{Detection, MvmpHmr, RigGrids};
 
 use crate::TrainError;
 use crate::keypoints::keypoint_errors;
 use crate::ridge::{Ridge, sse};
-use crate::step::{HostGt, batch_grids, joint_heading, joint_heatmap_targets};
+use crate::step::{batch_grids, joint_heading, truth_joint_volume};
 
 /// Body joints after the pelvis (SMPL-X order) whose offsets make up the probed pose.
 const POSE_JOINTS: std::ops::Range<usize> = 1..22;
@@ -149,16 +148,7 @@ fn probe_frame(
     let volume = model.feature_volume(batch.images.clone(), &grids);
     let (det, hvol) = model.detect_with_volume(batch.images.clone(), &grids);
     let stride = cfg.heatmap_stride() as f32;
-    let truth = joint_heatmap_targets(
-        det.heatmaps.dims(),
-        stride,
-        &HostGt::new(batch),
-        cfg,
-        sigma,
-        device,
-    );
-    let hgrids: Vec<SamplingGrid> = grids.iter().map(|g| g.heatmaps.clone()).collect();
-    let tvol = fuse_views(truth, &hgrids, FusionMode::Mean);
+    let tvol = truth_joint_volume(cfg, batch, &grids, sigma, device);
     let place = |v: Tensor<5>, roots: &Tensor<3>, heads: &Tensor<3>| {
         host(sample_turned(
             v,

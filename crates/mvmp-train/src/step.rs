@@ -3,8 +3,8 @@
 use burn::tensor::{Device, Int, Tensor, TensorData};
 
 use mvmp_data::loader::FrameBatch;
-use mvmp_fusion::Root;
 use mvmp_fusion::roots::{gaussian_target, root_voxel_and_offset};
+use mvmp_fusion::{FusionMode, Root, SamplingGrid, fuse_views};
 use mvmp_geom::CameraTensors;
 use mvmp_geom::rotation::axis_angle_to_matrix;
 use mvmp_losses::{
@@ -234,6 +234,24 @@ pub fn joint_heatmap_targets(
         }
     }
     Tensor::from_data(TensorData::new(target, dims), device)
+}
+
+/// The joint heatmap volume `[B, J, X, Y, Z]` a perfect HRNet would give: the heatmap loss's targets
+/// (Gaussians of width `sigma`, map pixels) fused over the views as the model fuses its own maps.
+pub fn truth_joint_volume(
+    cfg: &ModelConfig,
+    batch: &FrameBatch,
+    grids: &[RigGrids],
+    sigma: f32,
+    device: &Device,
+) -> Tensor<5> {
+    let [b, v, _, _, _] = batch.images.dims();
+    let [h, w] = grids[0].heatmaps.map_hw;
+    let dims = [b, v, cfg.heatmap_joints.len(), h, w];
+    let gt = HostGt::new(batch);
+    let maps = joint_heatmap_targets(dims, cfg.heatmap_stride() as f32, &gt, cfg, sigma, device);
+    let hgrids: Vec<SamplingGrid> = grids.iter().map(|g| g.heatmaps.clone()).collect();
+    fuse_views(maps, &hgrids, FusionMode::Mean)
 }
 
 /// The heatmap loss of maps `[B, V, J, h, w]` of the heatmap joints, `stride` network pixels per map
