@@ -23,11 +23,7 @@ pub struct FitArgs<'a> {
 }
 
 pub fn fit_decoder(args: &FitArgs, device: &Device) -> Result<()> {
-    // The report is written at the end: a place it cannot go is said before the fit.
-    let parent = args.out.and_then(Path::parent);
-    if let Some(dir) = parent.filter(|d| !d.as_os_str().is_empty() && !d.is_dir()) {
-        bail!("--out: {} is not a directory", dir.display());
-    }
+    crate::paths::out_dir_exists(args.out)?;
     let (_, tcfg, mcfg) = RunDir::open(args.run)?;
     let (pred, _) = Predictor::from_run(args.run, device)?;
     let opts = FitOptions {

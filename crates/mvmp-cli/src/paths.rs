@@ -16,6 +16,16 @@ fn resolved(path: &Path) -> Option<PathBuf> {
     Some(parent.canonicalize().ok()?.join(name))
 }
 
+/// Refuse an `--out` report whose directory does not exist: a report written at the end of a long
+/// command says so before the work rather than after it.
+pub fn out_dir_exists(out: Option<&Path>) -> Result<()> {
+    let parent = out.and_then(Path::parent);
+    if let Some(dir) = parent.filter(|d| !d.as_os_str().is_empty() && !d.is_dir()) {
+        bail!("--out: {} is not a directory", dir.display());
+    }
+    Ok(())
+}
+
 /// Refuse an output (`flag`) that is the input file `input` or, for an input directory, lies inside it.
 pub fn not_over_input(flag: &str, out: &Path, input: &Path) -> Result<()> {
     let (Some(o), Some(i)) = (resolved(out), resolved(input)) else {

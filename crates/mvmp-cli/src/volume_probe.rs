@@ -33,11 +33,7 @@ pub struct ProbeArgs<'a> {
 }
 
 pub fn probe(args: &ProbeArgs, device: &Device) -> Result<()> {
-    // The report is written at the end: a place it cannot go is said before minutes of reading.
-    let parent = args.out.and_then(Path::parent);
-    if let Some(dir) = parent.filter(|d| !d.as_os_str().is_empty() && !d.is_dir()) {
-        bail!("--out: {} is not a directory", dir.display());
-    }
+    crate::paths::out_dir_exists(args.out)?;
     let (_, tcfg, mcfg) = RunDir::open(args.run)?;
     let (pred, weights) = Predictor::from_run(args.run, device)?;
     let opts = ProbeOptions {
