@@ -3,7 +3,8 @@
 //! rotations, then scored on held-out people by the mean angle of the 21 body rotations from the truth.
 //! It says in seconds how much of the pose a joint volume lets the decoder learn, and whether the
 //! training loss lets it (docs/architecture.md, What the decoder learns from perfect maps): the volume
-//! is the truth's own (the heatmap targets fused, what a perfect HRNet would give) or a run's HRNet's.
+//! is the truth's own (the heatmap targets fused, what a perfect HRNet would give), a run's HRNet's, or
+//! zeros.
 use std::path::Path;
 
 use burn::data::dataloader::batcher::Batcher;
