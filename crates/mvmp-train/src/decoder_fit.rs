@@ -22,7 +22,8 @@ use mvmp_model::{ModelConfig, MvmpHmr};
 use mvmp_smplx::names::{NUM_BETAS, NUM_BODY, NUM_EXPRESSION, NUM_REGRESSED, REGRESSED_TO_JOINT};
 
 use crate::TrainError;
-use crate::step::{batch_grids, joint_heading, truth_joint_volume};
+use crate::probe::headed_people;
+use crate::step::{batch_grids, truth_joint_volume};
 
 /// Where the joint volume comes from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -129,11 +130,7 @@ fn fit_frame(
 ) -> Option<FitFrame> {
     let cfg = &model.config;
     let mut rows = Rows::default();
-    for p in &batch.people[0] {
-        let joints: Vec<[f64; 3]> = p.joints_3d.iter().map(|j| j.map(f64::from)).collect();
-        let Some(h) = joint_heading(&joints, &vec![true; joints.len()]) else {
-            continue;
-        };
+    for (p, h) in headed_people(batch) {
         rows.roots.extend(p.joints_3d[cfg.primary_joint.joint()]);
         rows.headings.extend(h.map(|x| x as f32));
         rows.rotations.extend(

@@ -114,7 +114,7 @@ pub fn collect(
 }
 
 /// The people of a one-frame batch whose heading the annotation gives, with that heading.
-fn headed_people(batch: &FrameBatch) -> Vec<(&PersonGt, [f64; 2])> {
+pub(crate) fn headed_people(batch: &FrameBatch) -> Vec<(&PersonGt, [f64; 2])> {
     (batch.people[0].iter())
         .filter(|p| p.joints_3d.len() >= POSE_JOINTS.end)
         .filter_map(|p| {
