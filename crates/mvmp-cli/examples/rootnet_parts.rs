@@ -4,7 +4,9 @@
 //! blocks and the pooling. `mvmp bench model --backward` times the RootNet whole; this says which of its
 //! blocks the time is in (a row is one call of a block; its name says how often the V2V calls it).
 //!
-//! `cargo run --release -p mvmp-cli --example rootnet_parts` (median and fastest of 9 runs).
+//! `cargo run --release -p mvmp-cli --example rootnet_parts` (median and fastest of 9 runs). The whole
+//! RootNet is timed with burn's norms and the front as a 3D product, and with the fused norms
+//! (`mvmp_kernels::norm`) and the front's depth folded into its channels (`mvmp_kernels::conv`), in turn.
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
@@ -43,14 +45,30 @@ fn run() -> std::io::Result<()> {
     timing::print(format_args!(
         "tiny RootNet on a [1, 17, 32, 32, 8] heatmap volume: forward and backward"
     ))?;
-    time("the whole RootNet", || {
-        let (likelihood, offset) = rootnet.forward(heatmaps.clone());
-        drop((likelihood.sum() + offset.sum()).backward());
-    })?;
+    // Burn's norms and the front as a 3D product, then the fused norms and the folded front, in turn,
+    // so that the rows share the machine's state.
+    for fused in [false, true, false, true, false, true] {
+        mvmp_kernels::norm::set_fused_norm(fused);
+        mvmp_kernels::conv::set_fold_depth(fused);
+        let how = match fused {
+            true => "fused norms, folded front",
+            false => "burn's norms, 3D front",
+        };
+        time(&format!("the whole RootNet, {how}"), || {
+            let (likelihood, offset) = rootnet.forward(heatmaps.clone());
+            drop((likelihood.sum() + offset.sum()).backward());
+        })?;
+    }
     let front = Basic3DBlock::new(17, 8, 7, n, &d);
-    time("front: 7^3, 17 -> 8 channels, full", || {
-        drop(front.forward(heatmaps.clone()).sum().backward())
-    })?;
+    // Its depth folded into the channels and not, in turn.
+    for fold in [false, true, false, true] {
+        mvmp_kernels::conv::set_fold_depth(fold);
+        let how = if fold { "folded" } else { "as 3D" };
+        time(
+            &format!("front: 7^3, 17 -> 8 channels, full, {how}"),
+            || drop(front.forward(heatmaps.clone()).sum().backward()),
+        )?;
+    }
     // Widths 8, 16, 32, 64 (the reference's 16 to 128 at `rootnet_width = 0.5`).
     for (name, c, co, size) in [
         ("residual 8 -> 16, full (once)", 8, 16, full),

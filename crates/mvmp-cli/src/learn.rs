@@ -74,7 +74,8 @@ const VALIDATION_SHARE: f64 = 0.15;
 const STAGE1_SHARE: f64 = 0.4;
 /// Every variant trains the same schedule, so that a variant slower per step (deformable fusion) or a
 /// machine busy with something else does not cut one variant's schedule short and not another's. This
-/// many times the time given stops a variant that is far slower; the table shows its fewer steps.
+/// many times the time given stops a variant that is far slower (or starved by other work: the guard
+/// counts wall time); the report marks it and leaves it out of the paper's directions.
 const TIME_GUARD: f64 = 2.0;
 
 pub struct LearnArgs<'a> {
@@ -116,6 +117,9 @@ struct Scored {
     steps: u64,
     minutes: f64,
     metrics: Metrics,
+    /// Whether the run trained its whole schedule (absent in runs scored by earlier versions).
+    #[serde(default)]
+    finished: Option<bool>,
 }
 
 /// The name of one variant's run with one seed: the variant's own when the benchmark runs one seed.
@@ -165,6 +169,8 @@ struct Row {
     metrics: Metrics,
     steps: u64,
     minutes: f64,
+    /// Whether the run trained its whole schedule; `Some(false)`: the time guard stopped it.
+    finished: Option<bool>,
 }
 
 pub fn bench_learn(args: &LearnArgs, device: &Device) -> Result<()> {
@@ -387,6 +393,7 @@ fn train_and_score(
         metrics: s.metrics,
         steps: s.steps,
         minutes: s.minutes,
+        finished: s.finished,
     };
     if run_dir.join(SCORED).exists() {
         eprintln!("[{run}] trained and scored before");
@@ -424,7 +431,15 @@ fn train_and_score(
         bail!("[{run}] stopped by signal {signal} after {minutes:.1} minutes of training");
     }
     let (opened, _, _) = mvmp_train::RunDir::open(&run_dir)?;
-    let steps = opened.state()?.map_or(0, |s| s.global_step);
+    let state = opened.state()?;
+    let steps = state.as_ref().map_or(0, |s| s.global_step);
+    let finished = state.is_some_and(|s| s.finished);
+    if !finished {
+        eprintln!(
+            "[{run}] stopped by the time guard after {steps} steps, short of its schedule: it is scored, \
+             and the report leaves it out of the comparisons"
+        );
+    }
     let report = run_dir.join("eval-test.json");
     let eval_args = EvalArgs::held_out(Source::Run(&run_dir), data, &report);
     let (metrics, _) = eval(&eval_args, device, true)?;
@@ -432,6 +447,7 @@ fn train_and_score(
         steps,
         minutes,
         metrics,
+        finished: Some(finished),
     };
     write_atomic(
         &run_dir.join(SCORED),
@@ -502,6 +518,29 @@ fn seed_summary(rows: &[Row]) -> String {
     s
 }
 
+/// Whether a run of the variant was stopped by the time guard before its schedule's end.
+fn stopped(rows: &[Row], name: &str) -> bool {
+    seeds_of(rows, name)
+        .iter()
+        .any(|r| r.finished == Some(false))
+}
+
+/// One line of the report's directions: the verdict over `pairs` (`a` should beat `b`), unless a
+/// variant was stopped short of the schedule, which would compare fewer steps with more.
+fn direction(rows: &[Row], what: &str, pairs: &[(&str, &str)]) -> String {
+    let mut short: Vec<&str> = pairs.iter().flat_map(|&(a, b)| [a, b]).collect();
+    short.retain(|n| stopped(rows, n));
+    short.dedup();
+    if !short.is_empty() {
+        return format!(
+            "- {what}: not compared ({} stopped by the time guard short of the schedule)\n",
+            short.join(", ")
+        );
+    }
+    let each: Vec<_> = pairs.iter().map(|(a, b)| lower(rows, a, b)).collect();
+    format!("- {what}: {}\n", verdict(&each))
+}
+
 /// One direction's verdict over its pairs: every pair must go the paper's way by more than the noise.
 fn verdict(each: &[Option<Option<bool>>]) -> &'static str {
     if each.iter().any(Option::is_none) {
@@ -545,10 +584,15 @@ fn report(rows: &[Row], plan: &Plan) -> String {
         );
         s += &seed_summary(rows);
     }
-    s += "```\n\n| variant | seed | steps | minutes |\n|---|---|---|---|\n";
+    s += "```\n\n| variant | seed | steps | minutes | schedule |\n|---|---|---|---|---|\n";
     for r in rows {
+        let schedule = match r.finished {
+            Some(true) => "trained",
+            Some(false) => "stopped by the time guard",
+            None => "not recorded",
+        };
         s += &format!(
-            "| {} | {} | {} | {:.1} |\n",
+            "| {} | {} | {} | {:.1} | {schedule} |\n",
             r.name, r.seed, r.steps, r.minutes
         );
     }
@@ -573,8 +617,7 @@ fn report(rows: &[Row], plan: &Plan) -> String {
             vec![("full", "voxelsmplx")],
         ),
     ] {
-        let each: Vec<_> = pairs.iter().map(|(a, b)| lower(rows, a, b)).collect();
-        s += &format!("- {what}: {}\n", verdict(&each));
+        s += &direction(rows, what, &pairs);
     }
     s += "\n![validation curves of every variant](curves.png)\n";
     s
@@ -582,7 +625,7 @@ fn report(rows: &[Row], plan: &Plan) -> String {
 
 #[cfg(test)]
 mod tests {
-    use super::{Row, epochs, lower, seed_summary, verdict};
+    use super::{Row, direction, epochs, lower, seed_summary, verdict};
     use mvmp_eval::Metrics;
 
     fn row(name: &'static str, seed: u64, mpjpe: Option<f64>) -> Row {
@@ -606,7 +649,26 @@ mod tests {
             metrics,
             steps: 10,
             minutes: 1.0,
+            finished: Some(true),
         }
+    }
+
+    #[test]
+    fn a_variant_stopped_by_the_time_guard_is_not_compared() {
+        let mut rows = vec![
+            row("full", 0, Some(150.0)),
+            row("fusion_max", 0, Some(185.0)),
+            row("fusion_deformable", 0, Some(190.0)),
+        ];
+        let pairs = [("full", "fusion_max"), ("full", "fusion_deformable")];
+        let line = direction(&rows, "mean fusion", &pairs);
+        assert_eq!(line, "- mean fusion: reproduces\n");
+        rows[2].finished = Some(false);
+        let line = direction(&rows, "mean fusion", &pairs);
+        assert!(
+            line.contains("not compared (fusion_deformable stopped by the time guard"),
+            "{line}"
+        );
     }
 
     #[test]

@@ -60,7 +60,7 @@ fn norm(c: usize, kind: VolumeNorm, device: &Device) -> (Option<BatchNorm>, Opti
 fn apply(bn: &Option<BatchNorm>, gn: &Option<GroupNorm>, x: Tensor<5>) -> Tensor<5> {
     match (bn, gn) {
         (Some(b), _) => mvmp_kernels::norm::batch_norm(b, x),
-        (None, Some(g)) => g.forward(x),
+        (None, Some(g)) => mvmp_kernels::norm::group_norm(g, x),
         (None, None) => x,
     }
 }
@@ -84,10 +84,15 @@ impl Basic3DBlock {
     }
 
     pub fn forward(&self, x: Tensor<5>) -> Tensor<5> {
-        let y = if x.is_autodiff() && self.conv.kernel_size[0] >= 5 {
-            conv_in_slabs(&self.conv, x, SLAB.load(Ordering::Relaxed))
-        } else {
-            mvmp_kernels::conv::conv3d(&self.conv, x)
+        // A shallow volume's front folds its depth into the channels (the tiny config); a deep one's
+        // goes in slabs, which bound the backward's memory (the paper's).
+        let folded = mvmp_kernels::conv::folded_conv3d(&self.conv, x.clone());
+        let y = match folded {
+            Some(y) => y,
+            None if x.is_autodiff() && self.conv.kernel_size[0] >= 5 => {
+                conv_in_slabs(&self.conv, x, SLAB.load(Ordering::Relaxed))
+            }
+            None => mvmp_kernels::conv::conv3d(&self.conv, x),
         };
         relu(apply(&self.bn, &self.gn, y))
     }

@@ -24,7 +24,7 @@ use burn::tensor::ops::PadMode;
 use burn::tensor::{Device, Tensor, s};
 
 use crate::im2col::Columns;
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 /// Most tap values (output positions x kernel taps x input channels) of a convolution computed as a
 /// product: 64 MiB of f32.
@@ -110,7 +110,112 @@ pub fn conv3d(conv: &Conv3d, x: Tensor<5>) -> Tensor<5> {
     if pad == [0; 3] && pointwise(&conv.kernel_size, &conv.stride) {
         return pointwise_conv(&conv.weight.val(), conv.bias.as_ref(), x);
     }
+    if let Some(y) = folded_conv3d(conv, x.clone()) {
+        return y;
+    }
     product3d(conv, x.clone(), pad).unwrap_or_else(|| conv.forward(x))
+}
+
+static FOLD_DEPTH: AtomicBool = AtomicBool::new(true);
+
+/// Whether training on flex folds a shallow last axis into the channels ([`folded_conv3d`]; the
+/// default) or not; process-wide, so that a benchmark can time both.
+pub fn set_fold_depth(on: bool) {
+    FOLD_DEPTH.store(on, Ordering::Relaxed);
+}
+
+/// Most multiply-adds of the folded form per useful one (taps that fall inside the input).
+const FOLD_MAX_WASTE: f64 = 1.5;
+/// Fewest kernel taps along the folded axis: the tiny RootNet's 3^3 blocks at a quarter of its
+/// resolution (8 x 8 x 2) wasted nothing folded but took 3.7-4.8 ms forward and backward against
+/// 2.3-2.6 as 3D products (`--example rootnet_parts`).
+const FOLD_MIN_TAPS: usize = 5;
+
+/// Multiply-adds along the last axis of the folded form (every output row against every input row)
+/// per useful one, for an input `depth` deep, a kernel `k` deep and padding `pad`; `None` if the
+/// kernel is wider than the padded input.
+pub fn fold_waste(depth: usize, k: usize, pad: usize) -> Option<f64> {
+    let out = (depth + 2 * pad).checked_sub(k)? + 1;
+    let useful: usize = (0..out)
+        .map(|o| {
+            (0..k)
+                .filter(|&t| (pad..pad + depth).contains(&(o + t)))
+                .count()
+        })
+        .sum();
+    Some((out * depth) as f64 / useful.max(1) as f64)
+}
+
+/// A 3D convolution (stride 1, one group) over a volume shallow along its last axis, as a 2D one
+/// over the first two with that axis folded into the channels: input channel `(ci, zi)`, output
+/// channel `(co, zo)`, and the kernel's taps along the axis placed where `zi - zo` selects them (zero
+/// elsewhere). The tiny RootNet's 7^3 front (17 channels to 8 over 32 x 32 x 8) is then a product of
+/// 64 rows by 6664 over 1024 positions instead of 8 rows by 5831 over 8192, at 1.45 times the
+/// multiply-adds but in a shape the GEMM runs near its speed, and its columns are 27 MB instead of
+/// 191 (`--example rootnet_parts`: its forward and backward 27-30 ms against 64). In training on flex
+/// where the kernel is at least [`FOLD_MIN_TAPS`] deep, the folded form wastes at most
+/// [`FOLD_MAX_WASTE`] times the useful work and its columns fit the product cap; `None` otherwise.
+pub fn folded_conv3d(conv: &Conv3d, x: Tensor<5>) -> Option<Tensor<5>> {
+    let PaddingConfig3d::Explicit(px, py, pz) = conv.padding else {
+        return None;
+    };
+    let plain = conv.dilation == [1; 3] && conv.groups == 1 && conv.stride == [1; 3];
+    let on = FOLD_DEPTH.load(Ordering::Relaxed) && crate::im2col::fused_im2col();
+    if !(plain && on && x.is_autodiff() && x.device() == Device::flex()) {
+        return None;
+    }
+    let [b, ci, nx, ny, nz] = x.dims();
+    let [kx, ky, kz] = conv.kernel_size;
+    if kz < FOLD_MIN_TAPS || fold_waste(nz, kz, pz)? > FOLD_MAX_WASTE {
+        return None;
+    }
+    let oz = nz + 2 * pz - kz + 1;
+    let ox = (nx + 2 * px).checked_sub(kx)? + 1;
+    let oy = (ny + 2 * py).checked_sub(ky)? + 1;
+    if b * ox * oy * kx * ky * ci * nz > PRODUCT_CAP.load(Ordering::Relaxed) {
+        return None;
+    }
+    let co = conv.weight.dims()[0];
+    let weight = folded_weight(conv.weight.val(), nz, pz);
+    let x2 = x.permute([0, 1, 4, 2, 3]).reshape([b, ci * nz, 1, nx, ny]);
+    let geometry = Columns {
+        kernel: [1, kx, ky],
+        stride: [1; 3],
+        pad: [0, px, py],
+        out: [1, ox, oy],
+    };
+    let y = planar_product(&weight, None, x2, geometry); // [B, Co * Zo, Xo * Yo]
+    let y = y.reshape([b, co, oz, ox, oy]).permute([0, 1, 3, 4, 2]);
+    Some(match &conv.bias {
+        Some(bias) => y + bias.val().reshape([1, co, 1, 1, 1]),
+        None => y,
+    })
+}
+
+/// `weight [Co, Ci, kx, ky, kz]` -> `[Co * Zo, Ci * Zi, 1, kx, ky]` for an input `depth` deep padded
+/// by `pad`: entry `(co, zo), (ci, zi)` holds tap `zi + pad - zo` where that is a tap, else zero. A
+/// product with a constant selection, so that the kernel's gradient is gathered back by autodiff.
+fn folded_weight(weight: Tensor<5>, depth: usize, pad: usize) -> Tensor<5> {
+    let [co, ci, kx, ky, kz] = weight.dims();
+    let out = depth + 2 * pad - kz + 1;
+    let mut select = vec![0f32; kz * out * depth];
+    for t in 0..kz {
+        for o in 0..out {
+            if let Some(i) = (o + t).checked_sub(pad).filter(|&i| i < depth) {
+                select[(t * out + o) * depth + i] = 1.0;
+            }
+        }
+    }
+    let select = Tensor::<2>::from_data(
+        burn::tensor::TensorData::new(select, [kz, out * depth]),
+        &weight.device(),
+    );
+    weight
+        .reshape([co * ci * kx * ky, kz])
+        .matmul(select)
+        .reshape([co, ci, kx, ky, out, depth])
+        .permute([0, 4, 1, 5, 2, 3])
+        .reshape([co * out, ci * depth, 1, kx, ky])
 }
 
 /// The 3D convolution as a product with symmetric padding `pad`; `None` when the kernel is wider than

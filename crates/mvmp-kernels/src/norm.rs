@@ -1,13 +1,18 @@
-//! Batch normalisation in training as one host pass on flex, with its backward written out.
+//! Batch and group normalisation in training as host passes on flex, with their backward written out.
 //!
-//! burn differentiates its batch norm as one operation, but flex computes both directions from generic
-//! tensor ops: the channels are moved to the front (a copy), reduced, broadcast back and combined, a
-//! dozen passes over the activation each way. The tiny HRNet's batch norms made up 60-100 ms of its
-//! 245 ms forward and backward (`mvmp bench model --backward` with the norms made identities); with this
-//! operation the HRNet row went from 246-289 to 192-255 ms (three runs each). Here the statistics
-//! are one pass, the normalised output a second, and the backward two: the per-channel sums of the
-//! output gradient and of its product with the normalised input, then the input gradient
-//! `gamma / std * (dy - mean(dy) - x_hat * mean(dy * x_hat))`.
+//! burn differentiates both norms through generic tensor ops, which flex runs as a dozen passes over
+//! the activation each way (for batch norm the channels are moved to the front, a copy, first). The
+//! tiny HRNet's batch norms made up 60-100 ms of its 245 ms forward and backward (`mvmp bench model
+//! --backward` with the norms made identities); with this operation the HRNet row went from 246-289
+//! to 192-255 ms (three runs each). The tiny RootNet and the facing head normalise groups of channels
+//! instead, with the same arithmetic over other sets of values.
+//!
+//! Both are one computation over the `(item, channel)` planes of the input: the planes that share
+//! statistics form a set (batch norm: one channel's planes over the batch; group norm: one item's
+//! planes of one group of channels). The statistics are one pass, the normalised output a second;
+//! the backward sums `dy` and `dy * x_hat` per plane in one pass, gathers them per channel (gamma's
+//! and beta's gradients) and per set, and writes the input gradient
+//! `inv_std * (g - mean(g) - x_hat * mean(g * x_hat))` with `g = gamma * dy`, the means over the set.
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
@@ -18,7 +23,7 @@ use burn::backend::tensor::FloatTensor;
 use burn::backend::{
     Autodiff, AutodiffBackend, Backend, Dispatch, Flex, TensorMetadata, backend_extension,
 };
-use burn::nn::BatchNorm;
+use burn::nn::{BatchNorm, GroupNorm};
 use burn::tensor::{Device, Tensor, TensorData};
 use rayon::prelude::*;
 
@@ -26,32 +31,40 @@ use crate::host::{HostF32, read_f32};
 
 static FUSED_NORM: AtomicBool = AtomicBool::new(true);
 
-/// Whether training on flex normalises batches with this operation (the default) or with burn's own;
+/// Whether training on flex normalises with these operations (the default) or with burn's own;
 /// process-wide, so that a benchmark can time both.
 pub fn set_fused_norm(on: bool) {
     FUSED_NORM.store(on, Ordering::Relaxed);
 }
 
+fn fused<const D: usize>(x: &Tensor<D>) -> bool {
+    x.is_autodiff() && x.device() == Device::flex() && FUSED_NORM.load(Ordering::Relaxed)
+}
+
+/// Which planes share statistics.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Stats {
+    /// Each channel over the batch and space (batch norm).
+    Channel,
+    /// Each item's groups of `channels / groups` consecutive channels (group norm).
+    Group(usize),
+}
+
 /// `bn.forward(x)`: in training on flex, the fused pass (the same values, running statistics updated
 /// alike); otherwise burn's own.
 pub fn batch_norm<const D: usize>(bn: &BatchNorm, x: Tensor<D>) -> Tensor<D> {
-    let fused = x.is_autodiff()
-        && bn.training.is_enabled()
-        && x.device() == Device::flex()
-        && FUSED_NORM.load(Ordering::Relaxed);
-    if !fused {
+    if !(fused(&x) && bn.training.is_enabled()) {
         return bn.forward(x);
     }
-    let moments = Tensor::<2>::from_dispatch(<Dispatch as BatchNormBackend>::channel_moments(
-        x.clone().detach().into_dispatch(),
-    ));
-    let y = Tensor::from_dispatch(<Dispatch as BatchNormBackend>::normalize(
-        x.into_dispatch(),
-        bn.gamma.val().into_dispatch(),
-        bn.beta.val().into_dispatch(),
-        moments.clone().into_dispatch(),
+    let moments = moments_of(&x, Stats::Channel);
+    let (gamma, beta) = (bn.gamma.val(), bn.beta.val());
+    let y = normalized(
+        x,
+        moments.clone(),
+        [gamma, beta],
+        Stats::Channel,
         bn.epsilon,
-    ));
+    );
     let device = y.device();
     let [mean, var] = [0, 1].map(|i| moments.clone().narrow(0, i, 1).squeeze_dim::<1>(0));
     let update = |state: &burn::module::RunningState<Tensor<1>>, stat: Tensor<1>| {
@@ -67,38 +80,78 @@ pub fn batch_norm<const D: usize>(bn: &BatchNorm, x: Tensor<D>) -> Tensor<D> {
     y
 }
 
+/// `gn.forward(x)`: in training on flex, the fused pass (the same values); otherwise burn's own.
+pub fn group_norm<const D: usize>(gn: &GroupNorm, x: Tensor<D>) -> Tensor<D> {
+    let c = x.dims()[1];
+    let (Some(gamma), Some(beta)) = (&gn.gamma, &gn.beta) else {
+        return gn.forward(x);
+    };
+    if !fused(&x) || gn.num_groups == 0 || !c.is_multiple_of(gn.num_groups) {
+        return gn.forward(x);
+    }
+    let stats = Stats::Group(gn.num_groups);
+    let moments = moments_of(&x, stats);
+    normalized(x, moments, [gamma.val(), beta.val()], stats, gn.epsilon)
+}
+
+/// `[2, sets]`: each set's mean and biased variance, as a constant.
+fn moments_of<const D: usize>(x: &Tensor<D>, stats: Stats) -> Tensor<2> {
+    Tensor::<2>::from_dispatch(<Dispatch as NormBackend>::set_moments(
+        x.clone().detach().into_dispatch(),
+        stats,
+    ))
+}
+
+fn normalized<const D: usize>(
+    x: Tensor<D>,
+    moments: Tensor<2>,
+    [gamma, beta]: [Tensor<1>; 2],
+    stats: Stats,
+    epsilon: f64,
+) -> Tensor<D> {
+    Tensor::from_dispatch(<Dispatch as NormBackend>::normalize(
+        x.into_dispatch(),
+        gamma.into_dispatch(),
+        beta.into_dispatch(),
+        moments.into_dispatch(),
+        stats,
+        epsilon,
+    ))
+}
+
 /// The backend side: host passes on any backend whose tensors can be read on the host; autodiff adds
-/// the backward of `normalize` (the moments are constants to it: its backward is the whole batch
-/// norm's, statistics included).
+/// the backward of `normalize` (the moments are constants to it: its backward is the whole norm's,
+/// statistics included).
 #[backend_extension(Flex, Autodiff)]
-pub trait BatchNormBackend: Backend {
-    /// `x [B, C, ...]` -> `[2, C]`: each channel's mean and biased variance over batch and space.
-    fn channel_moments(x: FloatTensor<Self>) -> FloatTensor<Self> {
+pub trait NormBackend: Backend {
+    /// `x [B, C, ...]` -> `[2, sets]`: each set's mean and biased variance (see [`Stats`]).
+    fn set_moments(x: FloatTensor<Self>, stats: Stats) -> FloatTensor<Self> {
         let device = x.device();
-        let layout = Layout::of(&x);
+        let layout = Layout::of(&x, stats);
         let (mean, var) = moments(&HostF32::read::<Self>(x), layout);
         let values = mean.into_iter().chain(var).collect::<Vec<_>>();
-        Self::float_from_data(TensorData::new(values, [2, layout.c]), &device)
+        Self::float_from_data(TensorData::new(values, [2, layout.sets()]), &device)
     }
 
-    /// `(x - mean) / sqrt(var + eps) * gamma + beta`, per channel, with `moments` from
-    /// [`BatchNormBackend::channel_moments`].
+    /// `(x - mean) / sqrt(var + eps) * gamma + beta`, the statistics per set, gamma and beta per
+    /// channel, with `moments` from [`NormBackend::set_moments`].
     fn normalize(
         x: FloatTensor<Self>,
         gamma: FloatTensor<Self>,
         beta: FloatTensor<Self>,
         moments: FloatTensor<Self>,
+        stats: Stats,
         epsilon: f64,
     ) -> FloatTensor<Self> {
-        forward::<Self>(x, gamma, beta, moments, epsilon).0
+        forward::<Self>(x, gamma, beta, moments, stats, epsilon).0
     }
 }
 
-impl BatchNormBackend for Flex {}
+impl NormBackend for Flex {}
 
-impl<B: Backend + BatchNormBackend, C: CheckpointStrategy> BatchNormBackend for Autodiff<B, C> {
-    fn channel_moments(x: FloatTensor<Self>) -> FloatTensor<Self> {
-        <Self as AutodiffBackend>::from_inner(B::channel_moments(x.into_primitive()))
+impl<B: Backend + NormBackend, C: CheckpointStrategy> NormBackend for Autodiff<B, C> {
+    fn set_moments(x: FloatTensor<Self>, stats: Stats) -> FloatTensor<Self> {
+        <Self as AutodiffBackend>::from_inner(B::set_moments(x.into_primitive(), stats))
     }
 
     fn normalize(
@@ -106,6 +159,7 @@ impl<B: Backend + BatchNormBackend, C: CheckpointStrategy> BatchNormBackend for 
         gamma: FloatTensor<Self>,
         beta: FloatTensor<Self>,
         moments: FloatTensor<Self>,
+        stats: Stats,
         epsilon: f64,
     ) -> FloatTensor<Self> {
         let guards = [x.node(), gamma.node(), beta.node()];
@@ -114,6 +168,7 @@ impl<B: Backend + BatchNormBackend, C: CheckpointStrategy> BatchNormBackend for 
             gamma.into_primitive(),
             beta.into_primitive(),
             moments.into_primitive(),
+            stats,
             epsilon,
         );
         match NormBackward.prepare::<C>(guards).compute_bound().stateful() {
@@ -123,51 +178,77 @@ impl<B: Backend + BatchNormBackend, C: CheckpointStrategy> BatchNormBackend for 
     }
 }
 
-/// `[B, C, S]`: batch items, channels, and the values of one channel of one item (all other axes).
+/// `[B, C, S]` (batch items, channels, the values of one channel of one item: a plane) and which
+/// planes share statistics.
 #[derive(Debug, Clone, Copy)]
 struct Layout {
     b: usize,
     c: usize,
     s: usize,
+    stats: Stats,
 }
 
 impl Layout {
-    fn of(t: &impl TensorMetadata) -> Layout {
+    fn of(t: &impl TensorMetadata, stats: Stats) -> Layout {
         let shape = t.shape();
         let (b, c) = (shape[0], shape[1]);
         let s = shape.num_elements() / (b * c).max(1);
-        Layout { b, c, s }
+        Layout { b, c, s, stats }
     }
 
-    /// Channel `ch`'s values of every batch item, one slice per item.
-    fn channel<'a>(&self, v: &'a [f32], ch: usize) -> impl Iterator<Item = &'a [f32]> {
-        let (c, s) = (self.c, self.s);
-        (0..self.b).map(move |bi| &v[(bi * c + ch) * s..(bi * c + ch + 1) * s])
+    fn sets(&self) -> usize {
+        match self.stats {
+            Stats::Channel => self.c,
+            Stats::Group(g) => self.b * g,
+        }
     }
 
+    /// The set of plane `p` (item `p / C`, channel `p % C`).
+    fn set_of(&self, p: usize) -> usize {
+        let ch = p % self.c;
+        match self.stats {
+            Stats::Channel => ch,
+            Stats::Group(g) => (p / self.c) * g + ch / (self.c / g),
+        }
+    }
+
+    /// The planes of set `k`.
+    fn planes(&self, k: usize) -> Vec<usize> {
+        match self.stats {
+            Stats::Channel => (0..self.b).map(|bi| bi * self.c + k).collect(),
+            Stats::Group(g) => {
+                let per = self.c / g;
+                let first = (k / g) * self.c + (k % g) * per;
+                (first..first + per).collect()
+            }
+        }
+    }
+
+    fn plane<'a>(&self, v: &'a [f32], p: usize) -> &'a [f32] {
+        &v[p * self.s..(p + 1) * self.s]
+    }
+
+    /// Values per set.
     fn count(&self) -> f64 {
-        (self.b * self.s) as f64
+        (self.b * self.c * self.s) as f64 / self.sets() as f64
     }
 }
 
-/// Each channel's mean and biased variance (two passes, accumulated in f64).
+/// Each set's mean and biased variance (two passes, accumulated in f64).
 fn moments(x: &[f32], l: Layout) -> (Vec<f32>, Vec<f32>) {
-    (0..l.c)
+    (0..l.sets())
         .into_par_iter()
-        .map(|ch| {
-            let mean = l.channel(x, ch).flatten().map(|&v| v as f64).sum::<f64>() / l.count();
-            let var = l
-                .channel(x, ch)
-                .flatten()
-                .map(|&v| (v as f64 - mean).powi(2))
-                .sum::<f64>()
-                / l.count();
+        .map(|k| {
+            let planes = l.planes(k);
+            let values = || planes.iter().flat_map(|&p| l.plane(x, p));
+            let mean = values().map(|&v| v as f64).sum::<f64>() / l.count();
+            let var = values().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / l.count();
             (mean as f32, var as f32)
         })
         .unzip()
 }
 
-/// What the backward needs: the input, each channel's mean, 1 / std and gamma.
+/// What the backward needs: the input, each set's mean and 1 / std, and gamma.
 #[derive(Debug, Clone)]
 struct Saved<B: Backend> {
     x: FloatTensor<B>,
@@ -183,13 +264,14 @@ fn forward<B: Backend>(
     gamma: FloatTensor<B>,
     beta: FloatTensor<B>,
     moments: FloatTensor<B>,
+    stats: Stats,
     epsilon: f64,
 ) -> (FloatTensor<B>, Saved<B>) {
     let device = x.device();
-    let layout = Layout::of(&x);
+    let layout = Layout::of(&x, stats);
     let shape = x.shape().to_vec();
     let moments = HostF32::read::<B>(moments);
-    let (mean, var) = moments.split_at(layout.c);
+    let (mean, var) = moments.split_at(layout.sets());
     let inv_std: Vec<f32> = var
         .iter()
         .map(|&v| (1.0 / (v as f64 + epsilon).sqrt()) as f32)
@@ -200,10 +282,10 @@ fn forward<B: Backend>(
     let plane = layout.s.max(1);
     (out.par_chunks_mut(plane).zip(input.par_chunks(plane)))
         .enumerate()
-        .for_each(|(i, (dst, src))| {
-            let ch = i % layout.c;
-            let scale = inv_std[ch] * gamma[ch];
-            let shift = beta[ch] - mean[ch] * scale;
+        .for_each(|(p, (dst, src))| {
+            let (ch, k) = (p % layout.c, layout.set_of(p));
+            let scale = inv_std[k] * gamma[ch];
+            let shift = beta[ch] - mean[k] * scale;
             dst.iter_mut()
                 .zip(src)
                 .for_each(|(d, &v)| *d = v * scale + shift);
@@ -223,6 +305,24 @@ fn forward<B: Backend>(
 #[derive(Debug)]
 struct NormBackward;
 
+/// Per plane: the sums of `dy` and of `dy * x_hat`.
+fn plane_sums<B: Backend>(dy: &[f32], x: &[f32], s: &Saved<B>) -> Vec<(f64, f64)> {
+    let l = s.layout;
+    (0..l.b * l.c)
+        .into_par_iter()
+        .map(|p| {
+            let k = l.set_of(p);
+            let (m, r) = (s.mean[k], s.inv_std[k]);
+            let (mut sum, mut dot) = (0f64, 0f64);
+            for (&g, &v) in l.plane(dy, p).iter().zip(l.plane(x, p)) {
+                sum += g as f64;
+                dot += (g * (v - m) * r) as f64;
+            }
+            (sum, dot)
+        })
+        .collect()
+}
+
 impl<B: Backend> Backward<B, 3> for NormBackward {
     type State = Saved<B>;
 
@@ -231,45 +331,40 @@ impl<B: Backend> Backward<B, 3> for NormBackward {
         let dy = grads.consume::<B>(&ops.node);
         let device = dy.device();
         let s = ops.state;
-        let (dy, x) = (HostF32::read::<B>(dy), HostF32::read::<B>(s.x));
+        let (dy, x) = (HostF32::read::<B>(dy), HostF32::read::<B>(s.x.clone()));
         let l = s.layout;
-        // Per channel: sum(dy) and sum(dy * x_hat).
-        let (dbeta, dgamma): (Vec<f32>, Vec<f32>) = (0..l.c)
-            .into_par_iter()
-            .map(|ch| {
-                let (m, r) = (s.mean[ch], s.inv_std[ch]);
-                let (mut sum, mut dot) = (0f64, 0f64);
-                for (g, v) in l.channel(&dy, ch).zip(l.channel(&x, ch)) {
-                    for (&g, &v) in g.iter().zip(v) {
-                        sum += g as f64;
-                        dot += (g * (v - m) * r) as f64;
-                    }
-                }
-                (sum as f32, dot as f32)
-            })
-            .unzip();
-        let n = l.count() as f32;
+        let sums = plane_sums(&dy, &x, &s);
+        // Gamma's and beta's gradients per channel; the means of g = gamma * dy and g * x_hat per set.
+        let (mut dbeta, mut dgamma) = (vec![0f64; l.c], vec![0f64; l.c]);
+        let (mut mean_g, mut mean_gx) = (vec![0f64; l.sets()], vec![0f64; l.sets()]);
+        for (p, &(sum, dot)) in sums.iter().enumerate() {
+            let (ch, k) = (p % l.c, l.set_of(p));
+            dbeta[ch] += sum;
+            dgamma[ch] += dot;
+            mean_g[k] += s.gamma[ch] as f64 * sum / l.count();
+            mean_gx[k] += s.gamma[ch] as f64 * dot / l.count();
+        }
         let plane = l.s.max(1);
         let mut dx = vec![0f32; dy.len()];
         (dx.par_chunks_mut(plane).zip(dy.par_chunks(plane)))
             .zip(x.par_chunks(plane))
             .enumerate()
-            .for_each(|(i, ((dx, g), v))| {
-                let ch = i % l.c;
-                let (m, r) = (s.mean[ch], s.inv_std[ch]);
-                let (mean_g, mean_gx) = (dbeta[ch] / n, dgamma[ch] / n);
-                let k = s.gamma[ch] * r;
+            .for_each(|(p, ((dx, g), v))| {
+                let (ch, k) = (p % l.c, l.set_of(p));
+                let (m, r, gamma) = (s.mean[k], s.inv_std[k], s.gamma[ch]);
+                let (mg, mgx) = (mean_g[k] as f32, mean_gx[k] as f32);
                 for ((dx, &g), &v) in dx.iter_mut().zip(g).zip(v) {
-                    *dx = k * (g - mean_g - (v - m) * r * mean_gx);
+                    *dx = r * (gamma * g - mg - (v - m) * r * mgx);
                 }
             });
         let tensor = |values: Vec<f32>, shape: Vec<usize>| {
             B::float_from_data(TensorData::new(values, shape), &device)
         };
+        let narrow = |v: Vec<f64>| v.into_iter().map(|v| v as f32).collect::<Vec<_>>();
         for (node, g) in [
             (node_x, tensor(dx, s.shape)),
-            (node_gamma, tensor(dgamma, vec![l.c])),
-            (node_beta, tensor(dbeta, vec![l.c])),
+            (node_gamma, tensor(narrow(dgamma), vec![l.c])),
+            (node_beta, tensor(narrow(dbeta), vec![l.c])),
         ] {
             if let Some(node) = node {
                 grads.register::<B>(node.id, g);

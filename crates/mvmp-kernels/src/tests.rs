@@ -414,6 +414,61 @@ fn convolutions_as_products_are_the_convolutions_3d() {
     }
 }
 
+/// A shallow last axis folded into the channels gives burn's 3D convolution: values and the gradients
+/// of input, weight and bias, for the RootNet's front (7^3 over 8 deep, padding 3), a kernel as deep
+/// as the input without padding, uneven kernel sides, and a batch of two. Each case must take the
+/// folded path.
+#[test]
+fn folded_depth_convolutions_are_the_convolutions() {
+    use burn::nn::PaddingConfig3d;
+    use burn::nn::conv::Conv3dConfig;
+    let d = Device::flex().autodiff();
+    seed(8);
+    for (ci, co, kernel, pad, dims, bias) in [
+        (3, 2, [7, 7, 7], [3, 3, 3], [1, 9, 8, 8], true),
+        (2, 3, [3, 5, 6], [1, 2, 0], [2, 5, 7, 6], false),
+        (4, 2, [5, 5, 5], [2, 2, 2], [1, 6, 6, 6], true),
+    ] {
+        let conv = Conv3dConfig::new([ci, co], kernel)
+            .with_padding(PaddingConfig3d::Explicit(pad[0], pad[1], pad[2]))
+            .with_bias(bias)
+            .init(&d);
+        let [b, nx, ny, nz] = dims;
+        let x = normal([b, ci, nx, ny, nz], 1.0, &d).require_grad();
+        let w = normal(conv.forward(x.clone()).dims(), 1.0, &d);
+        let run = |folded: bool| {
+            let y = match folded {
+                true => crate::conv::folded_conv3d(&conv, x.clone()).expect("the folded path"),
+                false => conv.forward(x.clone()),
+            };
+            let grads = (y.clone() * w.clone()).sum().backward();
+            let mut out = vec![
+                y.detach().flatten::<1>(0, 4),
+                x.grad(&grads).unwrap().flatten::<1>(0, 4),
+                conv.weight.val().grad(&grads).unwrap().flatten::<1>(0, 4),
+            ];
+            out.extend(conv.bias.as_ref().map(|b| b.val().grad(&grads).unwrap()));
+            out
+        };
+        assert_close(
+            run(true),
+            run(false),
+            &format!("kernel {kernel:?} pad {pad:?}"),
+        );
+    }
+}
+
+/// The folded form's extra work along the axis, counted by hand: 8 deep, kernel 7, padding 3 has
+/// 4 + 5 + 6 + 7 + 7 + 6 + 5 + 4 = 44 useful taps against 8 x 8; without padding a kernel as deep as
+/// the input wastes nothing; a kernel wider than the padded input has no form.
+#[test]
+fn the_fold_waste_is_counted_per_tap() {
+    use crate::conv::fold_waste;
+    assert_eq!(fold_waste(8, 7, 3), Some(64.0 / 44.0));
+    assert_eq!(fold_waste(6, 6, 0), Some(1.0));
+    assert_eq!(fold_waste(2, 7, 1), None);
+}
+
 /// Without autodiff, or over the size cap, the convolution is burn's own (the same values).
 #[test]
 fn convolutions_without_autodiff_or_too_large_are_burns() {
@@ -655,5 +710,119 @@ fn tiled_weight_gradients_are_the_convolutions() {
             plain,
             &format!("input {x_dims:?} kernel {kernel:?} pad {pad:?}"),
         );
+    }
+}
+
+/// The fused group norm against burn's: output and the gradients of input, gamma and beta under a
+/// random weighting of the output, for groups of one channel, of several and of all channels, 4D (the
+/// facing head) and 5D (the RootNet), a permuted input, and a batch whose count of item-groups equals
+/// the channels' (so that the two kinds of statistics could be confused).
+mod group_norm {
+    use super::{normal, seed};
+    use crate::norm::group_norm;
+    use burn::module::Param;
+    use burn::nn::{GroupNorm, GroupNormConfig};
+    use burn::tensor::{Device, Tensor};
+
+    fn layer(groups: usize, c: usize, d: &Device) -> GroupNorm {
+        let mut gn = GroupNormConfig::new(groups, c).init(d);
+        gn.gamma = Some(Param::from_tensor(normal([c], 1.0, d) + 1.0));
+        gn.beta = Some(Param::from_tensor(normal([c], 1.0, d)));
+        gn
+    }
+
+    fn rel<const D: usize>(a: Tensor<D>, b: Tensor<D>) -> f32 {
+        let scale = b.clone().abs().max().into_scalar::<f32>().max(1e-6);
+        (a - b).abs().max().into_scalar::<f32>() / scale
+    }
+
+    fn compare<const D: usize>(groups: usize, x0: Tensor<D>, w: Tensor<D>) {
+        let gn = layer(groups, x0.dims()[1], &x0.device());
+        let run = |fused: bool| {
+            let x = x0.clone().require_grad();
+            let y = match fused {
+                true => group_norm(&gn, x.clone()),
+                false => gn.forward(x.clone()),
+            };
+            let g = (y.clone() * w.clone()).sum().backward();
+            let grad = |p: &Option<Param<Tensor<1>>>| {
+                let t = p.as_ref().expect("affine").val();
+                t.grad(&g).expect("a gradient")
+            };
+            let dx = x.grad(&g).expect("an input gradient");
+            (y.inner(), dx, grad(&gn.gamma), grad(&gn.beta))
+        };
+        let (ya, dxa, dga, dba) = run(true);
+        let (yb, dxb, dgb, dbb) = run(false);
+        for (what, diff) in [
+            ("output", rel(ya, yb)),
+            ("d input", rel(dxa, dxb)),
+            ("d gamma", rel(dga, dgb)),
+            ("d beta", rel(dba, dbb)),
+        ] {
+            assert!(
+                diff < 1e-5,
+                "{what} differs by {diff} (groups {groups}, shape {:?})",
+                x0.dims()
+            );
+        }
+    }
+
+    #[test]
+    fn fused_group_norm_is_burns() {
+        let d = Device::flex().autodiff();
+        seed(23);
+        for groups in [1, 2, 8] {
+            compare(
+                groups,
+                normal([3, 8, 5, 6], 2.0, &d) + 3.0,
+                normal([3, 8, 5, 6], 1.0, &d),
+            );
+        }
+        compare(
+            4,
+            normal([3, 8, 4, 3, 5], 1.0, &d),
+            normal([3, 8, 4, 3, 5], 1.0, &d),
+        );
+        // 2 items x 4 groups: as many item-groups as channels.
+        compare(
+            4,
+            normal([2, 8, 3, 3], 1.0, &d),
+            normal([2, 8, 3, 3], 1.0, &d),
+        );
+        let x = normal([2, 5, 7, 4], 1.0, &d).permute([0, 3, 1, 2]);
+        compare(2, x, normal([2, 4, 5, 7], 1.0, &d));
+    }
+
+    /// Each item-group's normalised values sum to zero, so with one gamma for every channel the
+    /// output's sum moves with beta alone: zero gradient in the input, gamma's gradient summing to zero
+    /// over each group's channels, and `B * S` per channel in beta.
+    #[test]
+    fn the_sum_of_a_group_norm_moves_with_beta_alone() {
+        let d = Device::flex().autodiff();
+        seed(6);
+        let mut gn = layer(2, 4, &d);
+        gn.gamma = Some(Param::from_tensor(Tensor::<1>::ones([4], &d) * 1.7));
+        let x = (normal([3, 4, 2, 5], 3.0, &d) + 1.0).require_grad();
+        let g = group_norm(&gn, x.clone()).sum().backward();
+        let abs_max = |t: Tensor<1>| t.abs().max().into_scalar::<f32>();
+        let dx = x.grad(&g).unwrap().abs().max().into_scalar::<f32>();
+        let dgamma = gn.gamma.as_ref().unwrap().val().grad(&g).unwrap();
+        let per_group = abs_max(dgamma.reshape([2, 2]).sum_dim(1).flatten::<1>(0, 1));
+        let dbeta = gn.beta.as_ref().unwrap().val().grad(&g).unwrap();
+        assert!(dx < 1e-5, "d input {dx}");
+        assert!(per_group < 1e-4, "d gamma sums to {per_group} over a group");
+        assert!(abs_max(dbeta - 30.0) < 1e-4, "d beta is not 30");
+    }
+
+    /// Without autodiff the layer is burn's, bit for bit.
+    #[test]
+    fn inference_group_norm_is_burns() {
+        let d = Device::flex();
+        seed(10);
+        let gn = layer(2, 4, &d);
+        let x = normal([2, 4, 3, 3], 1.0, &d);
+        let diff = (group_norm(&gn, x.clone()) - gn.forward(x)).abs().max();
+        assert_eq!(diff.into_scalar::<f32>(), 0.0);
     }
 }

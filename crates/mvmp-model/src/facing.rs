@@ -14,6 +14,7 @@ use burn::tensor::ops::{GridSampleOptions, GridSamplePaddingMode, InterpolateMod
 use burn::tensor::{Bool, Device, Int, Tensor, TensorData};
 use mvmp_kernels::conv::conv2d;
 use mvmp_kernels::gelu::gelu;
+use mvmp_kernels::norm::group_norm;
 
 use mvmp_decoder::trilinear_sample;
 use mvmp_geom::VoxelGrid;
@@ -72,11 +73,11 @@ impl FacingHead {
     }
 
     pub fn forward(&self, image: Tensor<4>, features: Tensor<4>) -> Tensor<4> {
-        let x = gelu(self.norm1.forward(conv2d(&self.down1, image)));
-        let x = gelu(self.norm2.forward(conv2d(&self.down2, x)));
+        let x = gelu(group_norm(&self.norm1, conv2d(&self.down1, image)));
+        let x = gelu(group_norm(&self.norm2, conv2d(&self.down2, x)));
         let x = Tensor::cat(vec![x, features], 1);
-        let x = gelu(self.norm3.forward(conv2d(&self.conv1, x)));
-        let x = gelu(self.norm4.forward(conv2d(&self.conv2, x)));
+        let x = gelu(group_norm(&self.norm3, conv2d(&self.conv1, x)));
+        let x = gelu(group_norm(&self.norm4, conv2d(&self.conv2, x)));
         conv2d(&self.out, x)
     }
 }
