@@ -369,6 +369,27 @@ fn products_are_convolutions(d: &Device) {
     }
 }
 
+/// A 3D convolution's output and its gradients in the input, weight and bias under a fixed random
+/// weighting of the output (seeded), computed by `f`.
+fn conv3d_outputs(
+    conv: &burn::nn::conv::Conv3d,
+    x: &Tensor<5>,
+    f: impl Fn(&burn::nn::conv::Conv3d, Tensor<5>) -> Tensor<5>,
+) -> Vec<Tensor<1>> {
+    let x = x.clone().require_grad();
+    let y = f(conv, x.clone());
+    seed(99);
+    let w = normal(y.dims(), 1.0, &x.device());
+    let grads = (y.clone() * w).sum().backward();
+    let mut out = vec![
+        y.detach().flatten::<1>(0, 4),
+        x.grad(&grads).unwrap().flatten::<1>(0, 4),
+        conv.weight.val().grad(&grads).unwrap().flatten::<1>(0, 4),
+    ];
+    out.extend(conv.bias.as_ref().map(|b| b.val().grad(&grads).unwrap()));
+    out
+}
+
 /// 3D convolutions as products of columns equal burn's: values and the gradients of input, weight and
 /// bias, for the RootNet's 3x3x3 and 1x1x1, a stride-2 kernel and an axis the kernel does not fit a whole
 /// number of times.
@@ -390,25 +411,10 @@ fn convolutions_as_products_are_the_convolutions_3d() {
             .with_padding(PaddingConfig3d::Explicit(pad, pad, pad))
             .with_bias(bias)
             .init(&d);
-        let x = normal([2, 3, 5, 6, 7], 1.0, &d).require_grad();
-        let w = normal(conv.forward(x.clone()).dims(), 1.0, &d);
-        let run = |product: bool| {
-            let y = match product {
-                true => crate::conv::conv3d(&conv, x.clone()),
-                false => conv.forward(x.clone()),
-            };
-            let grads = (y.clone() * w.clone()).sum().backward();
-            let mut out = vec![
-                y.detach().flatten::<1>(0, 4),
-                x.grad(&grads).unwrap().flatten::<1>(0, 4),
-                conv.weight.val().grad(&grads).unwrap().flatten::<1>(0, 4),
-            ];
-            out.extend(conv.bias.as_ref().map(|b| b.val().grad(&grads).unwrap()));
-            out
-        };
+        let x = normal([2, 3, 5, 6, 7], 1.0, &d);
         assert_close(
-            run(true),
-            run(false),
+            conv3d_outputs(&conv, &x, crate::conv::conv3d),
+            conv3d_outputs(&conv, &x, |c, x| c.forward(x)),
             &format!("kernel {k} stride {stride} pad {pad}"),
         );
     }
@@ -421,7 +427,7 @@ fn convolutions_as_products_are_the_convolutions_3d() {
 #[test]
 fn folded_depth_convolutions_are_the_convolutions() {
     use burn::nn::PaddingConfig3d;
-    use burn::nn::conv::Conv3dConfig;
+    use burn::nn::conv::{Conv3d, Conv3dConfig};
     let d = Device::flex().autodiff();
     seed(8);
     for (ci, co, kernel, pad, dims, bias) in [
@@ -434,25 +440,11 @@ fn folded_depth_convolutions_are_the_convolutions() {
             .with_bias(bias)
             .init(&d);
         let [b, nx, ny, nz] = dims;
-        let x = normal([b, ci, nx, ny, nz], 1.0, &d).require_grad();
-        let w = normal(conv.forward(x.clone()).dims(), 1.0, &d);
-        let run = |folded: bool| {
-            let y = match folded {
-                true => crate::conv::folded_conv3d(&conv, x.clone()).expect("the folded path"),
-                false => conv.forward(x.clone()),
-            };
-            let grads = (y.clone() * w.clone()).sum().backward();
-            let mut out = vec![
-                y.detach().flatten::<1>(0, 4),
-                x.grad(&grads).unwrap().flatten::<1>(0, 4),
-                conv.weight.val().grad(&grads).unwrap().flatten::<1>(0, 4),
-            ];
-            out.extend(conv.bias.as_ref().map(|b| b.val().grad(&grads).unwrap()));
-            out
-        };
+        let x = normal([b, ci, nx, ny, nz], 1.0, &d);
+        let folded = |c: &Conv3d, x| crate::conv::folded_conv3d(c, x).expect("the folded path");
         assert_close(
-            run(true),
-            run(false),
+            conv3d_outputs(&conv, &x, folded),
+            conv3d_outputs(&conv, &x, |c, x| c.forward(x)),
             &format!("kernel {kernel:?} pad {pad:?}"),
         );
     }
