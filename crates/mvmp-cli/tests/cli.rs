@@ -1473,6 +1473,21 @@ fn the_learning_benchmark_compares_variants() {
             std::fs::read_to_string(out.join("configs").join(run).join("train.toml")).unwrap();
         let seed = &run[run.len() - 1..];
         assert!(train.contains(&format!("seed = {seed}")), "{train}");
+        // Whether the run trained its whole schedule is recorded, and the report's row says the same.
+        let scored =
+            std::fs::read_to_string(out.join("runs").join(run).join("bench.json")).unwrap();
+        let scored: serde_json::Value = serde_json::from_str(&scored).unwrap();
+        let cell = match scored["finished"].as_bool() {
+            Some(true) => "| trained |",
+            Some(false) => "| stopped by the time guard |",
+            None => panic!("no `finished` in {scored}"),
+        };
+        let (name, seed) = run.split_once("-s").unwrap();
+        let row = report
+            .lines()
+            .find(|l| l.starts_with(&format!("| {name} | {seed} |")))
+            .unwrap_or_else(|| panic!("no row of {run} in {report}"));
+        assert!(row.ends_with(cell), "{row} does not end with {cell}");
     }
     resume_goes_on_from_what_is_done(&out);
     expect_error(
