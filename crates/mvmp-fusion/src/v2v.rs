@@ -84,15 +84,13 @@ impl Basic3DBlock {
     }
 
     pub fn forward(&self, x: Tensor<5>) -> Tensor<5> {
-        // A shallow volume's front folds its depth into the channels (the tiny config); a deep one's
-        // goes in slabs, which bound the backward's memory (the paper's).
-        let folded = mvmp_kernels::conv::folded_conv3d(&self.conv, x.clone());
-        let y = match folded {
-            Some(y) => y,
-            None if x.is_autodiff() && self.conv.kernel_size[0] >= 5 => {
-                conv_in_slabs(&self.conv, x, SLAB.load(Ordering::Relaxed))
-            }
-            None => mvmp_kernels::conv::conv3d(&self.conv, x),
+        // In training a shallow volume's front folds its depth into the channels (the tiny config); a
+        // deep one's goes in slabs, which bound the backward's memory (the paper's).
+        let y = if x.is_autodiff() && self.conv.kernel_size[0] >= 5 {
+            mvmp_kernels::conv::folded_conv3d(&self.conv, x.clone())
+                .unwrap_or_else(|| conv_in_slabs(&self.conv, x, SLAB.load(Ordering::Relaxed)))
+        } else {
+            mvmp_kernels::conv::conv3d(&self.conv, x)
         };
         relu(apply(&self.bn, &self.gn, y))
     }
