@@ -14,7 +14,8 @@ use burn::tensor::module::interpolate;
 use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
 use burn::tensor::{Device, Tensor};
 use mvmp_kernels::conv::conv2d;
-use mvmp_kernels::norm::batch_norm;
+use mvmp_kernels::norm::{batch_norm, batch_norm_relu};
+use mvmp_kernels::residual::add_relu;
 
 #[derive(Config, Debug, PartialEq)]
 pub struct HRNetConfig {
@@ -97,6 +98,10 @@ impl ConvBn {
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
         batch_norm(&self.bn, conv2d(&self.conv, x))
     }
+    /// `relu(self.forward(x))`, the ReLU fused into the norm in training.
+    pub fn forward_relu(&self, x: Tensor<4>) -> Tensor<4> {
+        batch_norm_relu(&self.bn, conv2d(&self.conv, x))
+    }
 }
 
 #[derive(Module, Debug)]
@@ -123,14 +128,14 @@ impl Bottleneck {
         }
     }
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        let r = relu(batch_norm(&self.bn1, conv2d(&self.conv1, x.clone())));
-        let r = relu(batch_norm(&self.bn2, conv2d(&self.conv2, r)));
+        let r = batch_norm_relu(&self.bn1, conv2d(&self.conv1, x.clone()));
+        let r = batch_norm_relu(&self.bn2, conv2d(&self.conv2, r));
         let r = batch_norm(&self.bn3, conv2d(&self.conv3, r));
         let s = match &self.downsample {
             Some(d) => d.forward(x),
             None => x,
         };
-        relu(r + s)
+        add_relu(r, s)
     }
 }
 
@@ -152,8 +157,8 @@ impl BasicBlock {
         }
     }
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        let r = relu(batch_norm(&self.bn1, conv2d(&self.conv1, x.clone())));
-        relu(batch_norm(&self.bn2, conv2d(&self.conv2, r)) + x)
+        let r = batch_norm_relu(&self.bn1, conv2d(&self.conv1, x.clone()));
+        add_relu(batch_norm(&self.bn2, conv2d(&self.conv2, r)), x)
     }
 }
 
@@ -232,7 +237,7 @@ impl HrModule {
             .enumerate()
             .map(|(i, row)| {
                 let [_, _, h, w] = xs[i].dims();
-                let mut acc: Option<Tensor<4>> = None;
+                let mut ys = Vec::with_capacity(row.len());
                 for (j, f) in row.iter().enumerate() {
                     let y = match f {
                         None => xs[j].clone(),
@@ -242,16 +247,21 @@ impl HrModule {
                                 .with_output_size([h, w]),
                         ),
                         Some(Fuse { up: None, down }) => down.iter().fold(xs[j].clone(), |x, d| {
-                            let y = d.cb.forward(x);
-                            if d.relu { relu(y) } else { y }
+                            if d.relu {
+                                d.cb.forward_relu(x)
+                            } else {
+                                d.cb.forward(x)
+                            }
                         }),
                     };
-                    acc = Some(match acc {
-                        Some(a) => a + y,
-                        None => y,
-                    });
+                    ys.push(y);
                 }
-                relu(acc.expect("at least one branch"))
+                // The last addition and the ReLU are one pass each way in training.
+                let last = ys.pop().expect("at least one branch");
+                match ys.into_iter().reduce(|a, b| a + b) {
+                    Some(rest) => add_relu(rest, last),
+                    None => relu(last),
+                }
             })
             .collect()
     }
@@ -298,7 +308,7 @@ impl Transition {
                     xs[xs.len() - 1].clone()
                 };
                 match l {
-                    Some(cb) => relu(cb.forward(src)),
+                    Some(cb) => cb.forward_relu(src),
                     None => src,
                 }
             })
@@ -376,8 +386,8 @@ impl HRNet {
     /// The highest-resolution branch's output, what the final layer reads: `[B, 3, H, W]` ->
     /// `[B, width, H/4, W/4]`.
     pub fn features(&self, x: Tensor<4>) -> Tensor<4> {
-        let x = relu(batch_norm(&self.bn1, conv2d(&self.conv1, x)));
-        let x = relu(batch_norm(&self.bn2, conv2d(&self.conv2, x)));
+        let x = batch_norm_relu(&self.bn1, conv2d(&self.conv1, x));
+        let x = batch_norm_relu(&self.bn2, conv2d(&self.conv2, x));
         let x = self.layer1.iter().fold(x, |x, b| b.forward(x));
         let mut xs = self.transition1.forward(&[x]);
         for m in &self.stage2 {

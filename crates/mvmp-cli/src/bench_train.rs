@@ -92,13 +92,15 @@ pub fn bench_train(args: &BenchTrainArgs, device: &Device) -> Result<()> {
     Ok(())
 }
 
-/// The training passes with their own backward on flex (fusion, SMPL-X, convolution columns, batch
-/// norm, GELU), on or off.
+/// The training passes with their own backward on flex (fusion, SMPL-X, convolution columns and
+/// products, batch and group norm, residual joins, GELU), on or off.
 fn set_fused_passes(on: bool) {
     mvmp_fusion::set_fused_backward(on);
     mvmp_smplx::set_fused_backward(on);
     mvmp_kernels::im2col::set_fused_im2col(on);
+    mvmp_kernels::product::set_fused_product(on);
     mvmp_kernels::norm::set_fused_norm(on);
+    mvmp_kernels::residual::set_fused_residual(on);
     mvmp_kernels::gelu::set_parallel_gelu(on);
 }
 

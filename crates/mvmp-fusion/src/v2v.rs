@@ -65,6 +65,15 @@ fn apply(bn: &Option<BatchNorm>, gn: &Option<GroupNorm>, x: Tensor<5>) -> Tensor
     }
 }
 
+/// `relu(apply(bn, gn, x))`, the ReLU fused into the norm where training fuses the norm.
+fn apply_relu(bn: &Option<BatchNorm>, gn: &Option<GroupNorm>, x: Tensor<5>) -> Tensor<5> {
+    match (bn, gn) {
+        (Some(b), _) => mvmp_kernels::norm::batch_norm_relu(b, x),
+        (None, Some(g)) => mvmp_kernels::norm::group_norm_relu(g, x),
+        (None, None) => relu(x),
+    }
+}
+
 /// Conv3d(k) -> norm -> ReLU.
 #[derive(Module, Debug)]
 pub struct Basic3DBlock {
@@ -92,7 +101,7 @@ impl Basic3DBlock {
         } else {
             mvmp_kernels::conv::conv3d(&self.conv, x)
         };
-        relu(apply(&self.bn, &self.gn, y))
+        apply_relu(&self.bn, &self.gn, y)
     }
 }
 
@@ -188,13 +197,13 @@ impl Res3DBlock {
 
     pub fn forward(&self, x: Tensor<5>) -> Tensor<5> {
         use mvmp_kernels::conv::conv3d;
-        let r = relu(apply(&self.bn1, &self.gn1, conv3d(&self.conv1, x.clone())));
+        let r = apply_relu(&self.bn1, &self.gn1, conv3d(&self.conv1, x.clone()));
         let r = apply(&self.bn2, &self.gn2, conv3d(&self.conv2, r));
         let s = match &self.skip {
             Some((c, b, g)) => apply(b, g, conv3d(c, x)),
             None => x,
         };
-        relu(r + s)
+        mvmp_kernels::residual::add_relu(r, s)
     }
 }
 
@@ -220,7 +229,7 @@ impl Upsample3DBlock {
     }
 
     pub fn forward(&self, x: Tensor<5>) -> Tensor<5> {
-        relu(apply(&self.bn, &self.gn, self.deconv.forward(x)))
+        apply_relu(&self.bn, &self.gn, self.deconv.forward(x))
     }
 }
 

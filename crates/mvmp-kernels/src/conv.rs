@@ -87,7 +87,7 @@ fn pointwise_product<const K: usize>(
     x: Tensor<3>,
 ) -> Tensor<3> {
     let co = weight.dims()[0];
-    let y = weight.clone().reshape([1, co, x.dims()[1]]).matmul(x);
+    let y = crate::product::weight_product(weight.clone().reshape([co, x.dims()[1]]), x);
     match bias {
         Some(b) => y + b.val().reshape([1, co, 1]),
         None => y,

@@ -170,12 +170,19 @@ fn for_runs(g: &Columns, size: [usize; 3], t: usize, mut f: impl FnMut(Run)) {
 fn forward_host(x: &[f32], [b, c, d, h, w]: [usize; 5], g: &Columns) -> Vec<f32> {
     let (taps, outputs, plane) = (g.taps(), g.outputs(), d * h * w);
     let sw = g.stride[2];
-    let mut cols = vec![0f32; b * c * taps * outputs];
-    cols.par_chunks_mut(taps * outputs)
+    let n = b * c * taps * outputs;
+    let mut cols: Vec<f32> = Vec::with_capacity(n);
+    // Each row is zeroed just before its runs are copied in, while it is in cache, rather than the
+    // whole buffer up front (a pass over megabytes of columns).
+    cols.spare_capacity_mut()[..n]
+        .par_chunks_mut(taps * outputs)
         .enumerate()
         .for_each(|(bc, dst)| {
             let src = &x[bc * plane..(bc + 1) * plane];
             for (t, row) in dst.chunks_exact_mut(outputs).enumerate() {
+                row.fill(std::mem::MaybeUninit::new(0.0));
+                // SAFETY: every value of the row was just written.
+                let row = unsafe { &mut *(row as *mut [std::mem::MaybeUninit<f32>] as *mut [f32]) };
                 for_runs(g, [d, h, w], t, |r| {
                     let out = &mut row[r.out + r.lo..r.out + r.hi];
                     if sw == 1 {
@@ -187,6 +194,8 @@ fn forward_host(x: &[f32], [b, c, d, h, w]: [usize; 5], g: &Columns) -> Vec<f32>
                 });
             }
         });
+    // SAFETY: the chunks above cover all `n` values and zeroed each row before anything else.
+    unsafe { cols.set_len(n) };
     cols
 }
 

@@ -2,7 +2,9 @@
 //! each backend runs the forward in its own ops, and under autodiff the backward is the one written
 //! here rather than the one burn would derive from the forward's ops: tiled attention, a transformer
 //! block recomputed in its backward, a convolution's columns (im2col, with col2im as its backward),
-//! a 3D convolution whose gradients are tiled products (`wgrad`), batch norm and GELU on flex.
+//! a 3D convolution whose gradients are tiled products (`wgrad`), the weight's product that ends every
+//! product convolution (`product`), batch and group norm (with the ReLU that follows them), the
+//! residual join `relu(a + b)` and GELU on flex.
 //! `conv` holds convolutions written as matrix products for training. `cpu` and `panel` hold what the fused CPU passes
 //! share: instruction-set dispatch, the pointer of their parallel writes, and the SMPL-X panel products.
 
@@ -14,7 +16,9 @@ pub mod host;
 pub mod im2col;
 pub mod norm;
 pub mod panel;
+pub mod product;
 pub mod recompute;
+pub mod residual;
 pub mod wgrad;
 
 pub use attention::{DEFAULT_BLOCK, attention, plain_attention};

@@ -53,8 +53,18 @@ pub enum Stats {
 /// `bn.forward(x)`: in training on flex, the fused pass (the same values, running statistics updated
 /// alike); otherwise burn's own.
 pub fn batch_norm<const D: usize>(bn: &BatchNorm, x: Tensor<D>) -> Tensor<D> {
+    batch_norm_then(bn, x, false)
+}
+
+/// `relu(bn.forward(x))`: in training on flex one fused pass each way (see [`batch_norm`]); the
+/// ReLU's mask is recomputed from the saved statistics in the backward rather than stored.
+pub fn batch_norm_relu<const D: usize>(bn: &BatchNorm, x: Tensor<D>) -> Tensor<D> {
+    batch_norm_then(bn, x, true)
+}
+
+fn batch_norm_then<const D: usize>(bn: &BatchNorm, x: Tensor<D>, relu: bool) -> Tensor<D> {
     if !(fused(&x) && bn.training.is_enabled()) {
-        return bn.forward(x);
+        return maybe_relu(bn.forward(x), relu);
     }
     let moments = moments_of(&x, Stats::Channel);
     let (gamma, beta) = (bn.gamma.val(), bn.beta.val());
@@ -62,8 +72,11 @@ pub fn batch_norm<const D: usize>(bn: &BatchNorm, x: Tensor<D>) -> Tensor<D> {
         x,
         moments.clone(),
         [gamma, beta],
-        Stats::Channel,
-        bn.epsilon,
+        Norm {
+            stats: Stats::Channel,
+            epsilon: bn.epsilon,
+            relu,
+        },
     );
     let device = y.device();
     let [mean, var] = [0, 1].map(|i| moments.clone().narrow(0, i, 1).squeeze_dim::<1>(0));
@@ -82,16 +95,46 @@ pub fn batch_norm<const D: usize>(bn: &BatchNorm, x: Tensor<D>) -> Tensor<D> {
 
 /// `gn.forward(x)`: in training on flex, the fused pass (the same values); otherwise burn's own.
 pub fn group_norm<const D: usize>(gn: &GroupNorm, x: Tensor<D>) -> Tensor<D> {
+    group_norm_then(gn, x, false)
+}
+
+/// `relu(gn.forward(x))`, fused as [`batch_norm_relu`] is.
+pub fn group_norm_relu<const D: usize>(gn: &GroupNorm, x: Tensor<D>) -> Tensor<D> {
+    group_norm_then(gn, x, true)
+}
+
+fn group_norm_then<const D: usize>(gn: &GroupNorm, x: Tensor<D>, relu: bool) -> Tensor<D> {
     let c = x.dims()[1];
     let (Some(gamma), Some(beta)) = (&gn.gamma, &gn.beta) else {
-        return gn.forward(x);
+        return maybe_relu(gn.forward(x), relu);
     };
     if !fused(&x) || gn.num_groups == 0 || !c.is_multiple_of(gn.num_groups) {
-        return gn.forward(x);
+        return maybe_relu(gn.forward(x), relu);
     }
     let stats = Stats::Group(gn.num_groups);
     let moments = moments_of(&x, stats);
-    normalized(x, moments, [gamma.val(), beta.val()], stats, gn.epsilon)
+    let norm = Norm {
+        stats,
+        epsilon: gn.epsilon,
+        relu,
+    };
+    normalized(x, moments, [gamma.val(), beta.val()], norm)
+}
+
+fn maybe_relu<const D: usize>(x: Tensor<D>, relu: bool) -> Tensor<D> {
+    match relu {
+        true => burn::tensor::activation::relu(x),
+        false => x,
+    }
+}
+
+/// What a normalisation computes besides its inputs: which planes share statistics, the variance's
+/// epsilon, and whether a ReLU follows.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Norm {
+    pub stats: Stats,
+    pub epsilon: f64,
+    pub relu: bool,
 }
 
 /// `[2, sets]`: each set's mean and biased variance, as a constant.
@@ -106,16 +149,14 @@ fn normalized<const D: usize>(
     x: Tensor<D>,
     moments: Tensor<2>,
     [gamma, beta]: [Tensor<1>; 2],
-    stats: Stats,
-    epsilon: f64,
+    norm: Norm,
 ) -> Tensor<D> {
     Tensor::from_dispatch(<Dispatch as NormBackend>::normalize(
         x.into_dispatch(),
         gamma.into_dispatch(),
         beta.into_dispatch(),
         moments.into_dispatch(),
-        stats,
-        epsilon,
+        norm,
     ))
 }
 
@@ -134,16 +175,15 @@ pub trait NormBackend: Backend {
     }
 
     /// `(x - mean) / sqrt(var + eps) * gamma + beta`, the statistics per set, gamma and beta per
-    /// channel, with `moments` from [`NormBackend::set_moments`].
+    /// channel, with `moments` from [`NormBackend::set_moments`]; then a ReLU if `norm.relu`.
     fn normalize(
         x: FloatTensor<Self>,
         gamma: FloatTensor<Self>,
         beta: FloatTensor<Self>,
         moments: FloatTensor<Self>,
-        stats: Stats,
-        epsilon: f64,
+        norm: Norm,
     ) -> FloatTensor<Self> {
-        forward::<Self>(x, gamma, beta, moments, stats, epsilon).0
+        forward::<Self>(x, gamma, beta, moments, norm).0
     }
 }
 
@@ -159,8 +199,7 @@ impl<B: Backend + NormBackend, C: CheckpointStrategy> NormBackend for Autodiff<B
         gamma: FloatTensor<Self>,
         beta: FloatTensor<Self>,
         moments: FloatTensor<Self>,
-        stats: Stats,
-        epsilon: f64,
+        norm: Norm,
     ) -> FloatTensor<Self> {
         let guards = [x.node(), gamma.node(), beta.node()];
         let (out, saved) = forward::<B>(
@@ -168,8 +207,7 @@ impl<B: Backend + NormBackend, C: CheckpointStrategy> NormBackend for Autodiff<B
             gamma.into_primitive(),
             beta.into_primitive(),
             moments.into_primitive(),
-            stats,
-            epsilon,
+            norm,
         );
         match NormBackward.prepare::<C>(guards).compute_bound().stateful() {
             OpsKind::Tracked(prep) => prep.finish(saved, out),
@@ -248,7 +286,8 @@ fn moments(x: &[f32], l: Layout) -> (Vec<f32>, Vec<f32>) {
         .unzip()
 }
 
-/// What the backward needs: the input, each set's mean and 1 / std, and gamma.
+/// What the backward needs: the input, each set's mean and 1 / std, gamma and beta (with the
+/// statistics, they give the output's sign for the ReLU's mask).
 #[derive(Debug, Clone)]
 struct Saved<B: Backend> {
     x: FloatTensor<B>,
@@ -257,6 +296,55 @@ struct Saved<B: Backend> {
     mean: Vec<f32>,
     inv_std: Vec<f32>,
     gamma: Vec<f32>,
+    beta: Vec<f32>,
+    relu: bool,
+}
+
+impl<B: Backend> Saved<B> {
+    /// Plane `p`'s output as `x * scale + shift` (before the ReLU): the forward's own arithmetic, so
+    /// that the backward's mask is the forward's bit for bit.
+    fn affine(&self, p: usize) -> (f32, f32) {
+        affine(
+            &self.layout,
+            &self.mean,
+            &self.inv_std,
+            &self.gamma,
+            &self.beta,
+            p,
+        )
+    }
+
+    /// Plane `p`'s output gradient through the ReLU, if any: zero where the output `x * scale +
+    /// shift` was at most zero, `g` elsewhere (burn's ReLU backward).
+    fn gate(&self, p: usize) -> impl Fn(f32, f32) -> f32 {
+        let (scale, shift) = self.affine(p);
+        let relu = self.relu;
+        move |g, v| {
+            if relu && v * scale + shift <= 0.0 {
+                0.0
+            } else {
+                g
+            }
+        }
+    }
+}
+
+/// The ReLU as burn computes it: zero where `y <= 0`, `y` elsewhere (a NaN stays one).
+fn positive(y: f32) -> f32 {
+    if y <= 0.0 { 0.0 } else { y }
+}
+
+fn affine(
+    l: &Layout,
+    mean: &[f32],
+    inv_std: &[f32],
+    gamma: &[f32],
+    beta: &[f32],
+    p: usize,
+) -> (f32, f32) {
+    let (ch, k) = (p % l.c, l.set_of(p));
+    let scale = inv_std[k] * gamma[ch];
+    (scale, beta[ch] - mean[k] * scale)
 }
 
 fn forward<B: Backend>(
@@ -264,8 +352,11 @@ fn forward<B: Backend>(
     gamma: FloatTensor<B>,
     beta: FloatTensor<B>,
     moments: FloatTensor<B>,
-    stats: Stats,
-    epsilon: f64,
+    Norm {
+        stats,
+        epsilon,
+        relu,
+    }: Norm,
 ) -> (FloatTensor<B>, Saved<B>) {
     let device = x.device();
     let layout = Layout::of(&x, stats);
@@ -283,12 +374,12 @@ fn forward<B: Backend>(
     (out.par_chunks_mut(plane).zip(input.par_chunks(plane)))
         .enumerate()
         .for_each(|(p, (dst, src))| {
-            let (ch, k) = (p % layout.c, layout.set_of(p));
-            let scale = inv_std[k] * gamma[ch];
-            let shift = beta[ch] - mean[k] * scale;
-            dst.iter_mut()
-                .zip(src)
-                .for_each(|(d, &v)| *d = v * scale + shift);
+            let (scale, shift) = affine(&layout, mean, &inv_std, &gamma, &beta, p);
+            let pairs = dst.iter_mut().zip(src);
+            match relu {
+                true => pairs.for_each(|(d, &v)| *d = positive(v * scale + shift)),
+                false => pairs.for_each(|(d, &v)| *d = v * scale + shift),
+            }
         });
     let y = B::float_from_data(TensorData::new(out, shape.clone()), &device);
     let saved = Saved {
@@ -298,6 +389,8 @@ fn forward<B: Backend>(
         mean: mean.to_vec(),
         inv_std,
         gamma,
+        beta,
+        relu,
     };
     (y, saved)
 }
@@ -313,8 +406,10 @@ fn plane_sums<B: Backend>(dy: &[f32], x: &[f32], s: &Saved<B>) -> Vec<(f64, f64)
         .map(|p| {
             let k = l.set_of(p);
             let (m, r) = (s.mean[k], s.inv_std[k]);
+            let pass = s.gate(p);
             let (mut sum, mut dot) = (0f64, 0f64);
             for (&g, &v) in l.plane(dy, p).iter().zip(l.plane(x, p)) {
+                let g = pass(g, v);
                 sum += g as f64;
                 dot += (g * (v - m) * r) as f64;
             }
@@ -353,8 +448,9 @@ impl<B: Backend> Backward<B, 3> for NormBackward {
                 let (ch, k) = (p % l.c, l.set_of(p));
                 let (m, r, gamma) = (s.mean[k], s.inv_std[k], s.gamma[ch]);
                 let (mg, mgx) = (mean_g[k] as f32, mean_gx[k] as f32);
+                let pass = s.gate(p);
                 for ((dx, &g), &v) in dx.iter_mut().zip(g).zip(v) {
-                    *dx = r * (gamma * g - mg - (v - m) * r * mgx);
+                    *dx = r * (gamma * pass(g, v) - mg - (v - m) * r * mgx);
                 }
             });
         let tensor = |values: Vec<f32>, shape: Vec<usize>| {

@@ -488,7 +488,7 @@ fn convolutions_without_autodiff_or_too_large_are_burns() {
 /// a permuted input as the convolutions hand over, and channels whose values sit far from zero.
 mod batch_norm {
     use super::{normal, seed};
-    use crate::norm::batch_norm;
+    use crate::norm::{batch_norm, batch_norm_relu};
     use burn::module::Param;
     use burn::nn::{BatchNorm, BatchNormConfig};
     use burn::tensor::{Device, Tensor};
@@ -506,16 +506,23 @@ mod batch_norm {
         (a - b).abs().max().into_scalar::<f32>() / scale
     }
 
+    /// The fused norm against burn's, without and with the ReLU that follows it.
     fn compare<const D: usize>(x0: Tensor<D>, w: Tensor<D>) {
+        compare_with(x0.clone(), w.clone(), false);
+        compare_with(x0, w, true);
+    }
+
+    fn compare_with<const D: usize>(x0: Tensor<D>, w: Tensor<D>, relu: bool) {
         let d = x0.device();
         let c = x0.dims()[1];
         let (fused, plain) = (layer(c, &d), layer(c, &d));
         let run = |bn: &BatchNorm, fused: bool| {
             let x = x0.clone().require_grad();
-            let y = if fused {
-                batch_norm(bn, x.clone())
-            } else {
-                bn.forward(x.clone())
+            let y = match (fused, relu) {
+                (true, false) => batch_norm(bn, x.clone()),
+                (true, true) => batch_norm_relu(bn, x.clone()),
+                (false, false) => bn.forward(x.clone()),
+                (false, true) => burn::tensor::activation::relu(bn.forward(x.clone())),
             };
             let g = (y.clone() * w.clone()).sum().backward();
             let grad = |t: Tensor<1>| t.grad(&g).expect("a gradient");
@@ -546,7 +553,7 @@ mod batch_norm {
         ] {
             assert!(
                 diff < 1e-5,
-                "{what} differs by {diff} (shape {:?})",
+                "{what} differs by {diff} (shape {:?}, relu {relu})",
                 x0.dims()
             );
         }
@@ -711,7 +718,7 @@ fn tiled_weight_gradients_are_the_convolutions() {
 /// the channels' (so that the two kinds of statistics could be confused).
 mod group_norm {
     use super::{normal, seed};
-    use crate::norm::group_norm;
+    use crate::norm::{group_norm, group_norm_relu};
     use burn::module::Param;
     use burn::nn::{GroupNorm, GroupNormConfig};
     use burn::tensor::{Device, Tensor};
@@ -728,13 +735,21 @@ mod group_norm {
         (a - b).abs().max().into_scalar::<f32>() / scale
     }
 
+    /// The fused norm against burn's, without and with the ReLU that follows it.
     fn compare<const D: usize>(groups: usize, x0: Tensor<D>, w: Tensor<D>) {
+        compare_with(groups, x0.clone(), w.clone(), false);
+        compare_with(groups, x0, w, true);
+    }
+
+    fn compare_with<const D: usize>(groups: usize, x0: Tensor<D>, w: Tensor<D>, relu: bool) {
         let gn = layer(groups, x0.dims()[1], &x0.device());
         let run = |fused: bool| {
             let x = x0.clone().require_grad();
-            let y = match fused {
-                true => group_norm(&gn, x.clone()),
-                false => gn.forward(x.clone()),
+            let y = match (fused, relu) {
+                (true, false) => group_norm(&gn, x.clone()),
+                (true, true) => group_norm_relu(&gn, x.clone()),
+                (false, false) => gn.forward(x.clone()),
+                (false, true) => burn::tensor::activation::relu(gn.forward(x.clone())),
             };
             let g = (y.clone() * w.clone()).sum().backward();
             let grad = |p: &Option<Param<Tensor<1>>>| {
@@ -754,7 +769,7 @@ mod group_norm {
         ] {
             assert!(
                 diff < 1e-5,
-                "{what} differs by {diff} (groups {groups}, shape {:?})",
+                "{what} differs by {diff} (groups {groups}, shape {:?}, relu {relu})",
                 x0.dims()
             );
         }
@@ -816,5 +831,142 @@ mod group_norm {
         let x = normal([2, 4, 3, 3], 1.0, &d);
         let diff = (group_norm(&gn, x.clone()) - gn.forward(x)).abs().max();
         assert_eq!(diff.into_scalar::<f32>(), 0.0);
+    }
+}
+
+/// The product operation and its gradients in the weight and the input, against burn's matmul with the
+/// weight broadcast, and the same bits whatever the number of threads.
+mod product {
+    use super::*;
+    use crate::product::weight_product;
+
+    /// Output, weight gradient and input gradient of `w . x[b]` weighted by a fixed random `r`.
+    fn run(w: &Tensor<2>, x: &Tensor<3>, r: &Tensor<3>, fused: bool) -> Vec<Tensor<1>> {
+        let (w, x) = (w.clone().require_grad(), x.clone().require_grad());
+        let y = match fused {
+            true => weight_product(w.clone(), x.clone()),
+            false => {
+                let [co, k] = w.dims();
+                w.clone().reshape([1, co, k]).matmul(x.clone())
+            }
+        };
+        let grads = (y.clone() * r.clone()).sum().backward();
+        vec![
+            y.detach().flatten::<1>(0, 2),
+            w.grad(&grads).unwrap().flatten::<1>(0, 1),
+            x.grad(&grads).unwrap().flatten::<1>(0, 2),
+        ]
+    }
+
+    /// Shapes with one tile, a tile and a remainder, several items (more tiles than chunks) and an
+    /// output of one channel.
+    const SHAPES: [[usize; 4]; 4] = [
+        [1, 7, 5, 40],
+        [2, 16, 64, 1300],
+        [3, 9, 144, 2500],
+        [2, 1, 3, 600],
+    ];
+
+    #[test]
+    fn the_product_and_its_gradients_are_burns() {
+        let d = Device::flex().autodiff();
+        seed(11);
+        for [b, co, k, p] in SHAPES {
+            let w = normal([co, k], 1.0, &d);
+            let x = normal([b, k, p], 1.0, &d);
+            let r = normal([b, co, p], 1.0, &d);
+            assert_close(
+                run(&w, &x, &r, true),
+                run(&w, &x, &r, false),
+                &format!("product [{b}, {co}, {k}, {p}]"),
+            );
+        }
+    }
+
+    #[test]
+    fn the_product_does_not_depend_on_the_thread_count() {
+        let d = Device::flex().autodiff();
+        seed(12);
+        let [b, co, k, p] = SHAPES[2];
+        let (w, x, r) = (
+            normal([co, k], 1.0, &d),
+            normal([b, k, p], 1.0, &d),
+            normal([b, co, p], 1.0, &d),
+        );
+        let bits = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| run(&w, &x, &r, true))
+                .into_iter()
+                .map(|t| t.into_data().try_into_vec::<f32>().unwrap())
+                .collect::<Vec<_>>()
+        };
+        assert_eq!(bits(1), bits(3));
+    }
+
+    #[test]
+    fn the_product_without_autodiff_is_the_matmul() {
+        let d = Device::flex();
+        seed(13);
+        let w = normal([4, 6], 1.0, &d);
+        let x = normal([2, 6, 9], 1.0, &d);
+        let want = w.clone().reshape([1, 4, 6]).matmul(x.clone());
+        let got = weight_product(w, x);
+        assert_eq!(got.into_data(), want.into_data());
+    }
+}
+
+/// `relu(a + b)` in one pass against burn's addition and ReLU: values and both inputs' gradients,
+/// with one input constant and with one tensor on both sides.
+mod residual {
+    use super::*;
+    use crate::residual::add_relu;
+    use burn::tensor::activation::relu;
+
+    #[test]
+    fn the_fused_residual_join_is_burns() {
+        let d = Device::flex().autodiff();
+        seed(31);
+        let (a0, b0) = (normal([2, 3, 5, 7], 1.0, &d), normal([2, 3, 5, 7], 1.0, &d));
+        let r = normal([2, 3, 5, 7], 1.0, &d);
+        for (grad_a, grad_b) in [(true, true), (true, false), (false, true)] {
+            let run = |fused: bool| {
+                let a = if grad_a {
+                    a0.clone().require_grad()
+                } else {
+                    a0.clone()
+                };
+                let b = if grad_b {
+                    b0.clone().require_grad()
+                } else {
+                    b0.clone()
+                };
+                let y = match fused {
+                    true => add_relu(a.clone(), b.clone()),
+                    false => relu(a.clone() + b.clone()),
+                };
+                let g = (y.clone() * r.clone()).sum().backward();
+                let mut out = vec![y.detach().flatten::<1>(0, 3)];
+                out.extend(grad_a.then(|| a.grad(&g).unwrap().flatten::<1>(0, 3)));
+                out.extend(grad_b.then(|| b.grad(&g).unwrap().flatten::<1>(0, 3)));
+                out
+            };
+            assert_close(run(true), run(false), &format!("grads {grad_a} {grad_b}"));
+        }
+        let x = a0.require_grad();
+        let g = (add_relu(x.clone(), x.clone()) * r.clone())
+            .sum()
+            .backward();
+        let got = x.grad(&g).unwrap();
+        let x_ref = x.detach().require_grad();
+        let g_ref = (relu(x_ref.clone() * 2.0) * r).sum().backward();
+        let want = x_ref.grad(&g_ref).unwrap();
+        assert_close(
+            vec![got.flatten(0, 3)],
+            vec![want.flatten(0, 3)],
+            "one tensor twice",
+        );
     }
 }
