@@ -130,10 +130,10 @@ fn tiles(b: usize, p: usize) -> Vec<(usize, usize, usize)> {
 
 /// A matrix in memory: its first element and the distances between rows and between columns.
 #[derive(Clone, Copy)]
-struct Mat {
-    ptr: *const f32,
-    row: isize,
-    col: isize,
+pub(crate) struct Mat {
+    pub ptr: *const f32,
+    pub row: isize,
+    pub col: isize,
 }
 
 // SAFETY: a `Mat` is only read through, and only while the slice it was made from is borrowed.
@@ -146,7 +146,7 @@ unsafe impl Sync for Mat {}
 /// `lhs` and `rhs` must be valid for the reads their strides describe, `dst` for writes of `m` rows of
 /// `n` values `dst_row` apart (and reads too if `add`) that nothing else accesses meanwhile.
 #[allow(clippy::too_many_arguments)]
-unsafe fn gemm(
+pub(crate) unsafe fn gemm(
     dst: *mut f32,
     dst_row: usize,
     add: bool,
@@ -198,51 +198,45 @@ unsafe fn written(n: usize, write: impl FnOnce(SendPtr)) -> Vec<f32> {
 /// `y[b] = w . x[b]` for `[b, co, k, p]`.
 fn forward_host(w: &[f32], x: &[f32], [b, co, k, p]: [usize; 4]) -> Vec<f32> {
     assert!(w.len() == co * k && x.len() == b * k * p);
-    if k == 0 {
-        return vec![0f32; b * co * p];
-    }
-    let lhs = Mat {
+    let w = Mat {
         ptr: w.as_ptr(),
         row: k as isize,
         col: 1,
     };
-    let write = |dst: SendPtr| {
-        tiles(b, p).into_par_iter().for_each(|(bi, s, t)| {
-            let rhs = Mat {
-                ptr: x[bi * k * p + s..].as_ptr(),
-                row: p as isize,
-                col: 1,
-            };
-            // SAFETY: each tile writes columns s..s + t of item bi's rows, which no other tile
-            // writes; the tiles cover every position of every item.
-            unsafe { gemm(dst.get().add(bi * co * p + s), p, false, lhs, rhs, co, k, t) };
-        })
-    };
-    // SAFETY: the tiles write all of it (above), without reading (`add = false`).
-    unsafe { written(b * co * p, write) }
+    left_product(w, [co, k], x, [b, p])
 }
 
 /// `dx[b] = w^T . dy[b]` for `[b, co, k, p]`.
 fn input_gradient(w: &[f32], dy: &[f32], [b, co, k, p]: [usize; 4]) -> Vec<f32> {
     assert!(w.len() == co * k && dy.len() == b * co * p);
-    let lhs = Mat {
+    let w_t = Mat {
         ptr: w.as_ptr(),
         row: 1,
         col: k as isize,
     };
+    left_product(w_t, [k, co], dy, [b, p])
+}
+
+/// `dst[b] [m, p] = lhs [m, kk] . src[b] [kk, p]` for `b` items, over tiles of positions in parallel.
+fn left_product(lhs: Mat, [m, kk]: [usize; 2], src: &[f32], [b, p]: [usize; 2]) -> Vec<f32> {
+    assert_eq!(src.len(), b * kk * p);
+    if kk == 0 {
+        return vec![0f32; b * m * p];
+    }
     let write = |dst: SendPtr| {
         tiles(b, p).into_par_iter().for_each(|(bi, s, t)| {
             let rhs = Mat {
-                ptr: dy[bi * co * p + s..].as_ptr(),
+                ptr: src[bi * kk * p + s..].as_ptr(),
                 row: p as isize,
                 col: 1,
             };
-            // SAFETY: as in the forward: disjoint columns, all of them.
-            unsafe { gemm(dst.get().add(bi * k * p + s), p, false, lhs, rhs, k, co, t) };
+            // SAFETY: each tile writes columns s..s + t of item bi's rows, which no other tile
+            // writes; the tiles cover every position of every item. `lhs` is the caller's `m x kk`.
+            unsafe { gemm(dst.get().add(bi * m * p + s), p, false, lhs, rhs, m, kk, t) };
         })
     };
-    // SAFETY: the tiles write all of it, without reading.
-    unsafe { written(b * k * p, write) }
+    // SAFETY: the tiles write all of it (above), without reading (`add = false`).
+    unsafe { written(b * m * p, write) }
 }
 
 /// `dw = sum over b of dy[b] . x[b]^T` for `[b, co, k, p]`: a fixed number of chunks of tiles, each

@@ -23,6 +23,7 @@ use rayon::prelude::*;
 
 use crate::cpu::SendPtr;
 use crate::host::{HostF32, dims};
+use crate::product::{Mat, gemm};
 
 /// Output positions per tile: 64 positions of a 7^3 kernel over 17 channels are 1.5 MB of columns.
 const TILE: usize = 64;
@@ -246,30 +247,18 @@ unsafe fn write_product(
     t: usize,
 ) {
     assert!(lhs.len() == m * kc && cols.len() == kc * t);
+    let lhs = Mat {
+        ptr: lhs.as_ptr(),
+        row: kc as isize,
+        col: 1,
+    };
+    let cols = Mat {
+        ptr: cols.as_ptr(),
+        row: t as isize,
+        col: 1,
+    };
     // SAFETY: the assert bounds what the product reads; the caller vouches for `dst`.
-    unsafe {
-        gemm::gemm(
-            m,
-            t,
-            kc,
-            dst,
-            1,
-            p as isize,
-            false,
-            lhs.as_ptr(),
-            1,
-            kc as isize,
-            cols.as_ptr(),
-            1,
-            t as isize,
-            0.0,
-            1.0,
-            false,
-            false,
-            false,
-            gemm::Parallelism::None,
-        );
-    }
+    unsafe { gemm(dst, p, false, lhs, cols, m, kc, t) };
 }
 
 /// `dW [Co, Ci, kd, kh, kw]` of a stride-1 convolution from its input and output gradient (host
@@ -364,29 +353,17 @@ fn accumulate_product(
 ) {
     assert!(dw.len() == co * kc && cols.len() == kc * t);
     assert!(co == 0 || lhs.len() >= (co - 1) * p + t);
+    let lhs = Mat {
+        ptr: lhs.as_ptr(),
+        row: p as isize,
+        col: 1,
+    };
+    let cols_t = Mat {
+        ptr: cols.as_ptr(),
+        row: 1,
+        col: t as isize,
+    };
     // SAFETY: the asserts bound every element the product reads or writes: `dw` is `co x kc` row-major,
     // `lhs` holds `co` rows of `t` values `p` apart, `cols` is `kc x t` row-major.
-    unsafe {
-        gemm::gemm(
-            co,
-            kc,
-            t,
-            dw.as_mut_ptr(),
-            1,
-            kc as isize,
-            true,
-            lhs.as_ptr(),
-            1,
-            p as isize,
-            cols.as_ptr(),
-            t as isize,
-            1,
-            1.0,
-            1.0,
-            false,
-            false,
-            false,
-            gemm::Parallelism::None,
-        );
-    }
+    unsafe { gemm(dw.as_mut_ptr(), kc, true, lhs, cols_t, co, t, kc) };
 }
