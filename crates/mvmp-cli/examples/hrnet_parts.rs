@@ -11,11 +11,10 @@ static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 #[path = "parts/timing.rs"]
 mod timing;
 
-use burn::tensor::activation::relu;
 use burn::tensor::{Device, Tensor, TensorData};
 use mvmp_backbone::hrnet::{HRNet, HRNetConfig};
 use mvmp_kernels::conv::conv2d;
-use mvmp_kernels::norm::batch_norm;
+use mvmp_kernels::norm::batch_norm_relu;
 
 const PARTS: [&str; 9] = [
     "stem",
@@ -36,8 +35,8 @@ fn total(xs: &[Tensor<4>]) -> Tensor<1> {
 
 /// The network run through part `upto` (an index into [`PARTS`]), summed.
 fn through(net: &HRNet, x: Tensor<4>, upto: usize) -> Tensor<1> {
-    let x = relu(batch_norm(&net.bn1, conv2d(&net.conv1, x)));
-    let x = relu(batch_norm(&net.bn2, conv2d(&net.conv2, x)));
+    let x = batch_norm_relu(&net.bn1, conv2d(&net.conv1, x));
+    let x = batch_norm_relu(&net.bn2, conv2d(&net.conv2, x));
     if upto == 0 {
         return x.sum();
     }
