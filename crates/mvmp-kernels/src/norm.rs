@@ -286,8 +286,8 @@ fn moments(x: &[f32], l: Layout) -> (Vec<f32>, Vec<f32>) {
         .unzip()
 }
 
-/// What the backward needs: the input, each set's mean and 1 / std, gamma and beta (with the
-/// statistics, they give the output's sign for the ReLU's mask).
+/// What the backward needs: the input, each set's mean and 1 / std, gamma, and (for the ReLU's mask)
+/// each plane's `scale` and `shift` of the forward's `x * scale + shift`.
 #[derive(Debug, Clone)]
 struct Saved<B: Backend> {
     x: FloatTensor<B>,
@@ -296,28 +296,16 @@ struct Saved<B: Backend> {
     mean: Vec<f32>,
     inv_std: Vec<f32>,
     gamma: Vec<f32>,
-    beta: Vec<f32>,
+    affine: Vec<(f32, f32)>,
     relu: bool,
 }
 
 impl<B: Backend> Saved<B> {
-    /// Plane `p`'s output as `x * scale + shift` (before the ReLU): the forward's own arithmetic, so
-    /// that the backward's mask is the forward's bit for bit.
-    fn affine(&self, p: usize) -> (f32, f32) {
-        affine(
-            &self.layout,
-            &self.mean,
-            &self.inv_std,
-            &self.gamma,
-            &self.beta,
-            p,
-        )
-    }
-
     /// Plane `p`'s output gradient through the ReLU, if any: zero where the output `x * scale +
-    /// shift` was at most zero, `g` elsewhere (burn's ReLU backward).
+    /// shift` was at most zero, `g` elsewhere (burn's ReLU backward). The forward's own scale and
+    /// shift, so the mask is the forward's bit for bit.
     fn gate(&self, p: usize) -> impl Fn(f32, f32) -> f32 {
-        let (scale, shift) = self.affine(p);
+        let (scale, shift) = self.affine[p];
         let relu = self.relu;
         move |g, v| {
             if relu && v * scale + shift <= 0.0 {
@@ -332,19 +320,6 @@ impl<B: Backend> Saved<B> {
 /// The ReLU as burn computes it: zero where `y <= 0`, `y` elsewhere (a NaN stays one).
 fn positive(y: f32) -> f32 {
     if y <= 0.0 { 0.0 } else { y }
-}
-
-fn affine(
-    l: &Layout,
-    mean: &[f32],
-    inv_std: &[f32],
-    gamma: &[f32],
-    beta: &[f32],
-    p: usize,
-) -> (f32, f32) {
-    let (ch, k) = (p % l.c, l.set_of(p));
-    let scale = inv_std[k] * gamma[ch];
-    (scale, beta[ch] - mean[k] * scale)
 }
 
 fn forward<B: Backend>(
@@ -368,13 +343,20 @@ fn forward<B: Backend>(
         .map(|&v| (1.0 / (v as f64 + epsilon).sqrt()) as f32)
         .collect();
     let (gamma, beta) = (read_f32::<B>(gamma), read_f32::<B>(beta));
+    let affine: Vec<(f32, f32)> = (0..layout.b * layout.c)
+        .map(|p| {
+            let (ch, k) = (p % layout.c, layout.set_of(p));
+            let scale = inv_std[k] * gamma[ch];
+            (scale, beta[ch] - mean[k] * scale)
+        })
+        .collect();
     let input = HostF32::read::<B>(x.clone());
     let mut out = vec![0f32; input.len()];
     let plane = layout.s.max(1);
     (out.par_chunks_mut(plane).zip(input.par_chunks(plane)))
         .enumerate()
         .for_each(|(p, (dst, src))| {
-            let (scale, shift) = affine(&layout, mean, &inv_std, &gamma, &beta, p);
+            let (scale, shift) = affine[p];
             let pairs = dst.iter_mut().zip(src);
             match relu {
                 true => pairs.for_each(|(d, &v)| *d = positive(v * scale + shift)),
@@ -389,7 +371,7 @@ fn forward<B: Backend>(
         mean: mean.to_vec(),
         inv_std,
         gamma,
-        beta,
+        affine,
         relu,
     };
     (y, saved)

@@ -136,6 +136,17 @@ pub(crate) struct Mat {
     pub col: isize,
 }
 
+impl Mat {
+    /// The matrix that starts at `v`'s first value, rows `row` and columns `col` apart.
+    pub fn at(v: &[f32], row: usize, col: usize) -> Mat {
+        Mat {
+            ptr: v.as_ptr(),
+            row: row as isize,
+            col: col as isize,
+        }
+    }
+}
+
 // SAFETY: a `Mat` is only read through, and only while the slice it was made from is borrowed.
 unsafe impl Send for Mat {}
 unsafe impl Sync for Mat {}
@@ -198,22 +209,14 @@ unsafe fn written(n: usize, write: impl FnOnce(SendPtr)) -> Vec<f32> {
 /// `y[b] = w . x[b]` for `[b, co, k, p]`.
 fn forward_host(w: &[f32], x: &[f32], [b, co, k, p]: [usize; 4]) -> Vec<f32> {
     assert!(w.len() == co * k && x.len() == b * k * p);
-    let w = Mat {
-        ptr: w.as_ptr(),
-        row: k as isize,
-        col: 1,
-    };
+    let w = Mat::at(w, k, 1);
     left_product(w, [co, k], x, [b, p])
 }
 
 /// `dx[b] = w^T . dy[b]` for `[b, co, k, p]`.
 fn input_gradient(w: &[f32], dy: &[f32], [b, co, k, p]: [usize; 4]) -> Vec<f32> {
     assert!(w.len() == co * k && dy.len() == b * co * p);
-    let w_t = Mat {
-        ptr: w.as_ptr(),
-        row: 1,
-        col: k as isize,
-    };
+    let w_t = Mat::at(w, 1, k);
     left_product(w_t, [k, co], dy, [b, p])
 }
 
@@ -225,11 +228,7 @@ fn left_product(lhs: Mat, [m, kk]: [usize; 2], src: &[f32], [b, p]: [usize; 2]) 
     }
     let write = |dst: SendPtr| {
         tiles(b, p).into_par_iter().for_each(|(bi, s, t)| {
-            let rhs = Mat {
-                ptr: src[bi * kk * p + s..].as_ptr(),
-                row: p as isize,
-                col: 1,
-            };
+            let rhs = Mat::at(&src[bi * kk * p + s..], p, 1);
             // SAFETY: each tile writes columns s..s + t of item bi's rows, which no other tile
             // writes; the tiles cover every position of every item. `lhs` is the caller's `m x kk`.
             unsafe { gemm(dst.get().add(bi * m * p + s), p, false, lhs, rhs, m, kk, t) };
@@ -248,16 +247,8 @@ fn weight_gradient(x: &[f32], dy: &[f32], [b, co, k, p]: [usize; 4]) -> Vec<f32>
     let partial = |chunk: &[(usize, usize, usize)]| {
         let mut dw = vec![0f32; co * k];
         for &(bi, s, t) in chunk {
-            let lhs = Mat {
-                ptr: dy[bi * co * p + s..].as_ptr(),
-                row: p as isize,
-                col: 1,
-            };
-            let rhs = Mat {
-                ptr: x[bi * k * p + s..].as_ptr(),
-                row: 1,
-                col: p as isize,
-            };
+            let lhs = Mat::at(&dy[bi * co * p + s..], p, 1);
+            let rhs = Mat::at(&x[bi * k * p + s..], 1, p);
             // SAFETY: `dw` is this chunk's own; the tile's reads lie within item bi's rows.
             unsafe { gemm(dw.as_mut_ptr(), k, true, lhs, rhs, co, t, k) };
         }

@@ -247,16 +247,8 @@ unsafe fn write_product(
     t: usize,
 ) {
     assert!(lhs.len() == m * kc && cols.len() == kc * t);
-    let lhs = Mat {
-        ptr: lhs.as_ptr(),
-        row: kc as isize,
-        col: 1,
-    };
-    let cols = Mat {
-        ptr: cols.as_ptr(),
-        row: t as isize,
-        col: 1,
-    };
+    let lhs = Mat::at(lhs, kc, 1);
+    let cols = Mat::at(cols, t, 1);
     // SAFETY: the assert bounds what the product reads; the caller vouches for `dst`.
     unsafe { gemm(dst, p, false, lhs, cols, m, kc, t) };
 }
@@ -353,16 +345,8 @@ fn accumulate_product(
 ) {
     assert!(dw.len() == co * kc && cols.len() == kc * t);
     assert!(co == 0 || lhs.len() >= (co - 1) * p + t);
-    let lhs = Mat {
-        ptr: lhs.as_ptr(),
-        row: p as isize,
-        col: 1,
-    };
-    let cols_t = Mat {
-        ptr: cols.as_ptr(),
-        row: 1,
-        col: t as isize,
-    };
+    let lhs = Mat::at(lhs, p, 1);
+    let cols_t = Mat::at(cols, 1, t);
     // SAFETY: the asserts bound every element the product reads or writes: `dw` is `co x kc` row-major,
     // `lhs` holds `co` rows of `t` values `p` apart, `cols` is `kc x t` row-major.
     unsafe { gemm(dw.as_mut_ptr(), kc, true, lhs, cols_t, co, t, kc) };
