@@ -15,6 +15,8 @@ use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::{Initializer, LayerNorm, LayerNormConfig, Linear, LinearConfig};
 use burn::tensor::{Device, Tensor, TensorData};
 use mvmp_kernels::gelu::gelu;
+use mvmp_kernels::layer_norm::layer_norm;
+use mvmp_kernels::linear::{linear, linear_layer};
 
 pub const PATCH: usize = 14;
 
@@ -119,6 +121,7 @@ impl ViTConfig {
                 .with_epsilon(self.norm_eps)
                 .init(device),
             pos_grid: m,
+            norm_eps: self.norm_eps,
         }
     }
 }
@@ -146,10 +149,7 @@ impl PatchEmbed {
         let weight = self.proj.weight.val(); // [C, 3, 14, 14]
         let c = weight.dims()[0];
         let weight = weight.reshape([c, ch * PATCH * PATCH]).transpose();
-        let mut tokens = patches.matmul(weight.unsqueeze_dim::<3>(0)); // [B, N, C]
-        if let Some(bias) = &self.proj.bias {
-            tokens = tokens + bias.val().reshape([1, 1, c]);
-        }
+        let tokens = linear(patches, weight, self.proj.bias.as_ref().map(|b| b.val())); // [B, N, C]
         (tokens, [h0, w0])
     }
 }
@@ -169,9 +169,7 @@ impl Attention {
         let [b, n, c] = x.dims();
         let h = self.heads;
         let d = c / h;
-        let qkv = self
-            .qkv
-            .forward(x)
+        let qkv = linear_layer(&self.qkv, x)
             .reshape([b, n, 3, h, d])
             .permute([2, 0, 3, 1, 4]); // [3, B, h, N, d]
         let q = qkv.clone().narrow(0, 0, 1).reshape([b, h, n, d]);
@@ -180,7 +178,7 @@ impl Attention {
         let out = attend(q, k, v, self.tile)
             .swap_dims(1, 2)
             .reshape([b, n, c]);
-        self.proj.forward(out)
+        linear_layer(&self.proj, out)
     }
 }
 
@@ -271,11 +269,11 @@ impl Block {
 
     /// The block in burn's ops, its activations kept by autodiff.
     pub fn forward_stored(&self, x: Tensor<3>) -> Tensor<3> {
-        let x = x.clone() + self.ls1.forward(self.attn.forward(self.norm1.forward(x)));
-        let m = self
-            .mlp
-            .fc2
-            .forward(gelu(self.mlp.fc1.forward(self.norm2.forward(x.clone()))));
+        let normed = layer_norm(&self.norm1, x.clone(), self.norm_eps);
+        let x = x + self.ls1.forward(self.attn.forward(normed));
+        let normed = layer_norm(&self.norm2, x.clone(), self.norm_eps);
+        let hidden = gelu(linear_layer(&self.mlp.fc1, normed));
+        let m = linear_layer(&self.mlp.fc2, hidden);
         x + self.ls2.forward(m)
     }
 }
@@ -289,6 +287,8 @@ pub struct ViT {
     pub blocks: Vec<Block>,
     pub norm: LayerNorm,
     pub pos_grid: usize,
+    /// The final layer norm's epsilon (burn's `LayerNorm` keeps it private).
+    pub norm_eps: f64,
 }
 
 /// PyTorch's bicubic kernel (A = -0.75) weights for a fractional position `t` at offsets -1, 0, 1, 2.
@@ -362,7 +362,7 @@ impl ViT {
         for blk in &self.blocks {
             x = blk.forward(x);
         }
-        let x = self.norm.forward(x).narrow(1, 1, h0 * w0); // drop the class token
+        let x = layer_norm(&self.norm, x, self.norm_eps).narrow(1, 1, h0 * w0); // drop the class token
         (x, [h0, w0])
     }
 }

@@ -93,7 +93,7 @@ pub fn bench_train(args: &BenchTrainArgs, device: &Device) -> Result<()> {
 }
 
 /// The training passes with their own backward on flex (fusion, SMPL-X, convolution columns and
-/// products, batch and group norm, residual joins, GELU), on or off.
+/// products, batch, group and layer norm, linear layers, attention, residual joins, GELU), on or off.
 fn set_fused_passes(on: bool) {
     mvmp_fusion::set_fused_backward(on);
     mvmp_smplx::set_fused_backward(on);
@@ -101,6 +101,9 @@ fn set_fused_passes(on: bool) {
     mvmp_kernels::product::set_fused_product(on);
     mvmp_kernels::norm::set_fused_norm(on);
     mvmp_kernels::residual::set_fused_residual(on);
+    mvmp_kernels::linear::set_fused_linear(on);
+    mvmp_kernels::layer_norm::set_fused_layer_norm(on);
+    mvmp_kernels::attention::set_host_attention(on);
     mvmp_kernels::gelu::set_parallel_gelu(on);
 }
 

@@ -22,7 +22,12 @@ use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, Dispatch, Flex, TensorMetadata, backend_extension};
-use burn::tensor::{Slice, Tensor};
+use burn::tensor::{Slice, Tensor, TensorData};
+use std::any::TypeId;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use crate::attention_host;
+use crate::host::{HostF32, dims};
 use std::ops::Range;
 
 /// Rows and columns of one score tile. 512 x 512 keeps a tile of 16 heads at 16 MiB, small beside the
@@ -71,7 +76,17 @@ pub trait AttentionBackend: Backend {
     }
 }
 
-impl AttentionBackend for Flex {}
+impl AttentionBackend for Flex {
+    fn tiled_attention(
+        q: FloatTensor<Self>,
+        k: FloatTensor<Self>,
+        v: FloatTensor<Self>,
+        scale: f64,
+        block: usize,
+    ) -> FloatTensor<Self> {
+        forward_any::<Self>(q, k, v, scale, block).0
+    }
+}
 impl AttentionBackend for NdArray {}
 #[cfg(feature = "wgpu")]
 impl AttentionBackend for Cube {}
@@ -86,7 +101,7 @@ impl<B: Backend + AttentionBackend, C: CheckpointStrategy> AttentionBackend for 
     ) -> FloatTensor<Self> {
         let guards = [q.node(), k.node(), v.node()];
         let (q, k, v) = (q.into_primitive(), k.into_primitive(), v.into_primitive());
-        let (out, lse) = forward::<B>(q.clone(), k.clone(), v.clone(), scale, block);
+        let (out, lse) = forward_any::<B>(q.clone(), k.clone(), v.clone(), scale, block);
         // Compute-bound: a checkpointing strategy keeps this state rather than rerunning the tiles.
         match TiledBackward
             .prepare::<C>(guards)
@@ -131,7 +146,11 @@ impl<B: Backend> Backward<B, 3> for TiledBackward {
     fn backward(self, ops: Ops<Self::State, 3>, grads: &mut Gradients, _: &mut Checkpointer) {
         let [node_q, node_k, node_v] = ops.parents;
         let grad = grads.consume::<B>(&ops.node);
-        let [dq, dk, dv] = backward::<B>(ops.state, grad);
+        let [dq, dk, dv] = match host_dims::<B>(&ops.state.q, &ops.state.v, ops.state.k.shape()[2])
+        {
+            Some((dm, device)) => host_backward::<B>(ops.state, grad, dm, &device),
+            None => backward::<B>(ops.state, grad),
+        };
         for (node, g) in [(node_q, dq), (node_k, dk), (node_v, dv)] {
             if let Some(node) = node {
                 grads.register::<B>(node.id, g);
@@ -162,6 +181,102 @@ fn add_into<B: Backend>(acc: &mut Option<FloatTensor<B>>, x: FloatTensor<B>) {
         Some(a) => B::float_add(a, x),
         None => x,
     });
+}
+
+static HOST_ATTENTION: AtomicBool = AtomicBool::new(true);
+
+/// Whether flex takes the host passes (the default) or the tiled forward and backward in burn's ops;
+/// process-wide, so that a benchmark can time both.
+pub fn set_host_attention(on: bool) {
+    HOST_ATTENTION.store(on, Ordering::Relaxed);
+}
+
+/// The problem's sizes when it runs as host passes (on flex, with queries, keys and values of some
+/// width), and the device for the results.
+fn host_dims<B: Backend>(
+    q: &FloatTensor<B>,
+    v: &FloatTensor<B>,
+    nk: usize,
+) -> Option<(attention_host::Dims, B::Device)> {
+    let on_flex =
+        TypeId::of::<B>() == TypeId::of::<Flex>() && HOST_ATTENTION.load(Ordering::Relaxed);
+    let [b, h, nq, d]: [usize; 4] = dims(q);
+    let dv = v.shape()[3];
+    let dm = attention_host::Dims {
+        heads: b * h,
+        nq,
+        nk,
+        d,
+        dv,
+        scale: 0.0,
+        rows: 0,
+    };
+    (on_flex && nq * nk * d * dv > 0).then(|| (dm, q.device()))
+}
+
+/// The forward on the host where [`host_dims`] allows, in burn's ops elsewhere.
+fn forward_any<B: Backend>(
+    q: FloatTensor<B>,
+    k: FloatTensor<B>,
+    v: FloatTensor<B>,
+    scale: f64,
+    block: usize,
+) -> (FloatTensor<B>, FloatTensor<B>) {
+    let Some((dm, device)) = host_dims::<B>(&q, &v, k.shape()[2]) else {
+        return forward::<B>(q, k, v, scale, block);
+    };
+    let dm = attention_host::Dims {
+        scale: scale as f32,
+        rows: block,
+        ..dm
+    };
+    let [b, h, nq, _]: [usize; 4] = dims(&q);
+    let (out, lse) = attention_host::forward(
+        &HostF32::read::<B>(q),
+        &HostF32::read::<B>(k),
+        &HostF32::read::<B>(v),
+        dm,
+    );
+    (
+        B::float_from_data(TensorData::new(out, [b, h, nq, dm.dv]), &device),
+        B::float_from_data(TensorData::new(lse, [b, h, nq, 1]), &device),
+    )
+}
+
+/// The backward on the host (see [`host_dims`]).
+fn host_backward<B: Backend>(
+    s: Saved<B>,
+    dout: FloatTensor<B>,
+    dm: attention_host::Dims,
+    device: &B::Device,
+) -> [FloatTensor<B>; 3] {
+    let dm = attention_host::Dims {
+        scale: s.scale as f32,
+        rows: s.block,
+        ..dm
+    };
+    let shapes = [s.q.shape(), s.k.shape(), s.v.shape()];
+    let read = |t: &FloatTensor<B>| HostF32::read::<B>(t.clone());
+    let (q, k, v, out, lse) = (
+        read(&s.q),
+        read(&s.k),
+        read(&s.v),
+        read(&s.out),
+        read(&s.lse),
+    );
+    let saved = attention_host::Saved {
+        q: &q,
+        k: &k,
+        v: &v,
+        out: &out,
+        lse: &lse,
+    };
+    let grads = attention_host::backward(saved, &HostF32::read::<B>(dout), dm);
+    let mut shapes = shapes.into_iter();
+    grads.map(|g| {
+        let shape = shapes.next().expect("one shape per gradient");
+        B::float_from_data(TensorData::new(g, shape), device)
+    })
 }
 
 /// The tiled forward: the output `[B, H, Nq, Dv]` and each query row's log-sum-exp `[B, H, Nq, 1]`.

@@ -9,11 +9,14 @@
 //! share: instruction-set dispatch, the pointer of their parallel writes, and the SMPL-X panel products.
 
 pub mod attention;
+mod attention_host;
 pub mod conv;
 pub mod cpu;
 pub mod gelu;
 pub mod host;
 pub mod im2col;
+pub mod layer_norm;
+pub mod linear;
 pub mod norm;
 pub mod panel;
 pub mod product;

@@ -198,7 +198,7 @@ pub(crate) unsafe fn gemm(
 /// # Safety
 /// `write` must write every one of the `n` values (it may not read any): this saves a zeroing pass
 /// over outputs that are mostly megabytes.
-unsafe fn written(n: usize, write: impl FnOnce(SendPtr)) -> Vec<f32> {
+pub(crate) unsafe fn written(n: usize, write: impl FnOnce(SendPtr)) -> Vec<f32> {
     let mut v: Vec<f32> = Vec::with_capacity(n);
     write(SendPtr(v.spare_capacity_mut().as_mut_ptr().cast()));
     // SAFETY: the caller has written all `n` values.

@@ -88,6 +88,7 @@ fn assert_matches(device: Device) {
         (37, 29, 8, 1.0),
         (5, 41, 7, 1.0),
         (23, 23, 4, 2.0),
+        (150, 70, 512, 1.0),
     ] {
         let worst = compare(&device, nq, nk, block, spread);
         for (name, w) in ["output", "dq", "dk", "dv"].iter().zip(worst) {
@@ -969,4 +970,204 @@ mod residual {
             "one tensor twice",
         );
     }
+}
+
+/// The values of each tensor, as bits to compare.
+fn bits_of(ts: Vec<Tensor<1>>) -> Vec<Vec<f32>> {
+    ts.into_iter()
+        .map(|t| t.into_data().try_into_vec::<f32>().unwrap())
+        .collect()
+}
+
+/// `run` in a pool of `threads` threads.
+fn in_pool<T: Send>(threads: usize, run: impl FnOnce() -> T + Send) -> T {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap();
+    pool.install(run)
+}
+
+mod linear {
+    use super::*;
+    use crate::linear::linear;
+
+    /// Output and the gradients of input, weight and bias (when there is one) of `x . w + b`, weighted
+    /// by a fixed random `r`: the operation, or burn's broadcast matmul and sum.
+    fn run(
+        x: &Tensor<3>,
+        w: &Tensor<2>,
+        b: Option<&Tensor<1>>,
+        r: &Tensor<3>,
+        fused: bool,
+    ) -> Vec<Tensor<1>> {
+        let (x, w) = (x.clone().require_grad(), w.clone().require_grad());
+        let b = b.map(|b| b.clone().require_grad());
+        let y = match fused {
+            true => linear(x.clone(), w.clone(), b.clone()),
+            false => {
+                let y = x.clone().matmul(w.clone().unsqueeze_dim::<3>(0));
+                match &b {
+                    Some(b) => y + b.clone().unsqueeze_dims::<3>(&[0, 1]),
+                    None => y,
+                }
+            }
+        };
+        let grads = (y.clone() * r.clone()).sum().backward();
+        let mut out = vec![
+            y.detach().flatten::<1>(0, 2),
+            x.grad(&grads).unwrap().flatten::<1>(0, 2),
+            w.grad(&grads).unwrap().flatten::<1>(0, 1),
+        ];
+        out.extend(b.map(|b| b.grad(&grads).unwrap()));
+        out
+    }
+
+    /// `[items, rows, in, out]`: one tile, several tiles and more rows than chunks, fewer rows than
+    /// chunks, a single output.
+    const SHAPES: [[usize; 4]; 4] = [
+        [2, 7, 5, 3],
+        [3, 300, 64, 48],
+        [1, 3, 9, 11],
+        [2, 130, 17, 1],
+    ];
+
+    #[test]
+    fn the_linear_layer_and_its_gradients_are_burns() {
+        let d = Device::flex().autodiff();
+        seed(41);
+        for (i, [items, rows, k, n]) in SHAPES.into_iter().enumerate() {
+            let x = normal([items, rows, k], 1.0, &d);
+            let w = normal([k, n], 1.0, &d);
+            let b = normal([n], 1.0, &d);
+            let r = normal([items, rows, n], 1.0, &d);
+            let b = (i != 2).then_some(&b);
+            assert_close(
+                run(&x, &w, b, &r, true),
+                run(&x, &w, b, &r, false),
+                &format!("linear [{items}, {rows}, {k}, {n}], bias {}", b.is_some()),
+            );
+        }
+    }
+
+    #[test]
+    fn the_linear_layer_does_not_depend_on_the_thread_count() {
+        let d = Device::flex().autodiff();
+        seed(42);
+        let [items, rows, k, n] = SHAPES[1];
+        let (x, w, b, r) = (
+            normal([items, rows, k], 1.0, &d),
+            normal([k, n], 1.0, &d),
+            normal([n], 1.0, &d),
+            normal([items, rows, n], 1.0, &d),
+        );
+        let bits = |threads| bits_of(in_pool(threads, || run(&x, &w, Some(&b), &r, true)));
+        assert_eq!(bits(1), bits(3));
+    }
+}
+
+mod layer_norm {
+    use super::*;
+    use crate::layer_norm::layer_norm;
+    use burn::nn::LayerNormConfig;
+
+    /// Output and the gradients of input, scale and shift (when there is one), weighted by `r`: the
+    /// operation, or burn's layer norm as autodiff runs it.
+    fn run(
+        x: &Tensor<3>,
+        norm: &burn::nn::LayerNorm,
+        r: &Tensor<3>,
+        fused: bool,
+    ) -> Vec<Tensor<1>> {
+        let x = x.clone().require_grad();
+        let y = match fused {
+            true => layer_norm(norm, x.clone(), 1e-6),
+            false => burn::tensor::module::layer_norm(
+                x.clone(),
+                norm.gamma.val(),
+                norm.beta.as_ref().map(|b| b.val()),
+                1e-6,
+            ),
+        };
+        let grads = (y.clone() * r.clone()).sum().backward();
+        let mut out = vec![
+            y.detach().flatten::<1>(0, 2),
+            x.grad(&grads).unwrap().flatten::<1>(0, 2),
+            norm.gamma.val().grad(&grads).unwrap(),
+        ];
+        out.extend(norm.beta.as_ref().map(|b| b.val().grad(&grads).unwrap()));
+        out
+    }
+
+    /// A norm of `c` features with random scale and shift (or none).
+    fn norm(c: usize, shift: bool, d: &Device) -> burn::nn::LayerNorm {
+        let mut n = LayerNormConfig::new(c).with_bias(shift).init(d);
+        n.gamma = burn::module::Param::from_tensor(normal([c], 1.0, d));
+        n.beta = n
+            .beta
+            .map(|_| burn::module::Param::from_tensor(normal([c], 1.0, d)));
+        n
+    }
+
+    #[test]
+    fn the_fused_layer_norm_and_its_gradients_are_burns() {
+        let d = Device::flex().autodiff();
+        seed(51);
+        // Rows in one task and in several (more than the chunks), no shift, rows far from zero.
+        for (i, [items, rows, c]) in [[2, 5, 7], [3, 70, 48], [1, 9, 16], [2, 33, 24]]
+            .into_iter()
+            .enumerate()
+        {
+            let offset = if i == 3 { 50.0 } else { 0.0 };
+            let x = normal([items, rows, c], 2.0, &d) + offset;
+            let r = normal([items, rows, c], 1.0, &d);
+            let n = norm(c, i != 2, &d);
+            assert_close(
+                run(&x, &n, &r, true),
+                run(&x, &n, &r, false),
+                &format!("layer norm [{items}, {rows}, {c}], shift {}", i != 2),
+            );
+        }
+    }
+
+    #[test]
+    fn the_fused_layer_norm_does_not_depend_on_the_thread_count() {
+        let d = Device::flex().autodiff();
+        seed(52);
+        let x = normal([3, 70, 48], 1.0, &d);
+        let r = normal([3, 70, 48], 1.0, &d);
+        let n = norm(48, true, &d);
+        let bits = |threads| bits_of(in_pool(threads, || run(&x, &n, &r, true)));
+        assert_eq!(bits(1), bits(3));
+    }
+}
+
+/// The attention's host passes sum each head's key and value gradients in one order.
+#[test]
+fn attention_does_not_depend_on_the_thread_count() {
+    let d = Device::flex().autodiff();
+    seed(61);
+    let (q0, k0, v0) = (
+        random([2, 3, 150, 8], 1.0, &d),
+        random([2, 3, 90, 8], 1.0, &d),
+        random([2, 3, 90, 5], 1.0, &d),
+    );
+    let w = random([2, 3, 150, 5], 1.0, &d);
+    let run = || {
+        let (q, k, v) = (
+            q0.clone().require_grad(),
+            k0.clone().require_grad(),
+            v0.clone().require_grad(),
+        );
+        let out = attention(q.clone(), k.clone(), v.clone(), 0.3, 512);
+        let grads = (out.clone() * w.clone()).sum().backward();
+        let flat = |t: Tensor<4>| t.flatten::<1>(0, 3);
+        vec![
+            flat(out.detach()),
+            flat(q.grad(&grads).unwrap()),
+            flat(k.grad(&grads).unwrap()),
+            flat(v.grad(&grads).unwrap()),
+        ]
+    };
+    assert_eq!(bits_of(in_pool(1, run)), bits_of(in_pool(3, run)));
 }
