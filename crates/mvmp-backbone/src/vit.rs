@@ -166,28 +166,11 @@ pub struct Attention {
 impl Attention {
     /// `[B, N, C]` -> `[B, N, C]`; the qkv rows are `[q; k; v]`, each ordered by head (DINOv2).
     pub fn forward(&self, x: Tensor<3>) -> Tensor<3> {
-        let [b, n, c] = x.dims();
-        let h = self.heads;
-        let d = c / h;
-        let qkv = linear_layer(&self.qkv, x)
-            .reshape([b, n, 3, h, d])
-            .permute([2, 0, 3, 1, 4]); // [3, B, h, N, d]
-        let q = qkv.clone().narrow(0, 0, 1).reshape([b, h, n, d]);
-        let k = qkv.clone().narrow(0, 1, 1).reshape([b, h, n, d]);
-        let v = qkv.narrow(0, 2, 1).reshape([b, h, n, d]);
-        let out = attend(q, k, v, self.tile)
-            .swap_dims(1, 2)
-            .reshape([b, n, c]);
+        let c = x.dims()[2];
+        let scale = 1.0 / ((c / self.heads) as f64).sqrt();
+        let qkv = linear_layer(&self.qkv, x);
+        let out = mvmp_kernels::packed_self_attention(qkv, self.heads, scale, self.tile);
         linear_layer(&self.proj, out)
-    }
-}
-
-/// `softmax(q k^T / sqrt(d)) v` over `[B, h, N, d]`, tiled when `tile` > 0.
-pub(crate) fn attend(q: Tensor<4>, k: Tensor<4>, v: Tensor<4>, tile: usize) -> Tensor<4> {
-    let scale = 1.0 / (q.dims()[3] as f64).sqrt();
-    match tile {
-        0 => mvmp_kernels::plain_attention(q, k, v, scale),
-        t => mvmp_kernels::attention(q, k, v, scale, t),
     }
 }
 

@@ -22,11 +22,12 @@ use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, Dispatch, Flex, TensorMetadata, backend_extension};
-use burn::tensor::{Slice, Tensor, TensorData};
+use burn::tensor::{Device, Slice, Tensor, TensorData};
 use std::any::TypeId;
 use std::sync::atomic::{AtomicBool, Ordering};
 
-use crate::attention_host;
+use crate::attention_host::{self, Layout, Operand};
+use crate::cpu::SendPtr;
 use crate::host::{HostF32, dims};
 use std::ops::Range;
 
@@ -52,6 +53,189 @@ pub fn attention(q: Tensor<4>, k: Tensor<4>, v: Tensor<4>, scale: f64, block: us
         block,
     );
     Tensor::from_dispatch(out)
+}
+
+/// Multi-head self-attention straight from the tokens' packed projection `qkv [B, N, 3 C]` (each
+/// row `[q; k; v]`, each of those ordered by head): `[B, N, C]`, the heads joined again. On flex with
+/// tiles (`block` > 0) one operation that reads and writes every head where it lies, so that neither
+/// splitting the heads nor joining them copies anything, forward or backward; elsewhere the heads are
+/// split out, attended by [`attention`] (burn's ops when `block` is 0) and joined.
+pub fn packed_self_attention(qkv: Tensor<3>, heads: usize, scale: f64, block: usize) -> Tensor<3> {
+    let [b, n, c3] = qkv.dims();
+    assert!(
+        heads > 0 && c3 % (3 * heads) == 0,
+        "packed attention: {c3} projected channels for {heads} heads"
+    );
+    let (c, d) = (c3 / 3, c3 / 3 / heads);
+    let host = qkv.device() == Device::flex() && HOST_ATTENTION.load(Ordering::Relaxed);
+    if host && block > 0 && n * d > 0 {
+        let out = <Dispatch as PackedAttentionBackend>::packed_attention(
+            qkv.into_dispatch(),
+            heads,
+            scale,
+            block,
+        );
+        return Tensor::from_dispatch(out);
+    }
+    let qkv = qkv.reshape([b, n, 3, heads, d]).permute([2, 0, 3, 1, 4]); // [3, B, h, N, d]
+    let part = |i| qkv.clone().narrow(0, i, 1).reshape([b, heads, n, d]);
+    let (q, k, v) = (part(0), part(1), part(2));
+    let out = match block {
+        0 => plain_attention(q, k, v, scale),
+        t => attention(q, k, v, scale, t),
+    };
+    out.swap_dims(1, 2).reshape([b, n, c])
+}
+
+/// The backend side of [`packed_self_attention`]; autodiff adds the backward.
+#[backend_extension(Flex, Autodiff)]
+pub trait PackedAttentionBackend: Backend {
+    fn packed_attention(
+        qkv: FloatTensor<Self>,
+        heads: usize,
+        scale: f64,
+        block: usize,
+    ) -> FloatTensor<Self> {
+        packed_forward::<Self>(qkv, heads, scale, block).0
+    }
+}
+
+impl PackedAttentionBackend for Flex {}
+
+impl<B: Backend + PackedAttentionBackend, C: CheckpointStrategy> PackedAttentionBackend
+    for Autodiff<B, C>
+{
+    fn packed_attention(
+        qkv: FloatTensor<Self>,
+        heads: usize,
+        scale: f64,
+        block: usize,
+    ) -> FloatTensor<Self> {
+        let guards = [qkv.node()];
+        let qkv = qkv.into_primitive();
+        let (out, lse) = packed_forward::<B>(qkv.clone(), heads, scale, block);
+        match PackedBackward
+            .prepare::<C>(guards)
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => {
+                let state = PackedSaved {
+                    qkv,
+                    out: out.clone(),
+                    lse,
+                    heads,
+                    scale,
+                    block,
+                };
+                prep.finish(state, out)
+            }
+            OpsKind::UnTracked(prep) => prep.finish(out),
+        }
+    }
+}
+
+/// The sizes of a packed self-attention, and the layouts of q, k, v (each from its part's first
+/// value) and of the joined output.
+fn packed_dims(
+    [b, n, c3]: [usize; 3],
+    heads: usize,
+    scale: f64,
+    block: usize,
+) -> (attention_host::Dims, [Layout; 4]) {
+    let d = c3 / 3 / heads;
+    let dm = attention_host::Dims {
+        items: b,
+        per_item: heads,
+        nq: n,
+        nk: n,
+        d,
+        dv: d,
+        scale: scale as f32,
+        rows: block,
+    };
+    let part = Layout::tokens_first(heads, n, d, 3);
+    (dm, [part, part, part, Layout::tokens_first(heads, n, d, 1)])
+}
+
+/// q, k and v of the packed projection `qkv` of `c` channels each.
+fn packed_inputs<'a>(qkv: &'a [f32], c: usize, lay: &[Layout; 4]) -> attention_host::Inputs<'a> {
+    let at = |i: usize| Operand {
+        values: &qkv[i * c..],
+        layout: lay[i],
+    };
+    attention_host::Inputs {
+        q: at(0),
+        k: at(1),
+        v: at(2),
+    }
+}
+
+/// The joined output `[B, N, C]` and each (item, head, query)'s log-sum-exp.
+fn packed_forward<B: Backend>(
+    qkv: FloatTensor<B>,
+    heads: usize,
+    scale: f64,
+    block: usize,
+) -> (FloatTensor<B>, Vec<f32>) {
+    let device = qkv.device();
+    let shape: [usize; 3] = dims(&qkv);
+    let [b, n, c3] = shape;
+    let (dm, lay) = packed_dims(shape, heads, scale, block);
+    let qkv = HostF32::read::<B>(qkv);
+    let x = packed_inputs(&qkv, c3 / 3, &lay);
+    let (out, lse) = attention_host::forward(x, lay[3], b * n * c3 / 3, dm);
+    let out = B::float_from_data(TensorData::new(out, [b, n, c3 / 3]), &device);
+    (out, lse)
+}
+
+#[derive(Debug)]
+struct PackedBackward;
+
+/// What the packed backward needs: the projection, the output and the log-sum-exp.
+#[derive(Debug, Clone)]
+struct PackedSaved<B: Backend> {
+    qkv: FloatTensor<B>,
+    out: FloatTensor<B>,
+    lse: Vec<f32>,
+    heads: usize,
+    scale: f64,
+    block: usize,
+}
+
+impl<B: Backend> Backward<B, 1> for PackedBackward {
+    type State = PackedSaved<B>;
+
+    fn backward(self, ops: Ops<Self::State, 1>, grads: &mut Gradients, _: &mut Checkpointer) {
+        let [node] = ops.parents;
+        let dout = grads.consume::<B>(&ops.node);
+        let Some(node) = node else { return };
+        let s = ops.state;
+        let device = dout.device();
+        let shape: [usize; 3] = dims(&s.qkv);
+        let c = shape[2] / 3;
+        let (dm, lay) = packed_dims(shape, s.heads, s.scale, s.block);
+        let (qkv, out) = (HostF32::read::<B>(s.qkv), HostF32::read::<B>(s.out));
+        let saved = attention_host::Saved {
+            x: packed_inputs(&qkv, c, &lay),
+            out: Operand {
+                values: &out,
+                layout: lay[3],
+            },
+            lse: &s.lse,
+        };
+        let mut dqkv = vec![0f32; qkv.len()];
+        let base = dqkv.as_mut_ptr();
+        let g = attention_host::Grads {
+            dst: std::array::from_fn(|i| SendPtr(base.wrapping_add(i * c))),
+            layouts: [lay[0], lay[1], lay[2]],
+        };
+        // SAFETY: `dqkv` is zeroed, shaped as the projection whose parts these layouts address, and
+        // read only once the call returns.
+        unsafe { attention_host::backward(&saved, &HostF32::read::<B>(dout), dm, &g) };
+        let dqkv = B::float_from_data(TensorData::new(dqkv, shape), &device);
+        grads.register::<B>(node.id, dqkv);
+    }
 }
 
 /// burn's attention as plain tensor ops, `softmax(q k^T * scale) v`: the reference the tiled operation
@@ -203,7 +387,8 @@ fn host_dims<B: Backend>(
     let [b, h, nq, d]: [usize; 4] = dims(q);
     let dv = v.shape()[3];
     let dm = attention_host::Dims {
-        heads: b * h,
+        items: b,
+        per_item: h,
         nq,
         nk,
         d,
@@ -212,6 +397,17 @@ fn host_dims<B: Backend>(
         rows: 0,
     };
     (on_flex && nq * nk * d * dv > 0).then(|| (dm, q.device()))
+}
+
+/// Heads-first layouts of q, k, v and the output for `dm`.
+fn heads_first(dm: &attention_host::Dims) -> [Layout; 4] {
+    let h = dm.per_item;
+    [
+        Layout::heads_first(h, dm.nq, dm.d),
+        Layout::heads_first(h, dm.nk, dm.d),
+        Layout::heads_first(h, dm.nk, dm.dv),
+        Layout::heads_first(h, dm.nq, dm.dv),
+    ]
 }
 
 /// The forward on the host where [`host_dims`] allows, in burn's ops elsewhere.
@@ -230,15 +426,30 @@ fn forward_any<B: Backend>(
         rows: block,
         ..dm
     };
-    let [b, h, nq, _]: [usize; 4] = dims(&q);
-    let (out, lse) = attention_host::forward(
-        &HostF32::read::<B>(q),
-        &HostF32::read::<B>(k),
-        &HostF32::read::<B>(v),
-        dm,
+    let [lq, lk, lv, lo] = heads_first(&dm);
+    let (q, k, v) = (
+        HostF32::read::<B>(q),
+        HostF32::read::<B>(k),
+        HostF32::read::<B>(v),
     );
+    let x = attention_host::Inputs {
+        q: Operand {
+            values: &q,
+            layout: lq,
+        },
+        k: Operand {
+            values: &k,
+            layout: lk,
+        },
+        v: Operand {
+            values: &v,
+            layout: lv,
+        },
+    };
+    let [b, h, nq, dv] = [dm.items, dm.per_item, dm.nq, dm.dv];
+    let (out, lse) = attention_host::forward(x, lo, b * h * nq * dv, dm);
     (
-        B::float_from_data(TensorData::new(out, [b, h, nq, dm.dv]), &device),
+        B::float_from_data(TensorData::new(out, [b, h, nq, dv]), &device),
         B::float_from_data(TensorData::new(lse, [b, h, nq, 1]), &device),
     )
 }
@@ -264,14 +475,36 @@ fn host_backward<B: Backend>(
         read(&s.out),
         read(&s.lse),
     );
+    let [lq, lk, lv, lo] = heads_first(&dm);
     let saved = attention_host::Saved {
-        q: &q,
-        k: &k,
-        v: &v,
-        out: &out,
+        x: attention_host::Inputs {
+            q: Operand {
+                values: &q,
+                layout: lq,
+            },
+            k: Operand {
+                values: &k,
+                layout: lk,
+            },
+            v: Operand {
+                values: &v,
+                layout: lv,
+            },
+        },
+        out: Operand {
+            values: &out,
+            layout: lo,
+        },
         lse: &lse,
     };
-    let grads = attention_host::backward(saved, &HostF32::read::<B>(dout), dm);
+    let mut grads = [q.len(), k.len(), v.len()].map(|n| vec![0f32; n]);
+    let g = attention_host::Grads {
+        dst: std::array::from_fn(|i| SendPtr(grads[i].as_mut_ptr())),
+        layouts: [lq, lk, lv],
+    };
+    // SAFETY: the buffers are zeroed, sized as q, k and v whose layouts these are, and only read
+    // back once the call returns.
+    unsafe { attention_host::backward(&saved, &HostF32::read::<B>(dout), dm, &g) };
     let mut shapes = shapes.into_iter();
     grads.map(|g| {
         let shape = shapes.next().expect("one shape per gradient");

@@ -9,6 +9,10 @@
 //! gradients stay in one buffer of `rows x keys` floats (a quarter of a megabyte for 64 rows of the
 //! tiny ViT's 257 tokens, 2 MiB at the paper's 8465), so memory still grows linearly in the tokens.
 //!
+//! Queries, keys, values, the output and the gradients are read and written where they lie
+//! ([`Layout`]): heads first, or the tokens' packed projection `[B, N, 3 H d]` itself, so that a
+//! self-attention needs no copies to split its heads and join them again.
+//!
 //! The forward runs every (head, query tile) in parallel. The backward runs heads in parallel and a
 //! head's query tiles in order, so each head's key and value gradients are summed in one order whatever
 //! the number of threads.
@@ -20,11 +24,42 @@ use crate::product::{Mat, gemm, written};
 /// Query rows per tile at most (fewer when the caller's tile is smaller).
 const MAX_ROWS: usize = 64;
 
-/// The sizes of one call: `heads` independent (batch x head) problems of `nq` queries and `nk` keys,
-/// `d` wide queries and keys, `dv` wide values.
+/// Where each head's rows of one operand lie: item `b`'s head `j` starts at `b * item + j * head`, its
+/// rows `row` apart, each row's values next to each other.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Layout {
+    pub item: usize,
+    pub head: usize,
+    pub row: usize,
+}
+
+impl Layout {
+    /// `[B, H, n, w]`, contiguous.
+    pub fn heads_first(heads: usize, n: usize, w: usize) -> Layout {
+        Layout {
+            item: heads * n * w,
+            head: n * w,
+            row: w,
+        }
+    }
+
+    /// One of `parts` parts of `[B, n, parts * H * w]` (the packed projection, or with one part the
+    /// heads joined again), from that part's first value on.
+    pub fn tokens_first(heads: usize, n: usize, w: usize, parts: usize) -> Layout {
+        Layout {
+            item: n * parts * heads * w,
+            head: w,
+            row: parts * heads * w,
+        }
+    }
+}
+
+/// The sizes of one call: `items x per_item` independent heads of `nq` queries and `nk` keys, `d`
+/// wide queries and keys, `dv` wide values.
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct Dims {
-    pub heads: usize,
+    pub items: usize,
+    pub per_item: usize,
     pub nq: usize,
     pub nk: usize,
     pub d: usize,
@@ -34,6 +69,15 @@ pub(crate) struct Dims {
 }
 
 impl Dims {
+    fn heads(&self) -> usize {
+        self.items * self.per_item
+    }
+
+    /// Where head `h` (item-major) starts in an operand laid out as `lay`.
+    fn at(&self, lay: Layout, h: usize) -> usize {
+        (h / self.per_item) * lay.item + (h % self.per_item) * lay.head
+    }
+
     fn tiles(&self) -> impl Iterator<Item = (usize, usize)> + '_ {
         let rows = self.rows.clamp(1, MAX_ROWS);
         (0..self.nq)
@@ -42,36 +86,75 @@ impl Dims {
     }
 }
 
+/// An operand and its layout.
+#[derive(Clone, Copy)]
+pub(crate) struct Operand<'a> {
+    pub values: &'a [f32],
+    pub layout: Layout,
+}
+
+impl Operand<'_> {
+    /// Head `h`'s rows from row `r` on, as a matrix of rows.
+    fn rows(&self, dm: &Dims, h: usize, r: usize) -> Mat {
+        Mat::at(
+            &self.values[dm.at(self.layout, h) + r * self.layout.row..],
+            self.layout.row,
+            1,
+        )
+    }
+
+    /// Head `h`'s rows as the columns of a matrix (the transpose).
+    fn columns(&self, dm: &Dims, h: usize) -> Mat {
+        Mat::at(&self.values[dm.at(self.layout, h)..], 1, self.layout.row)
+    }
+
+    /// Row `r` of head `h`, `w` values.
+    fn row(&self, dm: &Dims, h: usize, r: usize, w: usize) -> &[f32] {
+        let s = dm.at(self.layout, h) + r * self.layout.row;
+        &self.values[s..s + w]
+    }
+}
+
+/// The inputs: queries, keys and values.
+#[derive(Clone, Copy)]
+pub(crate) struct Inputs<'a> {
+    pub q: Operand<'a>,
+    pub k: Operand<'a>,
+    pub v: Operand<'a>,
+}
+
 /// `scores [t, nk] = q_tile . k^T` for head `h`'s query rows `s..s + t`, scaled.
-fn scores(q: &[f32], k: &[f32], dm: Dims, h: usize, (s, t): (usize, usize), out: &mut [f32]) {
+fn scores(x: &Inputs, dm: &Dims, h: usize, (s, t): (usize, usize), out: &mut [f32]) {
     let (nk, d) = (dm.nk, dm.d);
-    let lhs = Mat::at(&q[(h * dm.nq + s) * d..], d, 1);
-    let k_t = Mat::at(&k[h * nk * d..], 1, d);
     // SAFETY: `out` holds t x nk values; the reads lie within head h's rows of q and k.
-    unsafe { gemm(out.as_mut_ptr(), nk, false, lhs, k_t, t, d, nk) };
+    unsafe {
+        gemm(
+            out.as_mut_ptr(),
+            nk,
+            false,
+            x.q.rows(dm, h, s),
+            x.k.columns(dm, h),
+            t,
+            d,
+            nk,
+        )
+    };
     out.iter_mut().for_each(|x| *x *= dm.scale);
 }
 
-/// The output `[heads, nq, dv]` and each query row's log-sum-exp `[heads, nq]`.
-pub(crate) fn forward(q: &[f32], k: &[f32], v: &[f32], dm: Dims) -> (Vec<f32>, Vec<f32>) {
-    let Dims {
-        heads,
-        nq,
-        nk,
-        d,
-        dv,
-        ..
-    } = dm;
-    assert!(q.len() == heads * nq * d && k.len() == heads * nk * d && v.len() == heads * nk * dv);
-    let tasks: Vec<(usize, (usize, usize))> = (0..heads)
+/// The output, `len` values laid out as `out` (every head's rows of it written), and each query row's
+/// log-sum-exp `[heads, nq]`.
+pub(crate) fn forward(x: Inputs, out: Layout, len: usize, dm: Dims) -> (Vec<f32>, Vec<f32>) {
+    let Dims { nq, nk, dv, .. } = dm;
+    let tasks: Vec<(usize, (usize, usize))> = (0..dm.heads())
         .flat_map(|h| dm.tiles().map(move |tile| (h, tile)))
         .collect();
-    let mut lse = vec![0f32; heads * nq];
+    let mut lse = vec![0f32; dm.heads() * nq];
     let lse_ptr = SendPtr(lse.as_mut_ptr());
-    let write = |out: SendPtr| {
+    let write = |dst: SendPtr| {
         tasks.par_iter().for_each(|&(h, (s, t))| {
             let mut p = vec![0f32; t * nk];
-            scores(q, k, dm, h, (s, t), &mut p);
+            scores(&x, &dm, h, (s, t), &mut p);
             let mut sums = vec![0f32; t];
             for (i, row) in p.chunks_exact_mut(nk).enumerate() {
                 let m = row.iter().fold(f32::NEG_INFINITY, |a, &b| a.max(b));
@@ -80,122 +163,107 @@ pub(crate) fn forward(q: &[f32], k: &[f32], v: &[f32], dm: Dims) -> (Vec<f32>, V
                 // SAFETY: row s + i of head h is this task's alone.
                 unsafe { *lse_ptr.get().add(h * nq + s + i) = m + sums[i].ln() };
             }
-            let dst = out.get().wrapping_add((h * nq + s) * dv);
-            let vh = Mat::at(&v[h * nk * dv..], dv, 1);
-            // SAFETY: the task writes its own t rows of the output, without reading them.
-            unsafe { gemm(dst, dv, false, Mat::at(&p, nk, 1), vh, t, nk, dv) };
+            let first = dst.get().wrapping_add(dm.at(out, h) + s * out.row);
+            let (p_m, v_m) = (Mat::at(&p, nk, 1), x.v.rows(&dm, h, 0));
+            // SAFETY: the task writes its own t rows of head h's dv columns, without reading them.
+            unsafe { gemm(first, out.row, false, p_m, v_m, t, nk, dv) };
             for (i, l) in sums.iter().enumerate() {
-                // SAFETY: as above; the rows were just written.
-                let row = unsafe { std::slice::from_raw_parts_mut(dst.add(i * dv), dv) };
+                // SAFETY: as above; the values were just written.
+                let row = unsafe { std::slice::from_raw_parts_mut(first.add(i * out.row), dv) };
                 row.iter_mut().for_each(|x| *x /= l);
             }
         })
     };
-    // SAFETY: the tasks cover every (head, query row) and write all of its dv values.
-    let out = unsafe { written(heads * nq * dv, write) };
+    // SAFETY: the caller's layout has every value belong to one (head, query row), all written above.
+    let out = unsafe { written(len, write) };
     (out, lse)
 }
 
-/// What the backward reads besides the output gradient: the inputs, the output and the log-sum-exp.
+/// What the backward reads besides the output gradient (laid out as the output): the inputs, the
+/// output and the log-sum-exp.
 pub(crate) struct Saved<'a> {
-    pub q: &'a [f32],
-    pub k: &'a [f32],
-    pub v: &'a [f32],
-    pub out: &'a [f32],
+    pub x: Inputs<'a>,
+    pub out: Operand<'a>,
     pub lse: &'a [f32],
 }
 
-/// The gradients of q, k and v from the output gradient `dout [heads, nq, dv]`.
-pub(crate) fn backward(s: Saved, dout: &[f32], dm: Dims) -> [Vec<f32>; 3] {
-    let Dims {
-        heads,
-        nq,
-        nk,
-        d,
-        dv,
-        ..
-    } = dm;
-    assert!(
-        dout.len() == heads * nq * dv && s.out.len() == dout.len() && s.lse.len() == heads * nq
-    );
-    let mut dq = vec![0f32; heads * nq * d];
-    let mut dk = vec![0f32; heads * nk * d];
-    let mut dv_all = vec![0f32; heads * nk * dv];
-    dq.par_chunks_mut(nq * d)
-        .zip(dk.par_chunks_mut(nk * d))
-        .zip(dv_all.par_chunks_mut(nk * dv))
-        .enumerate()
-        .for_each(|(h, ((dq, dk), dvh))| head_backward(&s, dout, dm, h, [dq, dk, dvh]));
-    [dq, dk, dv_all]
+/// Where the gradients of q, k and v go: zeroed buffers, each head's part of them written by it alone.
+pub(crate) struct Grads {
+    pub dst: [SendPtr; 3],
+    pub layouts: [Layout; 3],
+}
+
+// SAFETY: the pointers are written only as `backward` describes, each head its own values.
+unsafe impl Sync for Grads {}
+
+/// The gradients of q, k and v from the output gradient, into `g`.
+///
+/// # Safety
+/// `g`'s buffers must be zeroed, hold every value their layouts address for these sizes, and not be
+/// accessed otherwise until this returns.
+pub(crate) unsafe fn backward(s: &Saved, dout: &[f32], dm: Dims, g: &Grads) {
+    assert_eq!(s.lse.len(), dm.heads() * dm.nq);
+    (0..dm.heads()).into_par_iter().for_each(|h| {
+        // SAFETY: head h writes only its own rows and columns (the caller vouches for the buffers).
+        unsafe { head_backward(s, dout, &dm, h, g) }
+    });
 }
 
 /// One head's gradients, its query tiles in order.
-fn head_backward(s: &Saved, dout: &[f32], dm: Dims, h: usize, [dq, dk, dvh]: [&mut [f32]; 3]) {
-    let Dims { nq, nk, d, dv, .. } = dm;
-    let (do_h, o_h) = (&dout[h * nq * dv..], &s.out[h * nq * dv..]);
-    let (q_h, k_h, v_h) = (&s.q[h * nq * d..], &s.k[h * nk * d..], &s.v[h * nk * dv..]);
+///
+/// # Safety
+/// As [`backward`]; no other call writes head `h`'s values meanwhile.
+unsafe fn head_backward(s: &Saved, dout: &[f32], dm: &Dims, h: usize, g: &Grads) {
+    let Dims { nk, d, dv, .. } = *dm;
+    let dout = Operand {
+        values: dout,
+        layout: s.out.layout,
+    };
+    let [dq, dk, dvh] =
+        std::array::from_fn(|i| g.dst[i].get().wrapping_add(dm.at(g.layouts[i], h)));
+    let [lq, lk, lv] = g.layouts;
+    let mut p = Vec::new();
+    let mut ds = Vec::new();
     for (st, t) in dm.tiles() {
-        let mut p = vec![0f32; t * nk];
-        scores(s.q, s.k, dm, h, (st, t), &mut p);
+        p.resize(t * nk, 0.0);
+        ds.resize(t * nk, 0.0);
+        scores(&s.x, dm, h, (st, t), &mut p);
         for (i, row) in p.chunks_exact_mut(nk).enumerate() {
-            let l = s.lse[h * nq + st + i];
+            let l = s.lse[h * dm.nq + st + i];
             row.iter_mut().for_each(|x| *x = (*x - l).exp());
         }
-        let do_t = Mat::at(&do_h[st * dv..], dv, 1);
-        // dv += p^T . do
-        // SAFETY: every destination below is this head's own buffer or `dp`, sized as written.
+        let do_t = dout.rows(dm, h, st);
+        // SAFETY (all four products): each destination is head h's own (the caller's buffers) or a
+        // buffer of this call's, sized as written; every read lies within head h's rows.
         unsafe {
-            gemm(
-                dvh.as_mut_ptr(),
-                dv,
-                true,
-                Mat::at(&p, 1, nk),
-                do_t,
-                nk,
-                t,
-                dv,
-            )
-        };
-        // dp = do . v^T, then ds = p * (dp - delta) * scale in place.
-        let mut ds = vec![0f32; t * nk];
-        unsafe {
+            // dv += p^T . do
+            gemm(dvh, lv.row, true, Mat::at(&p, 1, nk), do_t, nk, t, dv);
+            // dp = do . v^T, then ds = p * (dp - delta) * scale in place.
             gemm(
                 ds.as_mut_ptr(),
                 nk,
                 false,
                 do_t,
-                Mat::at(v_h, 1, dv),
+                s.x.v.columns(dm, h),
                 t,
                 dv,
                 nk,
-            )
-        };
+            );
+        }
         for (i, (dsr, pr)) in ds.chunks_exact_mut(nk).zip(p.chunks_exact(nk)).enumerate() {
-            let r = (st + i) * dv;
-            let delta: f32 = do_h[r..r + dv]
-                .iter()
-                .zip(&o_h[r..r + dv])
-                .map(|(a, b)| a * b)
-                .sum();
+            let (dor, or) = (dout.row(dm, h, st + i, dv), s.out.row(dm, h, st + i, dv));
+            let delta: f32 = dor.iter().zip(or).map(|(a, b)| a * b).sum();
             dsr.iter_mut()
                 .zip(pr)
                 .for_each(|(x, &pv)| *x = pv * (*x - delta) * dm.scale);
         }
-        let ds_m = Mat::at(&ds, nk, 1);
-        // dq = ds . k (this tile's rows), dk += ds^T . q
+        let (ds_rows, ds_cols) = (Mat::at(&ds, nk, 1), Mat::at(&ds, 1, nk));
+        // SAFETY: as above.
         unsafe {
-            gemm(
-                dq.as_mut_ptr().add(st * d),
-                d,
-                false,
-                ds_m,
-                Mat::at(k_h, d, 1),
-                t,
-                nk,
-                d,
-            )
-        };
-        let q_t = Mat::at(&q_h[st * d..], d, 1);
-        unsafe { gemm(dk.as_mut_ptr(), d, true, Mat::at(&ds, 1, nk), q_t, nk, t, d) };
+            // dq = ds . k for this tile's rows, dk += ds^T . q
+            let dq_t = dq.add(st * lq.row);
+            gemm(dq_t, lq.row, false, ds_rows, s.x.k.rows(dm, h, 0), t, nk, d);
+            gemm(dk, lk.row, true, ds_cols, s.x.q.rows(dm, h, st), nk, t, d);
+        }
     }
 }

@@ -24,7 +24,7 @@ pub mod recompute;
 pub mod residual;
 pub mod wgrad;
 
-pub use attention::{DEFAULT_BLOCK, attention, plain_attention};
+pub use attention::{DEFAULT_BLOCK, attention, packed_self_attention, plain_attention};
 
 #[cfg(test)]
 mod tests;

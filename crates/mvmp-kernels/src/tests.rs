@@ -1171,3 +1171,82 @@ fn attention_does_not_depend_on_the_thread_count() {
     };
     assert_eq!(bits_of(in_pool(1, run)), bits_of(in_pool(3, run)));
 }
+
+mod packed_attention {
+    use super::*;
+    use crate::packed_self_attention;
+
+    /// The heads split out of `qkv [B, N, 3 C]` and attended by burn's ops, joined again.
+    fn reference(qkv: Tensor<3>, heads: usize, scale: f64) -> Tensor<3> {
+        let [b, n, c3] = qkv.dims();
+        let d = c3 / 3 / heads;
+        let qkv = qkv.reshape([b, n, 3, heads, d]).permute([2, 0, 3, 1, 4]);
+        let part = |i| qkv.clone().narrow(0, i, 1).reshape([b, heads, n, d]);
+        let out = plain_attention(part(0), part(1), part(2), scale);
+        out.swap_dims(1, 2).reshape([b, n, c3 / 3])
+    }
+
+    /// Output and the projection's gradient, weighted by `w`: the operation or the reference.
+    fn run(
+        qkv: &Tensor<3>,
+        w: &Tensor<3>,
+        heads: usize,
+        block: usize,
+        packed: bool,
+    ) -> Vec<Tensor<1>> {
+        let x = qkv.clone().require_grad();
+        let scale = 0.4;
+        let y = match packed {
+            true => packed_self_attention(x.clone(), heads, scale, block),
+            false => reference(x.clone(), heads, scale),
+        };
+        let grads = (y.clone() * w.clone()).sum().backward();
+        vec![
+            y.detach().flatten::<1>(0, 2),
+            x.grad(&grads).unwrap().flatten::<1>(0, 2),
+        ]
+    }
+
+    #[test]
+    fn packed_self_attention_and_its_gradient_are_burns() {
+        let d = Device::flex().autodiff();
+        seed(71);
+        // One tile, several tiles with a remainder, one head, heads of one channel.
+        for [b, n, heads, width, block] in [
+            [2, 9, 3, 4, 64],
+            [1, 150, 2, 8, 64],
+            [2, 37, 1, 5, 8],
+            [1, 20, 6, 1, 7],
+        ] {
+            let c = heads * width;
+            let qkv = normal([b, n, 3 * c], 1.0, &d);
+            let w = normal([b, n, c], 1.0, &d);
+            assert_close(
+                run(&qkv, &w, heads, block, true),
+                run(&qkv, &w, heads, block, false),
+                &format!("packed attention [{b}, {n}, {heads} x {width}], block {block}"),
+            );
+        }
+    }
+
+    #[test]
+    fn packed_self_attention_does_not_depend_on_the_thread_count() {
+        let d = Device::flex().autodiff();
+        seed(72);
+        let qkv = normal([2, 150, 3 * 12], 1.0, &d);
+        let w = normal([2, 150, 12], 1.0, &d);
+        let bits = |threads| bits_of(in_pool(threads, || run(&qkv, &w, 3, 64, true)));
+        assert_eq!(bits(1), bits(3));
+    }
+
+    #[test]
+    fn packed_self_attention_without_autodiff_is_burns() {
+        let d = Device::flex();
+        seed(73);
+        let qkv = normal([2, 30, 3 * 8], 1.0, &d);
+        let got = packed_self_attention(qkv.clone(), 2, 0.5, 16);
+        let want = reference(qkv, 2, 0.5);
+        let diff = (got - want).abs().max().into_scalar::<f32>();
+        assert!(diff < TOL, "forward differs by {diff}");
+    }
+}
