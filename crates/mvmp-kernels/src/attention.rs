@@ -160,15 +160,8 @@ fn packed_dims(
 
 /// q, k and v of the packed projection `qkv` of `c` channels each.
 fn packed_inputs<'a>(qkv: &'a [f32], c: usize, lay: &[Layout; 4]) -> attention_host::Inputs<'a> {
-    let at = |i: usize| Operand {
-        values: &qkv[i * c..],
-        layout: lay[i],
-    };
-    attention_host::Inputs {
-        q: at(0),
-        k: at(1),
-        v: at(2),
-    }
+    let parts = [qkv, &qkv[c..], &qkv[2 * c..]];
+    attention_host::Inputs::new(parts, [lay[0], lay[1], lay[2]])
 }
 
 /// The joined output `[B, N, C]` and each (item, head, query)'s log-sum-exp.
@@ -432,20 +425,7 @@ fn forward_any<B: Backend>(
         HostF32::read::<B>(k),
         HostF32::read::<B>(v),
     );
-    let x = attention_host::Inputs {
-        q: Operand {
-            values: &q,
-            layout: lq,
-        },
-        k: Operand {
-            values: &k,
-            layout: lk,
-        },
-        v: Operand {
-            values: &v,
-            layout: lv,
-        },
-    };
+    let x = attention_host::Inputs::new([&q, &k, &v], [lq, lk, lv]);
     let [b, h, nq, dv] = [dm.items, dm.per_item, dm.nq, dm.dv];
     let (out, lse) = attention_host::forward(x, lo, b * h * nq * dv, dm);
     (
@@ -477,20 +457,7 @@ fn host_backward<B: Backend>(
     );
     let [lq, lk, lv, lo] = heads_first(&dm);
     let saved = attention_host::Saved {
-        x: attention_host::Inputs {
-            q: Operand {
-                values: &q,
-                layout: lq,
-            },
-            k: Operand {
-                values: &k,
-                layout: lk,
-            },
-            v: Operand {
-                values: &v,
-                layout: lv,
-            },
-        },
+        x: attention_host::Inputs::new([&q, &k, &v], [lq, lk, lv]),
         out: Operand {
             values: &out,
             layout: lo,

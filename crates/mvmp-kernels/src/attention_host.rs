@@ -123,6 +123,18 @@ pub(crate) struct Inputs<'a> {
     pub v: Operand<'a>,
 }
 
+impl<'a> Inputs<'a> {
+    /// q, k and v, each with its layout.
+    pub fn new([q, k, v]: [&'a [f32]; 3], [lq, lk, lv]: [Layout; 3]) -> Self {
+        let at = |values, layout| Operand { values, layout };
+        Inputs {
+            q: at(q, lq),
+            k: at(k, lk),
+            v: at(v, lv),
+        }
+    }
+}
+
 /// `scores [t, nk] = q_tile . k^T` for head `h`'s query rows `s..s + t`, scaled.
 fn scores(x: &Inputs, dm: &Dims, h: usize, (s, t): (usize, usize), out: &mut [f32]) {
     let (nk, d) = (dm.nk, dm.d);
