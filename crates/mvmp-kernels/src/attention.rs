@@ -238,22 +238,10 @@ pub fn plain_attention(q: Tensor<4>, k: Tensor<4>, v: Tensor<4>, scale: f64) -> 
     burn::tensor::activation::softmax(scores, 3).matmul(v)
 }
 
-/// The backend side of [`attention`]. Each backend runs the same tiled forward, written in its own
-/// float ops; autodiff adds the recomputing backward.
+/// The backend side of [`attention`]. Flex runs the host passes; the other backends the same tiled
+/// forward, written in their own float ops; autodiff adds the recomputing backward.
 #[backend_extension(Flex, NdArray, Cube: cfg(feature = "wgpu"), Autodiff)]
 pub trait AttentionBackend: Backend {
-    fn tiled_attention(
-        q: FloatTensor<Self>,
-        k: FloatTensor<Self>,
-        v: FloatTensor<Self>,
-        scale: f64,
-        block: usize,
-    ) -> FloatTensor<Self> {
-        forward::<Self>(q, k, v, scale, block).0
-    }
-}
-
-impl AttentionBackend for Flex {
     fn tiled_attention(
         q: FloatTensor<Self>,
         k: FloatTensor<Self>,
@@ -264,6 +252,8 @@ impl AttentionBackend for Flex {
         forward_any::<Self>(q, k, v, scale, block).0
     }
 }
+
+impl AttentionBackend for Flex {}
 impl AttentionBackend for NdArray {}
 #[cfg(feature = "wgpu")]
 impl AttentionBackend for Cube {}
