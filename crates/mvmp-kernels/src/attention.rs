@@ -28,7 +28,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use crate::attention_host::{self, Layout, Operand};
 use crate::cpu::SendPtr;
-use crate::host::{HostF32, dims};
+use crate::host::{HostF32, dims, par_zeroed};
 use std::ops::Range;
 
 /// Rows and columns of one score tile. 512 x 512 keeps a tile of 16 heads at 16 MiB, small beside the
@@ -217,7 +217,7 @@ impl<B: Backend> Backward<B, 1> for PackedBackward {
             },
             lse: &s.lse,
         };
-        let mut dqkv = vec![0f32; qkv.len()];
+        let mut dqkv = par_zeroed(qkv.len());
         let base = dqkv.as_mut_ptr();
         let g = attention_host::Grads {
             dst: std::array::from_fn(|i| SendPtr(base.wrapping_add(i * c))),
@@ -454,7 +454,7 @@ fn host_backward<B: Backend>(
         },
         lse: &lse,
     };
-    let mut grads = [q.len(), k.len(), v.len()].map(|n| vec![0f32; n]);
+    let mut grads = [q.len(), k.len(), v.len()].map(par_zeroed);
     let g = attention_host::Grads {
         dst: std::array::from_fn(|i| SendPtr(grads[i].as_mut_ptr())),
         layouts: [lq, lk, lv],

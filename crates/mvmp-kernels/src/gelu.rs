@@ -1,4 +1,4 @@
-//! GELU in training on flex, forward and backward over both cores.
+//! GELU on flex, forward and backward over both cores.
 //!
 //! Flex computes GELU and its backward as one element-wise pass each, but on the calling thread alone:
 //! in a `perf` profile of `mvmp bench train` the error function was the largest leaf of the thread that
@@ -22,16 +22,16 @@ const CHUNK: usize = 1 << 14;
 
 static PARALLEL_GELU: AtomicBool = AtomicBool::new(true);
 
-/// Whether training on flex takes this operation (the default) or burn's GELU; process-wide, so that
-/// a benchmark can time both.
+/// Whether flex takes this operation (the default) or burn's GELU; process-wide, so that a benchmark
+/// can time both.
 pub fn set_parallel_gelu(on: bool) {
     PARALLEL_GELU.store(on, Ordering::Relaxed);
 }
 
-/// `burn::tensor::activation::gelu(x)`: in training on flex, in parallel; otherwise burn's own.
+/// `burn::tensor::activation::gelu(x)`: on flex in parallel, in training and outside it (the values
+/// are burn-flex's bit for bit); otherwise burn's own.
 pub fn gelu<const D: usize>(x: Tensor<D>) -> Tensor<D> {
-    let parallel =
-        x.is_autodiff() && x.device() == Device::flex() && PARALLEL_GELU.load(Ordering::Relaxed);
+    let parallel = x.device() == Device::flex() && PARALLEL_GELU.load(Ordering::Relaxed);
     if !parallel {
         return burn::tensor::activation::gelu(x);
     }

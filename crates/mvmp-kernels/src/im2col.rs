@@ -27,7 +27,7 @@ use burn::backend::{Autodiff, Backend, Dispatch, Flex, TensorMetadata, backend_e
 use burn::tensor::{Tensor, TensorData};
 use rayon::prelude::*;
 
-use crate::host::{HostF32, dims};
+use crate::host::{HostF32, dims, par_filled};
 
 static FUSED_IM2COL: AtomicBool = AtomicBool::new(true);
 
@@ -202,8 +202,7 @@ fn forward_host(x: &[f32], [b, c, d, h, w]: [usize; 5], g: &Columns) -> Vec<f32>
 fn backward_host(grad: &[f32], [b, c, d, h, w]: [usize; 5], g: &Columns) -> Vec<f32> {
     let (taps, outputs, plane) = (g.taps(), g.outputs(), d * h * w);
     let sw = g.stride[2];
-    let mut dx = vec![0f32; b * c * plane];
-    dx.par_chunks_mut(plane).enumerate().for_each(|(bc, dst)| {
+    par_filled(b * c * plane, plane, |bc, dst| {
         let src = &grad[bc * taps * outputs..(bc + 1) * taps * outputs];
         for (t, row) in src.chunks_exact(outputs).enumerate() {
             for_runs(g, [d, h, w], t, |r| {
@@ -217,8 +216,7 @@ fn backward_host(grad: &[f32], [b, c, d, h, w]: [usize; 5], g: &Columns) -> Vec<
                 }
             });
         }
-    });
-    dx
+    })
 }
 
 #[cfg(test)]

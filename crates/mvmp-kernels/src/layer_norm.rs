@@ -19,7 +19,7 @@ use burn::nn::LayerNorm;
 use burn::tensor::{Device, Tensor, TensorData};
 use rayon::prelude::*;
 
-use crate::host::{HostF32, dims};
+use crate::host::{HostF32, dims, par_filled, par_zeroed};
 
 /// Rows per parallel task.
 const ROWS: usize = 64;
@@ -163,7 +163,7 @@ fn forward_host(
     eps: f32,
 ) -> (Vec<f32>, Vec<[f32; 2]>) {
     assert!(gamma.len() == c && beta.len() == c && x.len().is_multiple_of(c.max(1)));
-    let mut y = vec![0f32; x.len()];
+    let mut y = par_zeroed(x.len());
     let mut stats = vec![[0f32; 2]; x.len() / c.max(1)];
     if c == 0 {
         return (y, stats);
@@ -186,33 +186,29 @@ fn forward_host(
 /// `dx` of every row (see the module's notes).
 fn input_gradient(x: &[f32], gamma: &[f32], dy: &[f32], stats: &[[f32; 2]]) -> Vec<f32> {
     let c = gamma.len();
-    let mut dx = vec![0f32; x.len()];
     if c == 0 {
-        return dx;
+        return vec![0f32; x.len()];
     }
     let n = c as f32;
-    dx.par_chunks_mut(ROWS * c)
-        .zip(x.par_chunks(ROWS * c).zip(dy.par_chunks(ROWS * c)))
-        .zip(stats.par_chunks(ROWS))
-        .for_each(|((dx, (x, dy)), stats)| {
-            let rows = dx
-                .chunks_exact_mut(c)
-                .zip(x.chunks_exact(c))
-                .zip(dy.chunks_exact(c));
-            for (((dxr, xr), dyr), &[mean, inv]) in rows.zip(stats) {
-                let (mut sum_g, mut sum_gx) = (0f32, 0f32);
-                for ((&v, &d), &g) in xr.iter().zip(dyr).zip(gamma) {
-                    let gd = d * g;
-                    sum_g += gd;
-                    sum_gx += gd * (v - mean) * inv;
-                }
-                let (mg, mgx) = (sum_g / n, sum_gx / n);
-                for (((o, &v), &d), &g) in dxr.iter_mut().zip(xr).zip(dyr).zip(gamma) {
-                    *o = inv * (d * g - mg - (v - mean) * inv * mgx);
-                }
+    par_filled(x.len(), ROWS * c, |i, dx| {
+        let (x, dy) = (&x[i * ROWS * c..], &dy[i * ROWS * c..]);
+        let rows = dx
+            .chunks_exact_mut(c)
+            .zip(x.chunks_exact(c))
+            .zip(dy.chunks_exact(c));
+        for (((dxr, xr), dyr), &[mean, inv]) in rows.zip(&stats[i * ROWS..]) {
+            let (mut sum_g, mut sum_gx) = (0f32, 0f32);
+            for ((&v, &d), &g) in xr.iter().zip(dyr).zip(gamma) {
+                let gd = d * g;
+                sum_g += gd;
+                sum_gx += gd * (v - mean) * inv;
             }
-        });
-    dx
+            let (mg, mgx) = (sum_g / n, sum_gx / n);
+            for (((o, &v), &d), &g) in dxr.iter_mut().zip(xr).zip(dyr).zip(gamma) {
+                *o = inv * (d * g - mg - (v - mean) * inv * mgx);
+            }
+        }
+    })
 }
 
 /// A chunk's input and output-gradient rows.

@@ -27,7 +27,7 @@ use burn::nn::{BatchNorm, GroupNorm};
 use burn::tensor::{Device, Tensor, TensorData};
 use rayon::prelude::*;
 
-use crate::host::{HostF32, read_f32};
+use crate::host::{HostF32, par_filled, read_f32};
 
 static FUSED_NORM: AtomicBool = AtomicBool::new(true);
 
@@ -351,18 +351,15 @@ fn forward<B: Backend>(
         })
         .collect();
     let input = HostF32::read::<B>(x.clone());
-    let mut out = vec![0f32; input.len()];
     let plane = layout.s.max(1);
-    (out.par_chunks_mut(plane).zip(input.par_chunks(plane)))
-        .enumerate()
-        .for_each(|(p, (dst, src))| {
-            let (scale, shift) = affine[p];
-            let pairs = dst.iter_mut().zip(src);
-            match relu {
-                true => pairs.for_each(|(d, &v)| *d = positive(v * scale + shift)),
-                false => pairs.for_each(|(d, &v)| *d = v * scale + shift),
-            }
-        });
+    let out = par_filled(input.len(), plane, |p, dst| {
+        let (scale, shift) = affine[p];
+        let pairs = dst.iter_mut().zip(&input[p * plane..]);
+        match relu {
+            true => pairs.for_each(|(d, &v)| *d = positive(v * scale + shift)),
+            false => pairs.for_each(|(d, &v)| *d = v * scale + shift),
+        }
+    });
     let y = B::float_from_data(TensorData::new(out, shape.clone()), &device);
     let saved = Saved {
         x,
@@ -422,19 +419,16 @@ impl<B: Backend> Backward<B, 3> for NormBackward {
             mean_gx[k] += s.gamma[ch] as f64 * dot / l.count();
         }
         let plane = l.s.max(1);
-        let mut dx = vec![0f32; dy.len()];
-        (dx.par_chunks_mut(plane).zip(dy.par_chunks(plane)))
-            .zip(x.par_chunks(plane))
-            .enumerate()
-            .for_each(|(p, ((dx, g), v))| {
-                let (ch, k) = (p % l.c, l.set_of(p));
-                let (m, r, gamma) = (s.mean[k], s.inv_std[k], s.gamma[ch]);
-                let (mg, mgx) = (mean_g[k] as f32, mean_gx[k] as f32);
-                let pass = s.gate(p);
-                for ((dx, &g), &v) in dx.iter_mut().zip(g).zip(v) {
-                    *dx = r * (gamma * pass(g, v) - mg - (v - m) * r * mgx);
-                }
-            });
+        let dx = par_filled(dy.len(), plane, |p, dx| {
+            let (ch, k) = (p % l.c, l.set_of(p));
+            let (m, r, gamma) = (s.mean[k], s.inv_std[k], s.gamma[ch]);
+            let (mg, mgx) = (mean_g[k] as f32, mean_gx[k] as f32);
+            let pass = s.gate(p);
+            let (g, v) = (&dy[p * plane..], &x[p * plane..]);
+            for ((dx, &g), &v) in dx.iter_mut().zip(g).zip(v) {
+                *dx = r * (gamma * pass(g, v) - mg - (v - m) * r * mgx);
+            }
+        });
         let tensor = |values: Vec<f32>, shape: Vec<usize>| {
             B::float_from_data(TensorData::new(values, shape), &device)
         };

@@ -22,7 +22,7 @@ use burn::tensor::{Device, Tensor, TensorData};
 use rayon::prelude::*;
 
 use crate::cpu::SendPtr;
-use crate::host::{HostF32, dims};
+use crate::host::{HostF32, dims, par_zeroed};
 use crate::product::{Mat, gemm};
 
 /// Output positions per tile: 64 positions of a 7^3 kernel over 17 channels are 1.5 MB of columns.
@@ -197,7 +197,7 @@ pub(crate) fn input_gradient(dy: &[f32], w: &[f32], g: &Geometry) -> Vec<f32> {
         }
     }
     let p = d * h * wd;
-    let mut dx = vec![0f32; b * ci * p];
+    let mut dx = par_zeroed(b * ci * p);
     if dx.is_empty() {
         return dx;
     }

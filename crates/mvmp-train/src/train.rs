@@ -18,7 +18,7 @@ use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use serde_json::json;
 
-use mvmp_data::loader::{FrameBatcher, ViewChoice};
+use mvmp_data::loader::{FrameBatcher, FrameSample, ViewChoice};
 use mvmp_data::sequence::covered_slots;
 use mvmp_data::sources::{SourceFormat, SourceSpec, TrainingSet};
 use mvmp_losses::LossWeights;
@@ -162,6 +162,15 @@ fn epoch_steps(cfg: &TrainConfig, total: usize) -> usize {
 }
 
 /// Stage-and-epoch key of the data order and view draws.
+/// The samples of one batch, loaded in parallel.
+fn load_batch(data: &TrainingSet, chunk: &[usize]) -> Result<Vec<FrameSample>, TrainError> {
+    let items = chunk
+        .par_iter()
+        .map(|&i| data.load(i))
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok(items)
+}
+
 fn epoch_key(stage: Stage, epoch: usize) -> u64 {
     ((stage.number() as u64) << 32) | epoch as u64
 }
@@ -486,7 +495,8 @@ struct Trainer<'a> {
     plain: Device,
     ad: Device,
     body: Arc<BodyModel>,
-    data: TrainingSet,
+    /// Shared with the thread that loads the next batch while a step runs.
+    data: Arc<TrainingSet>,
     batcher: FrameBatcher,
     val_source: Option<SourceSpec>,
     cursor: Cursor,
@@ -563,7 +573,7 @@ impl<'a> Trainer<'a> {
             plain,
             ad,
             body,
-            data,
+            data: Arc::new(data),
             batcher,
             val_source: cfg.validation_source(),
             cursor,
@@ -771,23 +781,38 @@ impl<'a> Trainer<'a> {
         self.data.set_epoch(epoch_key(stage, epoch));
         let order = self.frame_order(stage, epoch);
         let skip = self.cursor.step_in_epoch;
-        for (bi, chunk) in order.chunks(self.cfg.batch_size).enumerate().skip(skip) {
-            let rec;
-            (model, rec) = self.step(model, sc, optim, bi, chunk)?;
-            mon.step(&rec);
-            if self.stop_requested() {
-                let global = self.cursor.global;
-                let name = format!("step{global:07}-stage{stage}-epoch{:03}-part", epoch + 1);
-                let path = self.save(&model, optim, &name)?;
-                mon.checkpoint(&path);
-                let out = Outcome::Interrupted {
-                    checkpoint: path,
-                    global_step: global,
-                };
-                return Ok((model, Some(out)));
+        let chunks: Vec<&[usize]> = order.chunks(self.cfg.batch_size).skip(skip).collect();
+        let data = Arc::clone(&self.data);
+        // The next batch loads on a thread of its own while a step runs: a sample depends only on the
+        // epoch and its index, so the batches are those of loading in turn, and the load (decoding,
+        // letterboxing, augmentation) takes a core that the step leaves idle in its serial parts.
+        std::thread::scope(|scope| {
+            let prefetch = |chunk: &[usize]| {
+                let (data, chunk) = (&data, chunk.to_vec());
+                scope.spawn(move || load_batch(data, &chunk))
+            };
+            let mut next = chunks.first().map(|c| prefetch(c));
+            for k in 0..chunks.len() {
+                let loading = next.take().expect("a batch is loading for every chunk");
+                let items = loading.join().expect("the loading thread does not panic")?;
+                next = chunks.get(k + 1).map(|c| prefetch(c));
+                let rec;
+                (model, rec) = self.step(model, sc, optim, skip + k, items)?;
+                mon.step(&rec);
+                if self.stop_requested() {
+                    let global = self.cursor.global;
+                    let name = format!("step{global:07}-stage{stage}-epoch{:03}-part", epoch + 1);
+                    let path = self.save(&model, optim, &name)?;
+                    mon.checkpoint(&path);
+                    let out = Outcome::Interrupted {
+                        checkpoint: path,
+                        global_step: global,
+                    };
+                    return Ok((model, Some(out)));
+                }
             }
-        }
-        Ok((model, None))
+            Ok((model, None))
+        })
     }
 
     fn stop_requested(&self) -> bool {
@@ -798,22 +823,19 @@ impl<'a> Trainer<'a> {
                 .is_some_and(|d| self.started.elapsed() >= d)
     }
 
-    /// One optimizer step on the frames `chunk` (batch `bi` of the epoch), logged to `metrics.jsonl`.
+    /// One optimizer step on the loaded frames `items` (batch `bi` of the epoch), logged to
+    /// `metrics.jsonl`.
     fn step(
         &mut self,
         model: MvmpHmr,
         sc: &StageConfig,
         optim: &mut ModuleOptimizer,
         bi: usize,
-        chunk: &[usize],
+        items: Vec<FrameSample>,
     ) -> Result<(MvmpHmr, StepRecord), TrainError> {
         let t0 = Instant::now();
         let mut clock = PhaseClock::new();
         let Cursor { stage, epoch, .. } = self.cursor;
-        let items = chunk
-            .par_iter()
-            .map(|&i| self.data.load(i))
-            .collect::<Result<Vec<_>, _>>()?;
         let batch = self.batcher.batch(items, &self.ad);
         clock.lap("load");
         let (cfg, ad) = (self.cfg, &self.ad);
