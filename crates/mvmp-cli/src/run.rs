@@ -9,8 +9,8 @@ use serde_json::json;
 use mvmp_data::loader::Split;
 use mvmp_data::sources::SourceFormat;
 use mvmp_eval::drivers::{
-    EvalOptions, PseudoGt, PseudoGtCount, evaluate, evaluate_joint_sequences, evaluate_sequences,
-    mean_pose_at, mvmp_split, pose_params, reference_mean,
+    EvalFrame, EvalOptions, PseudoGt, PseudoGtCount, evaluate, evaluate_joint_sequences,
+    evaluate_sequences, mean_pose_at, mvmp_split, pose_params, reference_mean,
 };
 use mvmp_eval::joint_sets::JointSet;
 use mvmp_eval::truth_parts::{TruthPart, pose_with_truth};
@@ -387,7 +387,7 @@ fn eval_predictions(
     let views = args.views.unwrap_or(1).min(min_views.max(1));
     let opts = args.options(views);
     let (seqs, truth) = mvmp_split(args.data, opts.split, device)?;
-    let (ev, _) = evaluate_sequences(&seqs, &truth, &opts, |_, _, at| {
+    let predict = |at: &EvalFrame| {
         let (scene, frame) = at.names();
         let path = dir.join(scene).join(frame).join("people.npz");
         if !path.exists() {
@@ -411,7 +411,9 @@ fn eval_predictions(
             &args.truth,
             args.gate,
         ))
-    })?;
+    };
+    let scored = |at: &EvalFrame| Ok((predict(at)?, ()));
+    let (ev, _) = evaluate_sequences(&seqs, &truth, &opts, 1, scored, |_, _, ()| Ok(()))?;
     Ok((ev, json!({"predictions": dir.display().to_string()}), views))
 }
 
@@ -427,9 +429,8 @@ fn eval_mean_pose(
     let (mean, people) = reference_mean(args.data, device)?;
     let opts = args.options(1);
     let (seqs, truth) = mvmp_split(args.data, opts.split, device)?;
-    let (ev, _) = evaluate_sequences(&seqs, &truth, &opts, |_, _, at| {
-        Ok(mean_pose_at(&layer, &mean, &at.roots()))
-    })?;
+    let posed = |at: &EvalFrame| Ok((mean_pose_at(&layer, &mean, &at.roots()), ()));
+    let (ev, _) = evaluate_sequences(&seqs, &truth, &opts, 1, posed, |_, _, ()| Ok(()))?;
     Ok((
         ev,
         json!({

@@ -5,6 +5,8 @@ use mvmp_smplx::names::{NUM_BETAS, NUM_EXPRESSION, NUM_JOINTS, NUM_REGRESSED, RE
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
+use rayon::prelude::*;
+
 use burn::tensor::{Device, Tensor, TensorData};
 
 use mvmp_data::DatasetLayout;
@@ -150,11 +152,15 @@ impl EvalFrame<'_> {
 /// `predict`'s people against the annotated ones, on the joints of `opts.joints` (predicted SMPL-X joints
 /// are mapped to a dataset's set), matched on that set's root. PVE and PA-PVE need ground-truth meshes:
 /// SMPL-X people are posed with `truth.body`, joint-annotated ones take `truth.pseudo`'s fits.
-pub fn evaluate_sequences(
+/// `at_once` frames are loaded and predicted at a time, in parallel ([`frames_at_once`]); what `predict`
+/// keeps of each (`T`) reaches `each` in frame order, with the frame's number and the count.
+pub fn evaluate_sequences<T: Send>(
     seqs: &[Box<dyn Sequence>],
     truth: &Truth,
     opts: &EvalOptions,
-    mut predict: impl FnMut(usize, usize, &EvalFrame) -> Result<Vec<PersonPose>, InferError>,
+    at_once: usize,
+    predict: impl Fn(&EvalFrame) -> Result<(Vec<PersonPose>, T), InferError> + Sync,
+    mut each: impl FnMut(usize, usize, T) -> Result<(), InferError>,
 ) -> Result<(Evaluator, PseudoGtCount), InferError> {
     for s in seqs {
         let n = s.cameras().len();
@@ -176,23 +182,69 @@ pub fn evaluate_sequences(
     ev.root = opts.joints.root();
     let mut count = PseudoGtCount::default();
     let n = frames.len();
-    for (i, &(si, fi)) in frames.iter().enumerate() {
-        let sequence = seqs[si].as_ref();
-        let frame = sequence.frame(fi)?;
-        let at = EvalFrame {
-            sequence,
-            index: fi,
-            frame: &frame,
-        };
-        let (gt, meshes) = truth.people(&at, opts.joints, &mut count)?;
-        let mut poses = predict(i, n, &at)?;
-        if !meshes {
-            poses.iter_mut().for_each(|p| p.vertices = None);
+    let at_once = at_once.max(1);
+    for (w, window) in frames.chunks(at_once).enumerate() {
+        let scored: Vec<_> = window
+            .par_iter()
+            .map(|&(si, fi)| score_frame(seqs[si].as_ref(), fi, truth, opts, &predict))
+            .collect();
+        for (k, frame) in scored.into_iter().enumerate() {
+            let f = frame?;
+            count.with_mesh += f.count.with_mesh;
+            count.people += f.count.people;
+            each(w * at_once + k, n, f.kept)?;
+            ev.add_frame(&f.scene, &f.poses, &f.gt);
         }
-        let poses = pick_joints(poses, opts.joints, &frame.source, "predictions")?;
-        ev.add_frame(&sequence.name(), &poses, &gt);
     }
     Ok((ev, count))
+}
+
+/// How many frames [`evaluate_sequences`] should score at once for a predictor on `device`: on flex
+/// one per thread (a frame's forward leaves the other cores idle in its serial parts, and frames are
+/// independent), elsewhere one.
+pub fn frames_at_once(device: &Device) -> usize {
+    match *device == Device::flex() {
+        true => rayon::current_num_threads(),
+        false => 1,
+    }
+}
+
+/// One frame's part of [`evaluate_sequences`], in any order.
+struct ScoredFrame<T> {
+    scene: String,
+    poses: Vec<PersonPose>,
+    gt: Vec<PersonPose>,
+    count: PseudoGtCount,
+    kept: T,
+}
+
+fn score_frame<T>(
+    sequence: &dyn Sequence,
+    index: usize,
+    truth: &Truth,
+    opts: &EvalOptions,
+    predict: &impl Fn(&EvalFrame) -> Result<(Vec<PersonPose>, T), InferError>,
+) -> Result<ScoredFrame<T>, InferError> {
+    let frame = sequence.frame(index)?;
+    let at = EvalFrame {
+        sequence,
+        index,
+        frame: &frame,
+    };
+    let mut count = PseudoGtCount::default();
+    let (gt, meshes) = truth.people(&at, opts.joints, &mut count)?;
+    let (mut poses, kept) = predict(&at)?;
+    if !meshes {
+        poses.iter_mut().for_each(|p| p.vertices = None);
+    }
+    let poses = pick_joints(poses, opts.joints, &frame.source, "predictions")?;
+    Ok(ScoredFrame {
+        scene: sequence.name(),
+        poses,
+        gt,
+        count,
+        kept,
+    })
 }
 
 impl Truth {
@@ -327,9 +379,9 @@ pub fn evaluate(
     mut each: impl FnMut(usize, usize, FramePredictions) -> Result<(), InferError>,
 ) -> Result<Evaluator, InferError> {
     let (seqs, truth) = mvmp_split(data, opts.split, &pred.device)?;
-    let (ev, _) = evaluate_sequences(&seqs, &truth, opts, |i, n, at| {
-        scored_frame(pred, opts, at, |fp| each(i, n, fp))
-    })?;
+    let at_once = frames_at_once(&pred.device);
+    let predict = |at: &EvalFrame| scored_frame(pred, opts, at);
+    let (ev, _) = evaluate_sequences(&seqs, &truth, opts, at_once, predict, &mut each)?;
     Ok(ev)
 }
 
@@ -565,18 +617,17 @@ pub fn evaluate_joint_sequences(
         body: None,
         pseudo: pseudo.cloned(),
     };
-    evaluate_sequences(seqs, &truth, &opts, |i, n, at| {
-        scored_frame(pred, &opts, at, |fp| each(i, n, fp))
-    })
+    let at_once = frames_at_once(&pred.device);
+    let predict = |at: &EvalFrame| scored_frame(pred, &opts, at);
+    evaluate_sequences(seqs, &truth, &opts, at_once, predict, &mut each)
 }
 
-/// The predictor's people in a frame as eval poses, after `each` has seen them.
+/// The predictor's people in a frame as eval poses, and the predictions they came from.
 fn scored_frame(
     pred: &Predictor,
     opts: &EvalOptions,
     at: &EvalFrame,
-    each: impl FnOnce(FramePredictions) -> Result<(), InferError>,
-) -> Result<Vec<PersonPose>, InferError> {
+) -> Result<(Vec<PersonPose>, FramePredictions), InferError> {
     let people = predict_frame(pred, opts.views, at)?;
     let poses = if opts.truth.is_empty() {
         people.iter().map(pose_of).collect()
@@ -589,11 +640,11 @@ fn scored_frame(
         pose_with_truth(&pred.layer, &params, truth, &opts.truth, opts.gate)
     };
     let (scene, frame) = at.names();
-    each(FramePredictions {
+    let kept = FramePredictions {
         scene,
         frame,
         people,
         cameras: at.cameras(opts.views).to_vec(),
-    })?;
-    Ok(poses)
+    };
+    Ok((poses, kept))
 }
