@@ -683,15 +683,18 @@ pub fn demo(out: &Path, seed: u64, device: &Device) -> Result<()> {
 
 fn demo_steps(out: &Path, cfg_dir: &Path, device: &Device) -> Result<()> {
     let t0 = std::time::Instant::now();
+    let mut phases = Phases::new();
     let data = out.join("data");
     let run_dir = out.join("run");
     eprintln!("[1/5] synthetic dataset -> {}", data.display());
     crate::data::synth(&cfg_dir.join("synth.toml"), &data)?;
+    phases.lap("synthesis");
 
     eprintln!(
         "[2/5] references on the held-out scenes: the untrained model, the mean pose at the GT pelvis"
     );
     let (m_untrained, m_mean) = demo_references(cfg_dir, &data, out, device)?;
+    phases.lap("references");
 
     eprintln!("[3/5] training -> {}", run_dir.display());
     crate::train::train(
@@ -710,6 +713,7 @@ fn demo_steps(out: &Path, cfg_dir: &Path, device: &Device) -> Result<()> {
     if !run_dir.join("model.bpk").exists() {
         bail!("training was interrupted");
     }
+    phases.lap("training");
 
     eprintln!("[4/5] evaluation on the held-out scenes");
     let eval_path = out.join("eval.json");
@@ -719,10 +723,12 @@ fn demo_steps(out: &Path, cfg_dir: &Path, device: &Device) -> Result<()> {
         ..EvalArgs::held_out(Source::Run(&run_dir), &data, &eval_path)
     };
     let (m_trained, _) = eval(&args, device, false)?;
+    phases.lap("evaluation");
 
     eprintln!("[5/5] inference on a held-out frame");
     let infer_dir = out.join("infer");
     demo_infer(&data, &run_dir, &infer_dir, device)?;
+    phases.lap("inference");
 
     println!(
         "\nheld-out scenes ({} people matched of {}), errors in mm:",
@@ -755,8 +761,45 @@ fn demo_steps(out: &Path, cfg_dir: &Path, device: &Device) -> Result<()> {
         "inference    {}  (people.npz, person_XX.obj/.ply, overlay_XX.png, topdown.png)",
         infer_dir.display()
     );
-    println!("total time   {:.1} min", t0.elapsed().as_secs_f64() / 60.0);
+    println!(
+        "total time   {:.1} min ({})",
+        t0.elapsed().as_secs_f64() / 60.0,
+        phases
+    );
     Ok(())
+}
+
+/// The minutes each of the demo's phases took, in order.
+struct Phases {
+    last: std::time::Instant,
+    done: Vec<(&'static str, f64)>,
+}
+
+impl Phases {
+    fn new() -> Self {
+        Phases {
+            last: std::time::Instant::now(),
+            done: Vec::new(),
+        }
+    }
+
+    /// Ends the phase `name` now.
+    fn lap(&mut self, name: &'static str) {
+        let now = std::time::Instant::now();
+        let minutes = (now - self.last).as_secs_f64() / 60.0;
+        self.done.push((name, minutes));
+        self.last = now;
+    }
+}
+
+impl std::fmt::Display for Phases {
+    fn fmt(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        for (i, (name, minutes)) in self.done.iter().enumerate() {
+            let sep = if i == 0 { "" } else { ", " };
+            write!(f, "{sep}{name} {minutes:.1}")?;
+        }
+        Ok(())
+    }
 }
 
 fn check_new_or_empty(out: &Path) -> Result<()> {
