@@ -8,9 +8,11 @@ use serde_json::json;
 
 use mvmp_data::loader::Split;
 use mvmp_data::sources::SourceFormat;
+use rayon::prelude::*;
+
 use mvmp_eval::drivers::{
     EvalFrame, EvalOptions, PseudoGt, PseudoGtCount, evaluate, evaluate_joint_sequences,
-    evaluate_sequences, mean_pose_at, mvmp_split, pose_params, reference_mean,
+    evaluate_sequences, frames_at_once, mean_pose_at, mvmp_split, pose_params, reference_mean,
 };
 use mvmp_eval::joint_sets::JointSet;
 use mvmp_eval::truth_parts::{TruthPart, pose_with_truth};
@@ -599,12 +601,22 @@ pub fn infer(args: &InferArgs, device: &Device, quiet: bool) -> Result<()> {
             let b = progress::bar(frames.len() as u64, "infer", quiet);
             // All frames are written to a staging directory and moved into place together.
             let staged = StagedDir::new(args.out)?.owning(mvmp_infer::output::is_frame_output);
+            // Frames are independent: on flex one per thread at a time, as evaluation scores them.
             let mut total = 0;
-            for f in &frames {
-                let paths = frame_images(f, rig.len())?;
-                let name = f.file_name().expect("a directory name");
-                total += infer_frame(&pred, &rig, &paths, &staged.path().join(name))?;
-                b.inc(1);
+            for window in frames.chunks(frames_at_once(device)) {
+                let people: Vec<Result<usize>> = window
+                    .par_iter()
+                    .map(|f| {
+                        let paths = frame_images(f, rig.len())?;
+                        let name = f.file_name().expect("a directory name");
+                        let n = infer_frame(&pred, &rig, &paths, &staged.path().join(name))?;
+                        b.inc(1);
+                        Ok(n)
+                    })
+                    .collect();
+                for n in people {
+                    total += n?;
+                }
             }
             staged.finish()?;
             b.finish_and_clear();
