@@ -86,6 +86,9 @@ pub struct LearnArgs<'a> {
     pub variants: Option<&'a str>,
     /// The training seeds every variant runs with (each a run of its own).
     pub seeds: &'a [u64],
+    /// Epochs of stage 1 and 2, fixed instead of sized from `minutes`: benchmarks on machines of other
+    /// speeds then train the same steps and compare.
+    pub epochs: Option<&'a [usize]>,
 }
 
 /// What a benchmark trains, fixed once it has measured its step times (`OUT/plan.json`): a stopped
@@ -103,6 +106,10 @@ struct Plan {
     epochs: [usize; 2],
     /// The full model's seconds per step of each stage, measured before the plan was made.
     step_seconds: [f64; 2],
+    /// Whether `epochs` were given (`--epochs`) rather than sized to `minutes`, which is then the time
+    /// they take at `step_seconds` (absent in plans of earlier versions: sized).
+    #[serde(default)]
+    fixed_epochs: bool,
 }
 
 const PLAN: &str = "plan.json";
@@ -158,6 +165,26 @@ fn epochs(minutes: f64, train_frames: usize, step_s: [f64; 2]) -> (usize, usize)
     let e1 = (seconds * STAGE1_SHARE / epoch_s[0]).round().max(1.0);
     let e2 = ((seconds - e1 * epoch_s[0]) / epoch_s[1]).round().max(1.0);
     (e1 as usize, e2 as usize)
+}
+
+/// Minutes the full model takes for `epochs` of each stage at `step_s` seconds per step, validation
+/// included: the time a fixed schedule is given (and its guard counted from).
+fn schedule_minutes(epochs: [usize; 2], train_frames: usize, step_s: [f64; 2]) -> f64 {
+    let steps_s: f64 = (0..2)
+        .map(|i| epochs[i] as f64 * train_frames as f64 * step_s[i])
+        .sum();
+    steps_s / (1.0 - VALIDATION_SHARE) / 60.0
+}
+
+/// The `--epochs` given: two counts, stage 1 and stage 2, each at least 1.
+fn fixed_epochs(given: &[usize]) -> Result<[usize; 2]> {
+    match given {
+        &[e1, e2] if e1 > 0 && e2 > 0 => Ok([e1, e2]),
+        _ => bail!(
+            "--epochs: give the epochs of stage 1 and stage 2, each at least 1, as `S1,S2` (e.g. 3,3); \
+             got {given:?}"
+        ),
+    }
 }
 
 /// The figures of one trained variant with one seed.
@@ -257,6 +284,7 @@ fn kept(out: &Path, err: anyhow::Error) -> anyhow::Error {
 fn plan_and_run(args: &LearnArgs, device: &Device) -> Result<()> {
     let out = args.out;
     let variants = select(args.variants)?;
+    let fixed = args.epochs.map(fixed_epochs).transpose()?;
     for (i, seed) in args.seeds.iter().enumerate() {
         if args.seeds[..i].contains(seed) {
             bail!("--seeds: seed {seed} is given twice");
@@ -279,15 +307,22 @@ fn plan_and_run(args: &LearnArgs, device: &Device) -> Result<()> {
         .sum::<usize>();
     let (base_train, base_model) = TrainConfig::read(&cfg_dir.join("train.toml"))?;
     let step_s = calibrate(&base_train, &base_model, &data, device)?;
-    let (e1, e2) = epochs(args.minutes, train_frames, step_s);
+    let ([e1, e2], minutes) = match fixed {
+        Some(e) => (e, schedule_minutes(e, train_frames, step_s)),
+        None => (
+            epochs(args.minutes, train_frames, step_s).into(),
+            args.minutes,
+        ),
+    };
     let plan = Plan {
-        minutes: args.minutes,
+        minutes,
         scenes: args.scenes,
         variants: variants.iter().map(|v| v.name.to_string()).collect(),
         seeds: args.seeds.to_vec(),
         train_frames,
         epochs: [e1, e2],
         step_seconds: step_s,
+        fixed_epochs: fixed.is_some(),
     };
     write_atomic(
         &out.join(PLAN),
@@ -303,8 +338,8 @@ fn run_plan(out: &Path, plan: &Plan, variants: &[&'static Variant], device: &Dev
     let (base_train, base_model) = TrainConfig::read(&cfg_dir.join("train.toml"))?;
     let [e1, e2] = plan.epochs;
     eprintln!(
-        "each variant: {e1} + {e2} epochs of {} frames (about {} min for the full model at {:.3} and \
-         {:.3} s per step, measured here), stopped at {} min",
+        "each variant: {e1} + {e2} epochs of {} frames (about {:.1} min for the full model at {:.3} and \
+         {:.3} s per step, measured here), stopped at {:.1} min",
         plan.train_frames,
         plan.minutes,
         plan.step_seconds[0],
@@ -558,13 +593,23 @@ fn verdict(each: &[Option<Option<bool>>]) -> &'static str {
 
 fn report(rows: &[Row], plan: &Plan) -> String {
     let (frames, [e1, e2], step_s) = (plan.train_frames, plan.epochs, plan.step_seconds);
+    let (command, sized) = if plan.fixed_epochs {
+        (
+            format!("--epochs {e1},{e2}"),
+            "given; the full model takes about",
+        )
+    } else {
+        (
+            format!("--minutes {}", plan.minutes),
+            "sized so that the full model takes about",
+        )
+    };
     let mut s = format!(
-        "# Learning benchmark\n\n`mvmp bench learn --minutes {} --scenes {}`: the tiny model on a synthetic set of {} \
+        "# Learning benchmark\n\n`mvmp bench learn {command} --scenes {}`: the tiny model on a synthetic set of {} \
          one-frame scenes ({frames} for training, the rest held out). Every variant trains the same schedule, \
-         {e1} + {e2} epochs (sized so that the full model takes about {} minutes at the {:.3} and {:.3} s \
-         per step of stage 1 and 2 measured on this machine; a variant is stopped at {} minutes), then is \
+         {e1} + {e2} epochs ({sized} {:.1} minutes at the {:.3} and {:.3} s \
+         per step of stage 1 and 2 measured on this machine; a variant is stopped at {:.1} minutes), then is \
          scored on the held-out scenes. Errors in mm.\n\n```text\n",
-        plan.minutes,
         plan.scenes,
         plan.scenes,
         plan.minutes,
@@ -625,7 +670,9 @@ fn report(rows: &[Row], plan: &Plan) -> String {
 
 #[cfg(test)]
 mod tests {
-    use super::{Row, direction, epochs, lower, seed_summary, verdict};
+    use super::{
+        Row, direction, epochs, fixed_epochs, lower, schedule_minutes, seed_summary, verdict,
+    };
     use mvmp_eval::Metrics;
 
     fn row(name: &'static str, seed: u64, mpjpe: Option<f64>) -> Row {
@@ -718,6 +765,24 @@ mod tests {
         assert_eq!(epochs(3.0, 100, [0.25, 0.5]), (2, 2));
         // Far too little time still trains one epoch of each.
         assert_eq!(epochs(0.1, 1000, [1.0, 1.0]), (1, 1));
+    }
+
+    #[test]
+    fn a_fixed_schedule_is_given_the_time_it_takes() {
+        // 3 + 3 epochs of 576 frames at 0.3 and 0.55 s: 518.4 + 950.4 s of steps, over 0.85 for
+        // validation, 1728 s: 28.8 minutes.
+        let m = schedule_minutes([3, 3], 576, [0.3, 0.55]);
+        assert!((m - 28.8).abs() < 1e-9, "{m}");
+        // Sizing the schedule to that time gives the same epochs back.
+        assert_eq!(epochs(m, 576, [0.3, 0.55]), (3, 3));
+        assert_eq!(fixed_epochs(&[3, 4]).unwrap(), [3, 4]);
+        for bad in [&[3][..], &[3, 0], &[1, 2, 3], &[]] {
+            let err = fixed_epochs(bad).unwrap_err().to_string();
+            assert!(
+                err.contains("--epochs") && err.contains(&format!("{bad:?}")),
+                "{err}"
+            );
+        }
     }
 
     #[test]

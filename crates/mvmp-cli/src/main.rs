@@ -552,13 +552,18 @@ enum BenchCommand {
         /// seed), and the report adds each variant's mean and spread over them.
         #[arg(long, value_delimiter = ',', default_value = "0")]
         seeds: Vec<u64>,
+        /// Epochs of stage 1 and stage 2 (`S1,S2`), fixed instead of sized from --minutes, so that
+        /// benchmarks on machines of other speeds train the same steps; the time guard then counts from
+        /// the time they take at the step times measured here.
+        #[arg(long, value_delimiter = ',', conflicts_with = "minutes")]
+        epochs: Option<Vec<usize>>,
         #[arg(long, default_value = "out/learn")]
         out: PathBuf,
         /// Go on with the benchmark stopped in --out (by Ctrl-C or an error once its schedule was
         /// planned), or add to one that finished: runs scored stay, a stopped run resumes from its
         /// checkpoint, the rest train as planned; its minutes, scenes and seeds are the plan's. With
         /// --variants, those variants join the plan and train on its schedule.
-        #[arg(long, conflicts_with_all = ["minutes", "scenes", "seeds"])]
+        #[arg(long, conflicts_with_all = ["minutes", "scenes", "seeds", "epochs"])]
         resume: bool,
     },
     /// Seconds per training step of each stage and their split (load, forward, backward, gradient
@@ -907,6 +912,7 @@ fn bench_command(cmd: BenchCommand, device: &Device, host: bool) -> anyhow::Resu
             scenes,
             variants,
             seeds,
+            epochs,
             out,
             resume: false,
         } => learn::bench_learn(
@@ -916,6 +922,7 @@ fn bench_command(cmd: BenchCommand, device: &Device, host: bool) -> anyhow::Resu
                 scenes,
                 variants: variants.as_deref(),
                 seeds: &seeds,
+                epochs: epochs.as_deref(),
             },
             device,
         ),

@@ -1515,6 +1515,64 @@ fn the_learning_benchmark_compares_variants() {
     );
 }
 
+/// `--epochs` fixes the schedule instead of sizing it from the minutes: the plan and the report say so,
+/// and the time it is given is what those epochs take at the measured step times. Counts that are not
+/// two positive numbers are named, and nothing is left behind; it cannot go with --minutes.
+#[test]
+fn the_learning_benchmark_trains_a_given_schedule() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("learn");
+    let o = mvmp(&[
+        "bench",
+        "learn",
+        "--epochs",
+        "1,2",
+        "--scenes",
+        "3",
+        "--variants",
+        "full",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let plan = std::fs::read_to_string(out.join("plan.json")).unwrap();
+    let plan: serde_json::Value = serde_json::from_str(&plan).unwrap();
+    assert_eq!(plan["epochs"], serde_json::json!([1, 2]));
+    assert_eq!(plan["fixed_epochs"], serde_json::json!(true));
+    // Two training frames: 2 stage-1 steps and 4 stage-2 steps at the measured times, over 0.85.
+    let step = |i: usize| plan["step_seconds"][i].as_f64().unwrap();
+    let minutes = (2.0 * step(0) + 4.0 * step(1)) / 0.85 / 60.0;
+    let given = plan["minutes"].as_f64().unwrap();
+    assert!((given - minutes).abs() < 1e-9, "{given} against {minutes}");
+    let report = std::fs::read_to_string(out.join("learning.md")).unwrap();
+    assert!(
+        report.contains("`mvmp bench learn --epochs 1,2 --scenes 3`"),
+        "{report}"
+    );
+    assert!(report.contains("1 + 2 epochs (given;"), "{report}");
+    let scored = std::fs::read_to_string(out.join("runs/full/bench.json")).unwrap();
+    let scored: serde_json::Value = serde_json::from_str(&scored).unwrap();
+    assert_eq!(scored["steps"], serde_json::json!(6), "{scored}");
+    for bad in ["2", "3,0", "1,2,3"] {
+        let target = dir.path().join(format!("bad-{}", bad.replace(',', "-")));
+        expect_error(
+            &[
+                "bench",
+                "learn",
+                "--epochs",
+                bad,
+                "--out",
+                target.to_str().unwrap(),
+            ],
+            &["--epochs", "S1,S2"],
+        );
+        assert!(!target.exists(), "{}", target.display());
+    }
+    let o = mvmp(&["bench", "learn", "--epochs", "1,1", "--minutes", "3"]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(stderr(&o).contains("--minutes"), "{}", stderr(&o));
+}
+
 /// A benchmark stopped with runs scored, one trained but not scored and one not begun (as an
 /// interrupt leaves it) goes on with `--resume`: the scored run is read back, not trained again, the
 /// others are finished, and the report has all four. A variant added then trains on the same plan beside
