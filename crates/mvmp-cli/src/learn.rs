@@ -661,6 +661,10 @@ fn report(rows: &[Row], plan: &Plan) -> String {
             "the full model beats VoxelSMPLX",
             vec![("full", "voxelsmplx")],
         ),
+        (
+            "(root joint, the ablation configs) the pelvis beats the head and the spine",
+            vec![("full", "root_head"), ("full", "root_spine")],
+        ),
     ] {
         s += &direction(rows, what, &pairs);
     }
@@ -671,7 +675,8 @@ fn report(rows: &[Row], plan: &Plan) -> String {
 #[cfg(test)]
 mod tests {
     use super::{
-        Row, direction, epochs, fixed_epochs, lower, schedule_minutes, seed_summary, verdict,
+        Plan, Row, direction, epochs, fixed_epochs, lower, report, schedule_minutes, seed_summary,
+        verdict,
     };
     use mvmp_eval::Metrics;
 
@@ -783,6 +788,47 @@ mod tests {
                 "{err}"
             );
         }
+    }
+
+    #[test]
+    fn the_report_judges_the_root_joint_and_names_a_fixed_schedule() {
+        let plan = Plan {
+            minutes: 28.8,
+            scenes: 864,
+            variants: vec!["full".into(), "root_head".into(), "root_spine".into()],
+            seeds: vec![0],
+            train_frames: 576,
+            epochs: [3, 3],
+            step_seconds: [0.3, 0.55],
+            fixed_epochs: true,
+        };
+        let far = [
+            row("full", 0, Some(150.0)),
+            row("root_head", 0, Some(200.0)),
+            row("root_spine", 0, Some(175.0)),
+        ];
+        let text = report(&far, &plan);
+        assert!(
+            text.starts_with(
+                "# Learning benchmark\n\n`mvmp bench learn --epochs 3,3 --scenes 864`"
+            )
+        );
+        assert!(text.contains("3 + 3 epochs (given; the full model takes about 28.8 minutes"));
+        assert!(
+            text.contains("the pelvis beats the head and the spine: reproduces"),
+            "{text}"
+        );
+        // The spine within the noise: the direction does not hold for both.
+        let rows = [
+            row("full", 0, Some(150.0)),
+            row("root_head", 0, Some(200.0)),
+            row("root_spine", 0, Some(160.0)),
+        ];
+        let text = report(&rows, &plan);
+        assert!(
+            text.contains("the pelvis beats the head and the spine: not distinguished"),
+            "{text}"
+        );
     }
 
     #[test]
