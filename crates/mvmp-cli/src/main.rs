@@ -275,6 +275,26 @@ enum ModelCommand {
         #[arg(long)]
         out: Option<PathBuf>,
     },
+    /// One backbone's weights from a run (its final weights, else its newest checkpoint), for another
+    /// run's `[init]`: a network pretrained on one dataset starts the training on another.
+    Extract {
+        /// Run directory made by `mvmp train`.
+        #[arg(long)]
+        run: PathBuf,
+        /// Which backbone.
+        #[arg(long, value_enum)]
+        module: Backbone,
+        /// The weights file to write (burnpack).
+        #[arg(long)]
+        out: PathBuf,
+    },
+}
+
+/// `mvmp model extract --module`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum Backbone {
+    Hrnet,
+    Vit,
 }
 
 /// `mvmp model fit-decoder --maps`.
@@ -751,6 +771,9 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             },
             &device,
         ),
+        Command::Model(ModelCommand::Extract { run, module, out }) => {
+            model::extract(&run, module == Backbone::Hrnet, &out)
+        }
         Command::Import(ImportCommand::Dinov2 { variant, from, out }) => {
             import::dinov2(variant, &from, &out)
         }

@@ -1,4 +1,4 @@
-//! `mvmp model summary`, `mvmp bench model` and `mvmp bench fusion`.
+//! `mvmp model summary`, `mvmp model extract`, `mvmp bench model` and `mvmp bench fusion`.
 use mvmp_smplx::names::{NUM_BETAS, NUM_EXPRESSION, NUM_REGRESSED};
 
 use crate::probe::{ring_rig, ring_roots};
@@ -18,6 +18,35 @@ use mvmp_smplx::{SmplxLayer, Translation, regressed_to_full_pose};
 
 /// flex's measured float32 GEMM speed on the 2-core development machine (GFLOP/s, 1024^3).
 const FLEX_GEMM_GFLOPS: f64 = 161.0;
+
+/// `mvmp model extract`: the run's HRNet (`hrnet`) or ViT weights alone, as `[init]` reads them.
+pub fn extract(run: &Path, hrnet: bool, out: &Path) -> Result<()> {
+    let weights = mvmp_infer::run_files::weights(run)?;
+    crate::paths::not_over_input("--out", out, run)?;
+    let cfg = mvmp_infer::run_files::model_config(run)?;
+    let mut model = cfg.init(&Device::flex());
+    mvmp_infer::load_weights(&mut model, &weights)?;
+    let what = match hrnet {
+        true => {
+            mvmp_io::checkpoint::save(&model.hrnet, out)?;
+            format!(
+                "HRNet `{}`, {} heatmap joints",
+                cfg.hrnet,
+                cfg.heatmap_joints.len()
+            )
+        }
+        false => {
+            mvmp_io::checkpoint::save(&model.vit, out)?;
+            format!("ViT `{}`", cfg.backbone)
+        }
+    };
+    println!(
+        "wrote {} (burnpack, {what}, from {})",
+        out.display(),
+        weights.display()
+    );
+    Ok(())
+}
 
 pub fn summary(config: &Path, views: usize) -> Result<()> {
     let cfg = ModelConfig::read(config)?;

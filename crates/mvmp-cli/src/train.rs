@@ -162,6 +162,15 @@ pub fn train(args: TrainArgs, device: &Device, monitor: &mut BarMonitor) -> Resu
                 .collect();
             eprintln!("training on {}", counts.join(", "));
             mvmp_train::check_validation_source(&cfg)?;
+            for (key, file) in cfg.init.files() {
+                if !Path::new(file).is_file() {
+                    anyhow::bail!(
+                        "training config {}: key `{key}`: {file}: no such file",
+                        config.display()
+                    );
+                }
+                eprintln!("starting from pretrained weights: {file} ({key})");
+            }
             let out = match args.out {
                 Some(o) => o.to_path_buf(),
                 None => {

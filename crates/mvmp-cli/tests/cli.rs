@@ -932,6 +932,62 @@ fn train_eval_infer_end_to_end() {
         &[&fit[..], &["--out", nowhere.as_str()]].concat(),
         &["--out", "missing", "not a directory"],
     );
+    // A run's backbones extracted start another run (`[init]`); files that do not fit are refused
+    // before a run directory is made.
+    for (module, file) in [("hrnet", p("hrnet.bpk")), ("vit", p("vit.bpk"))] {
+        let o = mvmp(&[
+            "model", "extract", "--run", &run, "--module", module, "--out", &file,
+        ]);
+        assert!(o.status.success(), "{}", stderr(&o));
+    }
+    expect_error(
+        &[
+            "model",
+            "extract",
+            "--run",
+            &run,
+            "--module",
+            "vit",
+            "--out",
+            &p("run/model.bpk"),
+        ],
+        &["--out", "would overwrite the input"],
+    );
+    let init_run = |hrnet: &str, out: &str| {
+        let base = std::fs::read_to_string(p("train.toml")).unwrap();
+        let text = format!("{base}[init]\nhrnet = \"{hrnet}\"\nvit = \"vit.bpk\"\n");
+        std::fs::write(p("init.toml"), text).unwrap();
+        let args = [
+            "train",
+            "--config",
+            &p("init.toml"),
+            "--data",
+            &ds,
+            "--out",
+            &p(out),
+        ];
+        mvmp(&[&args[..], &["--stop-after-steps", "1"]].concat())
+    };
+    let o = init_run("hrnet.bpk", "init-run");
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("starting from pretrained weights"),
+        "{}",
+        stderr(&o)
+    );
+    for (file, want) in [
+        ("vit.bpk", "are not in the file"),
+        ("none.bpk", "no such file"),
+    ] {
+        let o = init_run(file, "init-bad");
+        let err = stderr(&o);
+        assert!(!o.status.success(), "{err}");
+        assert!(
+            err.contains("`init.hrnet`") && err.contains(file) && err.contains(want),
+            "{err}"
+        );
+        assert!(!dir.path().join("init-bad").exists(), "{err}");
+    }
     // The diagnostic that zeroes the image-feature volume is recorded in its report, and refused for
     // predictions, whose model is not at hand.
     let z = scored(&["--run", &p("run"), "--zero-volume"], &p("zero.json"));

@@ -245,6 +245,38 @@ pub struct TrainConfig {
     /// first MVMP-HMR source, else the first source.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub validation: Option<SourceSpec>,
+    /// Pretrained weights a new run starts from (not read when a run resumes).
+    #[serde(default, skip_serializing_if = "InitWeights::is_empty")]
+    pub init: InitWeights,
+}
+
+/// `[init]`: backbone weights loaded into a new run's network before its first step, as the paper starts
+/// from backbones pretrained on 2D pose. Paths are relative to the training config's directory (or
+/// absolute); the run's own copy of the config holds them absolute.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct InitWeights {
+    /// HRNet weights of the model's `hrnet` variant and heatmap joints, as `mvmp import hrnet` or
+    /// `mvmp model extract --module hrnet` write them.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub hrnet: Option<String>,
+    /// ViT weights of the model's `backbone` variant, as `mvmp import dinov2` or `mvmp model extract
+    /// --module vit` write them.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub vit: Option<String>,
+}
+
+impl InitWeights {
+    pub fn is_empty(&self) -> bool {
+        self.hrnet.is_none() && self.vit.is_none()
+    }
+
+    /// The files with their keys (`init.hrnet`, `init.vit`).
+    pub fn files(&self) -> impl Iterator<Item = (&'static str, &str)> {
+        [("init.hrnet", &self.hrnet), ("init.vit", &self.vit)]
+            .into_iter()
+            .filter_map(|(k, p)| p.as_deref().map(|p| (k, p)))
+    }
 }
 
 fn one() -> usize {
@@ -270,12 +302,13 @@ impl TrainConfig {
     /// Read and validate a config; returns it with the model config it names.
     pub fn read(path: &Path) -> Result<(TrainConfig, ModelConfig), TrainError> {
         let text = std::fs::read_to_string(path).map_err(|e| TrainError::io(path, e))?;
-        let cfg: TrainConfig = toml::from_str(&text).map_err(|e| TrainError::Config {
+        let mut cfg: TrainConfig = toml::from_str(&text).map_err(|e| TrainError::Config {
             path: path.into(),
             key: "(parse)".into(),
             what: e.to_string(),
         })?;
         cfg.validate(path)?;
+        cfg.resolve_init(path)?;
         let model_path = cfg.model_path(path);
         let model = ModelConfig::read(&model_path)?;
         if model.facing && cfg.loss.facing == 0.0 {
@@ -314,6 +347,26 @@ impl TrainConfig {
             });
         }
         Ok((cfg, model))
+    }
+
+    /// `[init]`'s files made absolute (relative ones are the config's directory's). Whether they exist
+    /// is asked when a new run loads them: a run resumed or scored does not read them.
+    fn resolve_init(&mut self, path: &Path) -> Result<(), TrainError> {
+        let dir = path.parent().unwrap_or(Path::new("."));
+        for (key, slot) in [
+            ("init.hrnet", &mut self.init.hrnet),
+            ("init.vit", &mut self.init.vit),
+        ] {
+            if let Some(file) = slot.as_deref() {
+                let abs = std::path::absolute(dir.join(file)).map_err(|e| TrainError::Config {
+                    path: path.into(),
+                    key: key.into(),
+                    what: format!("{file}: {e}"),
+                })?;
+                *slot = Some(abs.to_string_lossy().into_owned());
+            }
+        }
+        Ok(())
     }
 
     /// The model config's path for a config read from `path`.

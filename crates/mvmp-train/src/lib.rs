@@ -6,6 +6,7 @@ pub mod curves;
 pub mod decoder_fit;
 pub mod diagnostics;
 pub mod error;
+pub mod init;
 pub mod keypoints;
 pub mod pose_fit;
 pub mod probe;

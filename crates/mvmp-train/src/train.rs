@@ -563,6 +563,7 @@ impl<'a> Trainer<'a> {
         run.truncate_log(cursor.global)?;
         run.remove_stale_temporaries()?;
         if state.is_none() {
+            crate::init::load_init(&mut model, &cfg.init)?;
             model = start_at_data_mean(model, &data, &ad)?;
         }
         let trainer = Trainer {

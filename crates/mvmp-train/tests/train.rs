@@ -753,6 +753,84 @@ fn a_fresh_run_starts_its_decoder_at_the_training_mean() {
     assert!(moved > 0.5, "left shoulder 6D moved by {moved}");
 }
 
+/// `[init]`: a new run's HRNet and ViT start from the files it names (relative to its config), which
+/// must hold those modules whole and with the model's shapes.
+#[test]
+fn a_new_run_starts_from_pretrained_backbones() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = model_config();
+    let donor = mvmp_train::seeded_init(&model, &Device::flex(), 42);
+    let save = |m: &dyn Fn(&std::path::Path) -> Result<(), mvmp_io::IoError>, name: &str| {
+        m(&dir.path().join(name)).unwrap();
+    };
+    save(&|p| mvmp_io::checkpoint::save(&donor.hrnet, p), "hrnet.bpk");
+    save(&|p| mvmp_io::checkpoint::save(&donor.vit, p), "vit.bpk");
+    let mut fewer = model.clone();
+    fewer.heatmap_joints.truncate(5);
+    let other = fewer.init(&Device::flex());
+    save(
+        &|p| mvmp_io::checkpoint::save(&other.hrnet, p),
+        "hrnet5.bpk",
+    );
+    let with_init = |hrnet: &str| {
+        let hrnet = hrnet.to_string();
+        move |s: String| format!("{s}[init]\nhrnet = \"{hrnet}\"\nvit = \"vit.bpk\"\n")
+    };
+    let (run, cfg, m) = new_run(dir.path(), "init", &with_init("hrnet.bpk"));
+    assert_eq!(
+        cfg.init.hrnet.as_deref().map(Path::new),
+        Some(
+            std::path::absolute(dir.path().join("hrnet.bpk"))
+                .unwrap()
+                .as_path()
+        )
+    );
+    let Outcome::Interrupted { checkpoint, .. } =
+        mvmp_train::train(&run, &cfg, &m, &options(Some(1)), &mut Quiet).unwrap()
+    else {
+        panic!("expected a stop after one step");
+    };
+    let mut trained = mvmp_train::seeded_init(&model, &Device::flex(), 0);
+    load_weights(&mut trained, &checkpoint).unwrap();
+    let gap = |a: Vec<f32>, b: Vec<f32>| {
+        assert_eq!(a.len(), b.len());
+        a.iter()
+            .zip(&b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0f32, f32::max)
+    };
+    // Stage 1 leaves the ViT alone; one Adam step at 1e-3 moves each HRNet weight by about 1e-3.
+    assert_eq!(gap(weights(&trained.vit), weights(&donor.vit)), 0.0);
+    let moved = gap(kernels(&trained.hrnet), kernels(&donor.hrnet));
+    assert!(moved <= 1.5e-3, "HRNet kernels {moved} from the donor's");
+    let fresh = mvmp_train::seeded_init(&model, &Device::flex(), cfg.seed);
+    assert!(gap(kernels(&fresh.hrnet), kernels(&donor.hrnet)) > 0.05);
+
+    // Files that do not fit are refused naming the key and the file, before any step.
+    for (name, file, want) in [
+        (
+            "joints",
+            "hrnet5.bpk",
+            "do not fit the model's HRNet `tiny` with 17 heatmap joints",
+        ),
+        ("module", "vit.bpk", "are not in the file"),
+        ("absent", "none.bpk", "no such file"),
+    ] {
+        let (run, cfg, m) = new_run(dir.path(), name, &with_init(file));
+        let err = mvmp_train::train(&run, &cfg, &m, &options(Some(1)), &mut Quiet)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains(file) && err.contains("`init.hrnet`") && err.contains(want),
+            "{err}"
+        );
+        assert!(
+            run.state().unwrap().is_none(),
+            "{name}: a checkpoint was written"
+        );
+    }
+}
+
 #[test]
 fn a_diverging_run_stops_naming_the_term_and_the_step() {
     let dir = tempfile::tempdir().unwrap();
