@@ -58,10 +58,11 @@ fn load_module<M: burn::module::Module>(
     if !path.is_file() {
         return Err(bad("no such file".into()));
     }
-    // burn refuses tensors of other shapes outright; the report holds what else did not fit.
+    // burn refuses tensors of other shapes (and files that are not burnpacks) outright; the report holds
+    // what else did not fit.
     let r = checkpoint::load(module, path).map_err(|e| match e {
         mvmp_io::IoError::File { what: why, .. } => {
-            bad(format!("its tensors do not fit the model's {what} ({why})"))
+            bad(format!("cannot be loaded into the model's {what} ({why})"))
         }
         e => bad(e.to_string()),
     })?;

@@ -807,11 +807,17 @@ fn a_new_run_starts_from_pretrained_backbones() {
     assert!(gap(kernels(&fresh.hrnet), kernels(&donor.hrnet)) > 0.05);
 
     // Files that do not fit are refused naming the key and the file, before any step.
+    std::fs::write(dir.path().join("text.bpk"), "not weights").unwrap();
     for (name, file, want) in [
+        (
+            "garbage",
+            "text.bpk",
+            "cannot be loaded into the model's HRNet",
+        ),
         (
             "joints",
             "hrnet5.bpk",
-            "do not fit the model's HRNet `tiny` with 17 heatmap joints",
+            "cannot be loaded into the model's HRNet `tiny` with 17 heatmap joints",
         ),
         ("module", "vit.bpk", "are not in the file"),
         ("absent", "none.bpk", "no such file"),
