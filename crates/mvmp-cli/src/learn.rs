@@ -89,6 +89,9 @@ pub struct LearnArgs<'a> {
     /// Epochs of stage 1 and 2, fixed instead of sized from `minutes`: benchmarks on machines of other
     /// speeds then train the same steps and compare.
     pub epochs: Option<&'a [usize]>,
+    /// HRNet weights every variant starts from (`[init] hrnet`), as the paper's comparisons all start
+    /// from one pretrained backbone.
+    pub init_hrnet: Option<&'a Path>,
 }
 
 /// What a benchmark trains, fixed once it has measured its step times (`OUT/plan.json`): a stopped
@@ -110,6 +113,9 @@ struct Plan {
     /// they take at `step_seconds` (absent in plans of earlier versions: sized).
     #[serde(default)]
     fixed_epochs: bool,
+    /// The HRNet weights every variant starts from (absolute; absent: from scratch).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    init_hrnet: Option<String>,
 }
 
 const PLAN: &str = "plan.json";
@@ -293,6 +299,11 @@ fn plan_and_run(args: &LearnArgs, device: &Device) -> Result<()> {
     let cfg_dir = out.join("configs");
     std::fs::create_dir_all(&cfg_dir).with_context(|| format!("creating {}", cfg_dir.display()))?;
     write_demo_configs(&cfg_dir, args.scenes)?;
+    let (base_train, base_model) = TrainConfig::read(&cfg_dir.join("train.toml"))?;
+    let init_hrnet = args
+        .init_hrnet
+        .map(|f| checked_hrnet(f, &base_model))
+        .transpose()?;
     let data = out.join("data");
     eprintln!(
         "synthetic dataset ({} scenes) -> {}",
@@ -305,7 +316,6 @@ fn plan_and_run(args: &LearnArgs, device: &Device) -> Result<()> {
         .iter()
         .map(|&s| layout.scenes[s].index.frames.len())
         .sum::<usize>();
-    let (base_train, base_model) = TrainConfig::read(&cfg_dir.join("train.toml"))?;
     let step_s = calibrate(&base_train, &base_model, &data, device)?;
     let ([e1, e2], minutes) = match fixed {
         Some(e) => (e, schedule_minutes(e, train_frames, step_s)),
@@ -323,6 +333,7 @@ fn plan_and_run(args: &LearnArgs, device: &Device) -> Result<()> {
         epochs: [e1, e2],
         step_seconds: step_s,
         fixed_epochs: fixed.is_some(),
+        init_hrnet,
     };
     write_atomic(
         &out.join(PLAN),
@@ -354,6 +365,7 @@ fn run_plan(out: &Path, plan: &Plan, variants: &[&'static Variant], device: &Dev
             t.stage1.epochs = e1;
             t.stage2.epochs = e2;
             t.seed = seed;
+            t.init.hrnet = plan.init_hrnet.clone();
             (v.edit)(&mut t, &mut m);
             let run = label(v.name, seed, &plan.seeds);
             let dir = cfg_dir.join(&run);
@@ -382,6 +394,22 @@ fn run_plan(out: &Path, plan: &Plan, variants: &[&'static Variant], device: &Dev
         out.join("curves.png").display()
     );
     Ok(())
+}
+
+/// `--init-hrnet FILE` made absolute, once it has loaded into the benchmark's model: a file that does
+/// not fit is named before the set is made and the step times are measured.
+fn checked_hrnet(file: &Path, model: &ModelConfig) -> Result<String> {
+    let abs = std::path::absolute(file)
+        .with_context(|| format!("--init-hrnet {}", file.display()))?
+        .to_string_lossy()
+        .into_owned();
+    let init = mvmp_train::config::InitWeights {
+        hrnet: Some(abs.clone()),
+        vit: None,
+    };
+    mvmp_train::init::load_init(&mut model.init(&Device::flex()), &init)
+        .with_context(|| format!("--init-hrnet {}", file.display()))?;
+    Ok(abs)
 }
 
 /// This machine's seconds per step of each stage of the full model on the benchmark's set: the
@@ -593,7 +621,7 @@ fn verdict(each: &[Option<Option<bool>>]) -> &'static str {
 
 fn report(rows: &[Row], plan: &Plan) -> String {
     let (frames, [e1, e2], step_s) = (plan.train_frames, plan.epochs, plan.step_seconds);
-    let (command, sized) = if plan.fixed_epochs {
+    let (mut command, sized) = if plan.fixed_epochs {
         (
             format!("--epochs {e1},{e2}"),
             "given; the full model takes about",
@@ -604,9 +632,16 @@ fn report(rows: &[Row], plan: &Plan) -> String {
             "sized so that the full model takes about",
         )
     };
+    let start = match &plan.init_hrnet {
+        Some(f) => {
+            command += &format!(" --init-hrnet {f}");
+            format!("starts from the HRNet weights of {f} and ")
+        }
+        None => String::new(),
+    };
     let mut s = format!(
         "# Learning benchmark\n\n`mvmp bench learn {command} --scenes {}`: the tiny model on a synthetic set of {} \
-         one-frame scenes ({frames} for training, the rest held out). Every variant trains the same schedule, \
+         one-frame scenes ({frames} for training, the rest held out). Every variant {start}trains the same schedule, \
          {e1} + {e2} epochs ({sized} {:.1} minutes at the {:.3} and {:.3} s \
          per step of stage 1 and 2 measured on this machine; a variant is stopped at {:.1} minutes), then is \
          scored on the held-out scenes. Errors in mm.\n\n```text\n",
@@ -801,6 +836,7 @@ mod tests {
             epochs: [3, 3],
             step_seconds: [0.3, 0.55],
             fixed_epochs: true,
+            init_hrnet: None,
         };
         let far = [
             row("full", 0, Some(150.0)),
@@ -827,6 +863,20 @@ mod tests {
         let text = report(&rows, &plan);
         assert!(
             text.contains("the pelvis beats the head and the spine: not distinguished"),
+            "{text}"
+        );
+        // A benchmark from pretrained HRNet weights names them in its command and its schedule.
+        let plan = Plan {
+            init_hrnet: Some("/w/hrnet.bpk".into()),
+            ..plan
+        };
+        let text = report(&rows, &plan);
+        assert!(
+            text.contains("`mvmp bench learn --epochs 3,3 --init-hrnet /w/hrnet.bpk --scenes 864`"),
+            "{text}"
+        );
+        assert!(
+            text.contains("Every variant starts from the HRNet weights of /w/hrnet.bpk and trains"),
             "{text}"
         );
     }

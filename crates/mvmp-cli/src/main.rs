@@ -577,13 +577,17 @@ enum BenchCommand {
         /// the time they take at the step times measured here.
         #[arg(long, value_delimiter = ',', conflicts_with = "minutes")]
         epochs: Option<Vec<usize>>,
+        /// HRNet weights every variant starts from (`[init] hrnet` of its training config): the
+        /// model's `tiny` HRNet with 17 joints, as `mvmp model extract` or `mvmp import hrnet` write it.
+        #[arg(long)]
+        init_hrnet: Option<PathBuf>,
         #[arg(long, default_value = "out/learn")]
         out: PathBuf,
         /// Go on with the benchmark stopped in --out (by Ctrl-C or an error once its schedule was
         /// planned), or add to one that finished: runs scored stay, a stopped run resumes from its
         /// checkpoint, the rest train as planned; its minutes, scenes and seeds are the plan's. With
         /// --variants, those variants join the plan and train on its schedule.
-        #[arg(long, conflicts_with_all = ["minutes", "scenes", "seeds", "epochs"])]
+        #[arg(long, conflicts_with_all = ["minutes", "scenes", "seeds", "epochs", "init_hrnet"])]
         resume: bool,
     },
     /// Seconds per training step of each stage and their split (load, forward, backward, gradient
@@ -936,6 +940,7 @@ fn bench_command(cmd: BenchCommand, device: &Device, host: bool) -> anyhow::Resu
             variants,
             seeds,
             epochs,
+            init_hrnet,
             out,
             resume: false,
         } => learn::bench_learn(
@@ -946,6 +951,7 @@ fn bench_command(cmd: BenchCommand, device: &Device, host: bool) -> anyhow::Resu
                 variants: variants.as_deref(),
                 seeds: &seeds,
                 epochs: epochs.as_deref(),
+                init_hrnet: init_hrnet.as_deref(),
             },
             device,
         ),

@@ -1627,6 +1627,49 @@ fn the_learning_benchmark_trains_a_given_schedule() {
     let o = mvmp(&["bench", "learn", "--epochs", "1,1", "--minutes", "3"]);
     assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
     assert!(stderr(&o).contains("--minutes"), "{}", stderr(&o));
+    learning_from_a_pretrained_hrnet(dir.path(), &out.join("runs/full"));
+}
+
+/// `--init-hrnet`: every variant starts from the HRNet weights given (here the benchmark run's own,
+/// extracted); a file that does not fit is named before anything is made.
+fn learning_from_a_pretrained_hrnet(dir: &Path, run: &Path) {
+    let file = |name: &str| dir.join(name).to_string_lossy().into_owned();
+    for (module, out) in [("hrnet", file("hrnet.bpk")), ("vit", file("vit.bpk"))] {
+        let run = run.to_str().unwrap();
+        let o = mvmp(&[
+            "model", "extract", "--run", run, "--module", module, "--out", &out,
+        ]);
+        assert!(o.status.success(), "{}", stderr(&o));
+    }
+    let out = dir.join("learn-init");
+    let args = |init: &str| {
+        let (out, init) = (out.to_str().unwrap().to_string(), init.to_string());
+        let fixed = ["bench", "learn", "--epochs", "1,1", "--scenes", "3"];
+        let given = ["--variants", "full", "--init-hrnet", &init, "--out", &out];
+        mvmp(&[&fixed[..], &given[..]].concat())
+    };
+    let o = args(&file("vit.bpk"));
+    assert!(!o.status.success());
+    assert!(
+        stderr(&o).contains("--init-hrnet") && stderr(&o).contains("vit.bpk"),
+        "{}",
+        stderr(&o)
+    );
+    assert!(!out.exists(), "{}", stderr(&o));
+    let o = args(&file("hrnet.bpk"));
+    assert!(o.status.success(), "{}", stderr(&o));
+    let plan = std::fs::read_to_string(out.join("plan.json")).unwrap();
+    assert!(plan.contains(&file("hrnet.bpk")), "{plan}");
+    let train = std::fs::read_to_string(out.join("configs/full/train.toml")).unwrap();
+    assert!(
+        train.contains("[init]") && train.contains(&file("hrnet.bpk")),
+        "{train}"
+    );
+    let report = std::fs::read_to_string(out.join("learning.md")).unwrap();
+    assert!(
+        report.contains(&format!("--init-hrnet {}", file("hrnet.bpk"))),
+        "{report}"
+    );
 }
 
 /// A benchmark stopped with runs scored, one trained but not scored and one not begun (as an
