@@ -21,26 +21,27 @@ pub struct Loaded {
 /// file, with the module's shapes: a file of another variant, joint count or module is refused, naming
 /// the key, the file and the first tensor that did not fit.
 pub fn load_init(model: &mut MvmpHmr, init: &InitWeights) -> Result<Vec<Loaded>, TrainError> {
-    let cfg = model.config.clone();
+    let cfg = &model.config;
+    let hrnet = format!(
+        "HRNet `{}` with {} heatmap joints",
+        cfg.hrnet,
+        cfg.heatmap_joints.len()
+    );
+    let vit = format!("ViT `{}`", cfg.backbone);
     let mut loaded = Vec::new();
-    for (key, file) in init.files() {
-        let tensors = match key {
-            "init.hrnet" => {
-                let what = format!(
-                    "HRNet `{}` with {} heatmap joints",
-                    cfg.hrnet,
-                    cfg.heatmap_joints.len()
-                );
-                load_module(&mut model.hrnet, Path::new(file), key, &what)?
-            }
-            _ => {
-                let what = format!("ViT `{}`", cfg.backbone);
-                load_module(&mut model.vit, Path::new(file), key, &what)?
-            }
-        };
+    if let Some(file) = &init.hrnet {
+        let tensors = load_module(&mut model.hrnet, Path::new(file), "init.hrnet", &hrnet)?;
         loaded.push(Loaded {
-            key,
-            file: file.to_string(),
+            key: "init.hrnet",
+            file: file.clone(),
+            tensors,
+        });
+    }
+    if let Some(file) = &init.vit {
+        let tensors = load_module(&mut model.vit, Path::new(file), "init.vit", &vit)?;
+        loaded.push(Loaded {
+            key: "init.vit",
+            file: file.clone(),
             tensors,
         });
     }
