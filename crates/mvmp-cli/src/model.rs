@@ -21,9 +21,10 @@ const FLEX_GEMM_GFLOPS: f64 = 161.0;
 
 /// `mvmp model extract`: the run's HRNet (`hrnet`) or ViT weights alone, as `[init]` reads them.
 pub fn extract(run: &Path, hrnet: bool, out: &Path) -> Result<()> {
+    // The config first: it says when `run` is not a run directory at all.
+    let cfg = mvmp_infer::run_files::model_config(run)?;
     let weights = mvmp_infer::run_files::weights(run)?;
     crate::paths::not_over_input("--out", out, run)?;
-    let cfg = mvmp_infer::run_files::model_config(run)?;
     let mut model = cfg.init(&Device::flex());
     mvmp_infer::load_weights(&mut model, &weights)?;
     let what = match hrnet {

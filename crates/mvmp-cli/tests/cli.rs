@@ -953,6 +953,19 @@ fn train_eval_infer_end_to_end() {
         ],
         &["--out", "would overwrite the input"],
     );
+    expect_error(
+        &[
+            "model",
+            "extract",
+            "--run",
+            &ds,
+            "--module",
+            "vit",
+            "--out",
+            &p("x.bpk"),
+        ],
+        &["not a run directory"],
+    );
     let init_run = |hrnet: &str, out: &str| {
         let base = std::fs::read_to_string(p("train.toml")).unwrap();
         let text = format!("{base}[init]\nhrnet = \"{hrnet}\"\nvit = \"vit.bpk\"\n");
