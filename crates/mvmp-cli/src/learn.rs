@@ -227,11 +227,13 @@ pub fn bench_learn(args: &LearnArgs, device: &Device) -> Result<()> {
         }
         match crate::interrupt::clear(out, existed) {
             Ok(()) => anyhow::anyhow!(
-                "{err:#} (what was written under {} was removed)",
+                "{} (what was written under {} was removed)",
+                crate::report::message(&err),
                 out.display()
             ),
             Err(e) => anyhow::anyhow!(
-                "{err:#} (removing what was written under {} failed too: {e})",
+                "{} (removing what was written under {} failed too: {e})",
+                crate::report::message(&err),
                 out.display()
             ),
         }
@@ -280,8 +282,9 @@ fn with_added(planned: &[&'static Variant], more: &[&'static Variant]) -> Vec<&'
 /// `err` of a benchmark whose plan is made: what is done stays to go on from.
 fn kept(out: &Path, err: anyhow::Error) -> anyhow::Error {
     anyhow::anyhow!(
-        "{err:#} (the runs done and the checkpoints of the one stopped stay under {}; `mvmp bench \
+        "{} (the runs done and the checkpoints of the one stopped stay under {}; `mvmp bench \
          learn --resume --out {}` goes on)",
+        crate::report::message(&err),
         out.display(),
         out.display()
     )

@@ -26,6 +26,7 @@ mod model;
 mod paths;
 mod probe;
 mod progress;
+mod report;
 mod run;
 mod train;
 mod training_memory;
@@ -678,15 +679,7 @@ fn main() -> ExitCode {
             None => ExitCode::SUCCESS,
         },
         Err(e) => {
-            // Library errors often spell out their cause already; print each cause once.
-            let mut msg = e.to_string();
-            for cause in e.chain().skip(1) {
-                let c = cause.to_string();
-                if !msg.contains(&c) {
-                    msg = format!("{msg}: {c}");
-                }
-            }
-            eprintln!("error: {msg}");
+            eprintln!("error: {}", report::message(&e));
             // The demo stops with an error when a signal stopped its training.
             interrupt::received().map_or(ExitCode::FAILURE, |s| ExitCode::from(128 + s))
         }

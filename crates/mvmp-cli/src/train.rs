@@ -117,11 +117,13 @@ fn discard_unstarted(run: &RunDir, fresh: bool, err: anyhow::Error) -> anyhow::E
     }
     match std::fs::remove_dir_all(&run.root) {
         Ok(()) => anyhow::anyhow!(
-            "{err:#} (no checkpoint was written: the run directory {} was removed)",
+            "{} (no checkpoint was written: the run directory {} was removed)",
+            crate::report::message(&err),
             run.root.display()
         ),
         Err(e) => anyhow::anyhow!(
-            "{err:#} (no checkpoint was written; removing the run directory {} failed too: {e})",
+            "{} (no checkpoint was written; removing the run directory {} failed too: {e})",
+            crate::report::message(&err),
             run.root.display()
         ),
     }

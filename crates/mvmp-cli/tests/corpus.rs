@@ -439,6 +439,8 @@ fn no_malformed_input_gets_through() {
                 ("decoder.dim", "1073741824"),
                 ("decoder.depth", "100000000"),
                 ("decoder.ffn_ratio", "100000000"),
+                // A factor that divides none of the grid's sides would pool nothing, silently.
+                ("decoder.pool", "3"),
                 ("decoder.height_features", "1000000000"),
             ],
             &model_cmd,

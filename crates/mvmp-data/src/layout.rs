@@ -482,5 +482,28 @@ pub fn load_body_model(reference: &str, base: &Path) -> Result<mvmp_smplx::BodyM
         return Ok(mvmp_smplx::standin_model(seed));
     }
     let p = base.join(reference);
+    if !p.exists() {
+        return Err(DataError::file(
+            p,
+            "no such file (the body model that key `body_model` names)",
+        ));
+    }
     Ok(mvmp_smplx::BodyModel::load(&p)?)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::load_body_model;
+
+    #[test]
+    fn a_missing_body_model_is_named_with_its_key() {
+        let base = std::env::temp_dir().join("mvmp-no-such-dir");
+        let err = load_body_model("SMPLX_NEUTRAL.npz", &base)
+            .expect_err("a missing file is refused")
+            .to_string();
+        assert!(err.contains("SMPLX_NEUTRAL.npz"), "{err}");
+        assert!(err.contains("`body_model`"), "{err}");
+        let err = load_body_model("standin:x", &base).expect_err("refused");
+        assert!(err.to_string().contains("standin:x"), "{err}");
+    }
 }

@@ -417,6 +417,16 @@ impl ModelConfig {
         if d.pool == 0 {
             return Err(("decoder.pool", "must be at least 1".into()));
         }
+        // An axis the factor does not divide stays unpooled; one that divides none pools nothing.
+        if d.pool > 1 && !self.grid.shape.iter().any(|s| s.is_multiple_of(d.pool)) {
+            return Err((
+                "decoder.pool",
+                format!(
+                    "{}: divides none of the grid's sides {:?}, so nothing would be pooled",
+                    d.pool, self.grid.shape
+                ),
+            ));
+        }
         if !(1..=MAX_FFN_RATIO).contains(&d.ffn_ratio) {
             return Err((
                 "decoder.ffn_ratio",
