@@ -299,6 +299,32 @@ fn mixed() -> QueryMode {
 }
 
 impl TrainConfig {
+    /// Whether stage 1 of a run of `self` trains as one of `other` does, step for step: the two differ
+    /// at most in `[stage2]`, in `keep_checkpoints` and in the loss settings stage 1 does not read
+    /// (`step::stage1_loss` reads the detection, 2D heatmap, ViT heatmap and facing terms). A run of
+    /// `self` may then go on from `other`'s stage-1 weights ([`crate::RunDir::branch`]).
+    pub fn same_stage1(&self, other: &TrainConfig) -> bool {
+        let mut a = self.clone();
+        a.stage2 = other.stage2.clone();
+        a.keep_checkpoints = other.keep_checkpoints;
+        let (l, o) = (&mut a.loss, &other.loss);
+        l.parameters = o.parameters;
+        l.mesh_3d = o.mesh_3d;
+        l.mesh_2d = o.mesh_2d;
+        l.orientation = o.orientation;
+        l.density = o.density;
+        l.density_sigma = o.density_sigma;
+        l.density_grid = o.density_grid;
+        l.density_extent = o.density_extent;
+        l.parameters_body_l2 = o.parameters_body_l2;
+        l.joint_offsets = o.joint_offsets;
+        l.heatmap_2d_stage2 = o.heatmap_2d_stage2;
+        l.mesh_frame = o.mesh_frame;
+        l.translation = o.translation;
+        l.mesh_pose = o.mesh_pose;
+        a == *other
+    }
+
     /// Read and validate a config; returns it with the model config it names.
     pub fn read(path: &Path) -> Result<(TrainConfig, ModelConfig), TrainError> {
         let text = std::fs::read_to_string(path).map_err(|e| TrainError::io(path, e))?;

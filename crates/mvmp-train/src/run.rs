@@ -114,6 +114,73 @@ impl RunDir {
         Ok(run)
     }
 
+    /// A new run of `cfg` and `model` at `root` that goes on from where `from` stands in stage 1: its
+    /// configs, with `from`'s state, the files that state names and the log up to it. Stage 1 of the
+    /// two must train alike ([`TrainConfig::same_stage1`], the same model config), and `from` must not
+    /// have begun stage 2; then resuming the new run trains as a new run of `cfg` would, without
+    /// training stage 1 again (the learning benchmark's loss ablations share the full model's).
+    pub fn branch(
+        from: &RunDir,
+        root: &Path,
+        cfg: &TrainConfig,
+        model: &ModelConfig,
+    ) -> Result<RunDir, TrainError> {
+        let (_, from_cfg, from_model) = RunDir::open(&from.root)?;
+        if *model != from_model {
+            return Err(TrainError::file(
+                from.model_config_path(),
+                "is not the model of the run to branch (a run goes on from weights of its own model)",
+            ));
+        }
+        let state = from.state()?.filter(|s| s.stage == Stage::Detection);
+        let Some(state) = state.filter(|s| !s.finished) else {
+            return Err(TrainError::file(
+                &from.root,
+                "has no stage-1 checkpoint to go on from (it has not started, or is past stage 1)",
+            ));
+        };
+        let data = from_cfg.data.as_deref().map(Path::new);
+        let run = RunDir::create(root, cfg, model, data)?;
+        let (_, resolved, _) = RunDir::open(root)?;
+        if !resolved.same_stage1(&from_cfg) {
+            let _ = std::fs::remove_dir_all(root);
+            return Err(TrainError::file(
+                root,
+                format!(
+                    "its stage 1 would not train as that of {} (configs differ beyond stage 2)",
+                    from.root.display()
+                ),
+            ));
+        }
+        let copied = run.copy_state_of(from, &state);
+        if copied.is_err() {
+            let _ = std::fs::remove_dir_all(root);
+        }
+        copied.map(|()| run)
+    }
+
+    /// `state` of `from` and what it names, with `from`'s model config as written (the same config,
+    /// so that the state's hash of it holds).
+    fn copy_state_of(&self, from: &RunDir, state: &RunState) -> Result<(), TrainError> {
+        let src = from.model_config_path();
+        std::fs::copy(&src, self.model_config_path()).map_err(|e| TrainError::io(&src, e))?;
+        let named = [Some(&state.checkpoint), state.optimizer.as_ref()];
+        for file in named.into_iter().chain([state.average.as_ref()]).flatten() {
+            let (src, dst) = (from.root.join(file), self.root.join(file));
+            if let Some(dir) = dst.parent() {
+                std::fs::create_dir_all(dir).map_err(|e| TrainError::io(dir, e))?;
+            }
+            std::fs::copy(&src, &dst).map_err(|e| TrainError::io(&src, e))?;
+        }
+        let log = from.metrics_path();
+        if log.exists() {
+            std::fs::copy(&log, self.metrics_path()).map_err(|e| TrainError::io(&log, e))?;
+            self.truncate_log(state.global_step)?;
+        }
+        self.check_model_unchanged(state)?;
+        self.write_state(state)
+    }
+
     /// Open an existing run: its resolved configs.
     pub fn open(root: &Path) -> Result<(RunDir, TrainConfig, ModelConfig), TrainError> {
         mvmp_infer::run_files::check_run_dir(root)?;

@@ -401,21 +401,7 @@ fn an_interrupted_run_resumes_to_the_same_weights_and_log() {
     let out = mvmp_train::train(&run_b, &cfg_b, &model_b, &options(None), &mut Quiet).unwrap();
     assert_eq!(out, Outcome::Finished);
     // The logs agree step for step (losses of the same batches with the same weights).
-    let steps = |r: &RunDir| -> Vec<(u64, f64)> {
-        std::fs::read_to_string(r.metrics_path())
-            .unwrap()
-            .lines()
-            .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
-            .filter(|v| v["kind"] == "step")
-            .map(|v| {
-                (
-                    v["global_step"].as_u64().unwrap(),
-                    v["total"].as_f64().unwrap(),
-                )
-            })
-            .collect()
-    };
-    let (la, lb) = (steps(&run_a), steps(&run_b));
+    let (la, lb) = (step_totals(&run_a), step_totals(&run_b));
     assert_eq!(la.len(), 8);
     assert_eq!(
         la.iter().map(|x| x.0).collect::<Vec<_>>(),
@@ -488,6 +474,82 @@ fn an_interrupted_run_resumes_to_the_same_weights_and_log() {
             .count(),
         n
     );
+}
+
+/// The step lines' totals of a run's log, by global step.
+fn step_totals(r: &RunDir) -> Vec<(u64, f64)> {
+    std::fs::read_to_string(r.metrics_path())
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+        .filter(|v| v["kind"] == "step")
+        .map(|v| {
+            (
+                v["global_step"].as_u64().unwrap(),
+                v["total"].as_f64().unwrap(),
+            )
+        })
+        .collect()
+}
+
+/// A run branched from another's stage 1 trains as a run of its own config does, and only a config
+/// whose stage 1 trains alike may branch.
+#[test]
+fn a_branched_run_goes_on_from_another_runs_stage_one() {
+    let dir = tempfile::tempdir().unwrap();
+    // Loss terms stage 1 does not read.
+    let ablated = |s: String| s + "[loss]\norientation = 0.0\ndensity = 0.0\n";
+    let (own, cfg, model) = new_run(dir.path(), "own", &ablated);
+    let out = mvmp_train::train(&own, &cfg, &model, &options(None), &mut Quiet).unwrap();
+    assert_eq!(out, Outcome::Finished);
+    let (donor, donor_cfg, _) = new_run(dir.path(), "donor", &|s| s);
+    assert!(cfg.same_stage1(&donor_cfg) && donor_cfg.same_stage1(&cfg));
+    assert_ne!(cfg, donor_cfg);
+    // Stopped at the end of stage 1 (4 frames, one epoch).
+    let out = mvmp_train::train(&donor, &donor_cfg, &model, &options(Some(4)), &mut Quiet);
+    assert!(
+        matches!(out, Ok(Outcome::Interrupted { global_step: 4, .. })),
+        "{out:?}"
+    );
+    let root = dir.path().join("branched");
+    let branched = RunDir::branch(&donor, &root, &cfg, &model).unwrap();
+    let (branched, bcfg, bmodel) = RunDir::open(&branched.root).unwrap();
+    assert_eq!((bcfg.loss.orientation, bcfg.loss.density), (0.0, 0.0));
+    let out = mvmp_train::train(&branched, &bcfg, &bmodel, &options(None), &mut Quiet).unwrap();
+    assert_eq!(out, Outcome::Finished);
+    let (a, b) = (step_totals(&own), step_totals(&branched));
+    assert_eq!(a.len(), 8);
+    assert_eq!(
+        a.iter().map(|x| x.0).collect::<Vec<_>>(),
+        b.iter().map(|x| x.0).collect::<Vec<_>>()
+    );
+    for (x, y) in a.iter().zip(&b) {
+        assert!(
+            (x.1 - y.1).abs() <= 1e-5 * x.1.abs().max(1.0),
+            "{x:?} vs {y:?}"
+        );
+    }
+    let gap = weight_gap(&own, &branched, &model);
+    assert!(gap <= 1e-6, "branched weights differ by up to {gap}");
+
+    // Refused, leaving nothing: a stage 1 of its own, a run past stage 1, another model.
+    let mut other = cfg.clone();
+    other.stage1.lr *= 2.0;
+    assert!(!other.same_stage1(&donor_cfg));
+    let mut other_model = model.clone();
+    other_model.decoder.dim = 64;
+    for (from, cfg, model, what) in [
+        (&donor, &other, &model, "its stage 1 would not train as"),
+        (&own, &cfg, &model, "has no stage-1 checkpoint"),
+        (&donor, &cfg, &other_model, "is not the model of the run"),
+    ] {
+        let to = dir.path().join("refused");
+        let e = RunDir::branch(from, &to, cfg, model)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains(what), "{e}");
+        assert!(!to.exists(), "{e}");
+    }
 }
 
 /// `epoch_frames` shorter than the set: every epoch has that many steps, each validated, and a run
