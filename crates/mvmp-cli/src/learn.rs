@@ -123,6 +123,8 @@ const PLAN: &str = "plan.json";
 const SCORED: &str = "bench.json";
 /// Minutes a run trained before the benchmark was stopped (`runs/RUN/bench-minutes.json`).
 const PARTIAL: &str = "bench-minutes.json";
+/// The run whose stage 1 a run went on from (`runs/RUN/bench-stage1.json`).
+const SHARED: &str = "bench-stage1.json";
 
 /// A trained and scored run, as `runs/RUN/bench.json` keeps it.
 #[derive(serde::Serialize, serde::Deserialize)]
@@ -133,6 +135,9 @@ struct Scored {
     /// Whether the run trained its whole schedule (absent in runs scored by earlier versions).
     #[serde(default)]
     finished: Option<bool>,
+    /// The run whose stage 1 it went on from (absent: its own).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    stage1_from: Option<String>,
 }
 
 /// The name of one variant's run with one seed: the variant's own when the benchmark runs one seed.
@@ -204,6 +209,8 @@ struct Row {
     minutes: f64,
     /// Whether the run trained its whole schedule; `Some(false)`: the time guard stopped it.
     finished: Option<bool>,
+    /// The run whose stage 1 it went on from.
+    stage1_from: Option<String>,
 }
 
 pub fn bench_learn(args: &LearnArgs, device: &Device) -> Result<()> {
@@ -360,8 +367,7 @@ fn run_plan(out: &Path, plan: &Plan, variants: &[&'static Variant], device: &Dev
         plan.step_seconds[1],
         plan.minutes * TIME_GUARD
     );
-    let mut rows = Vec::new();
-    let mut curves = Vec::new();
+    let mut planned: Vec<Planned> = Vec::new();
     for v in variants {
         for &seed in &plan.seeds {
             let (mut t, mut m) = (base_train.clone(), base_model.clone());
@@ -376,10 +382,33 @@ fn run_plan(out: &Path, plan: &Plan, variants: &[&'static Variant], device: &Dev
             write_atomic(&dir.join("model.toml"), toml::to_string(&m)?.as_bytes())?;
             t.model = "model.toml".into();
             write_atomic(&dir.join("train.toml"), toml::to_string(&t)?.as_bytes())?;
-            rows.push(train_and_score(v.name, seed, &run, out, plan, device)?);
-            let log = std::fs::read_to_string(out.join("runs").join(&run).join("metrics.jsonl"))?;
-            curves.push((run, Curves::from_log(&log)));
+            // The first run planned is the one of its group that trains stage 1.
+            let donor = planned
+                .iter()
+                .position(|p| p.model == m && t.same_stage1(&p.train));
+            planned.push(Planned {
+                name: v.name,
+                seed,
+                run,
+                train: t,
+                model: m,
+                donor,
+            });
         }
+    }
+    let mut rows = Vec::new();
+    let mut curves = Vec::new();
+    for (i, p) in planned.iter().enumerate() {
+        let share = match p.donor {
+            Some(d) => Share::Takes(&planned[d].run),
+            None if planned.iter().any(|q| q.donor == Some(i)) => Share::Gives,
+            None => Share::Alone,
+        };
+        rows.push(train_and_score(
+            p.name, p.seed, &p.run, out, plan, share, device,
+        )?);
+        let log = std::fs::read_to_string(out.join("runs").join(&p.run).join("metrics.jsonl"))?;
+        curves.push((p.run.clone(), Curves::from_log(&log)));
     }
     let picture = Curves::compare(
         &curves,
@@ -439,19 +468,44 @@ fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T> {
     serde_json::from_str(&text).with_context(|| format!("{}: malformed", path.display()))
 }
 
+/// One run the benchmark trains: its variant, seed, name and configs, and the earlier run whose stage 1
+/// it shares (its configs train stage 1 alike: [`TrainConfig::same_stage1`]).
+struct Planned {
+    name: &'static str,
+    seed: u64,
+    run: String,
+    train: TrainConfig,
+    model: ModelConfig,
+    donor: Option<usize>,
+}
+
+/// A run's part in sharing stage 1: it trains its own and none take it, it trains its own and others
+/// take it (`OUT/stage1/RUN` keeps it at its end), or it takes another run's.
+#[derive(Debug, Clone, Copy)]
+enum Share<'a> {
+    Alone,
+    Gives,
+    Takes(&'a str),
+}
+
+/// Runs at the end of stage 1 (`OUT/stage1/RUN`), for the runs that share it to branch from.
+const STAGE1: &str = "stage1";
+
 /// Train one variant on the benchmark's schedule (at most [`TIME_GUARD`] times the time given), then
 /// score it on the held-out scenes. A run scored before is read back; a run stopped before resumes
 /// from its checkpoint (a run directory without one starts again). Its configs are `OUT/configs/RUN`.
+/// A run that takes another's stage 1 starts from that run's copy at the end of it, its minutes
+/// counted in; one whose stage 1 others take makes that copy on the way.
 fn train_and_score(
     name: &'static str,
     seed: u64,
     run: &str,
     out: &Path,
     plan: &Plan,
+    share: Share,
     device: &Device,
 ) -> Result<Row> {
-    let (run_dir, data) = (out.join("runs").join(run), out.join("data"));
-    let data = data.as_path();
+    let run_dir = out.join("runs").join(run);
     let row = |s: Scored| Row {
         name,
         seed,
@@ -460,16 +514,64 @@ fn train_and_score(
         steps: s.steps,
         minutes: s.minutes,
         finished: s.finished,
+        stage1_from: s.stage1_from,
     };
     if run_dir.join(SCORED).exists() {
         eprintln!("[{run}] trained and scored before");
         return Ok(row(read_json(&run_dir.join(SCORED))?));
     }
-    let resumed = run_dir.join("state.json").exists();
-    if run_dir.exists() && !resumed {
+    if run_dir.exists() && !run_dir.join("state.json").exists() {
         std::fs::remove_dir_all(&run_dir)
             .with_context(|| format!("removing {} (no checkpoint)", run_dir.display()))?;
     }
+    let stage1_from = match share {
+        Share::Takes(donor) => take_stage1(out, donor, run)?,
+        _ => None,
+    };
+    if let Share::Gives = share {
+        give_stage1(out, run, plan, device)?;
+    }
+    let minutes = train_for(out, run, plan, None, device)?;
+    let (opened, _, _) = mvmp_train::RunDir::open(&run_dir)?;
+    let state = opened.state()?;
+    let steps = state.as_ref().map_or(0, |s| s.global_step);
+    let finished = state.is_some_and(|s| s.finished);
+    if !finished {
+        eprintln!(
+            "[{run}] stopped by the time guard after {steps} steps, short of its schedule: it is scored, \
+             and the report leaves it out of the comparisons"
+        );
+    }
+    let report = run_dir.join("eval-test.json");
+    let data = out.join("data");
+    let eval_args = EvalArgs::held_out(Source::Run(&run_dir), &data, &report);
+    let (metrics, _) = eval(&eval_args, device, true)?;
+    let scored = Scored {
+        steps,
+        minutes,
+        metrics,
+        finished: Some(finished),
+        stage1_from,
+    };
+    write_atomic(
+        &run_dir.join(SCORED),
+        serde_json::to_string_pretty(&scored)?.as_bytes(),
+    )?;
+    Ok(row(scored))
+}
+
+/// Train `run` (a new run from its configs, or on from its checkpoint) until its schedule ends, the
+/// time guard stops it (the minutes it trained before count: `runs/RUN/bench-minutes.json`) or it has
+/// trained `steps` steps in all. Returns the minutes it has trained in all.
+fn train_for(
+    out: &Path,
+    run: &str,
+    plan: &Plan,
+    steps: Option<u64>,
+    device: &Device,
+) -> Result<f64> {
+    let (run_dir, data) = (out.join("runs").join(run), out.join("data"));
+    let resumed = run_dir.join("state.json").exists();
     let before: f64 = match run_dir.join(PARTIAL).exists() {
         true => read_json(&run_dir.join(PARTIAL))?,
         false => 0.0,
@@ -480,10 +582,10 @@ fn train_and_score(
     crate::train::train(
         crate::train::TrainArgs {
             config: (!resumed).then_some(config.as_path()),
-            data: (!resumed).then_some(data),
+            data: (!resumed).then_some(data.as_path()),
             out: Some(&run_dir),
             resume: resumed.then_some(run_dir.as_path()),
-            stop_after_steps: None,
+            stop_after_steps: steps,
             stop_after_minutes: Some((plan.minutes * TIME_GUARD - before).max(0.0)),
             resumable: false,
         },
@@ -496,30 +598,73 @@ fn train_and_score(
     if let Some(signal) = crate::interrupt::received() {
         bail!("[{run}] stopped by signal {signal} after {minutes:.1} minutes of training");
     }
-    let (opened, _, _) = mvmp_train::RunDir::open(&run_dir)?;
-    let state = opened.state()?;
-    let steps = state.as_ref().map_or(0, |s| s.global_step);
-    let finished = state.is_some_and(|s| s.finished);
-    if !finished {
-        eprintln!(
-            "[{run}] stopped by the time guard after {steps} steps, short of its schedule: it is scored, \
-             and the report leaves it out of the comparisons"
-        );
+    Ok(minutes)
+}
+
+/// Train `run` to the end of stage 1 and keep a copy of it there (`OUT/stage1/RUN`, with the minutes
+/// it took) for the runs that share its stage 1; nothing when the copy exists or the run is past it.
+fn give_stage1(out: &Path, run: &str, plan: &Plan, device: &Device) -> Result<()> {
+    let (run_dir, kept) = (out.join("runs").join(run), out.join(STAGE1).join(run));
+    // The minutes are written last: a copy without them is unfinished.
+    if kept.join(PARTIAL).exists() {
+        return Ok(());
     }
-    let report = run_dir.join("eval-test.json");
-    let eval_args = EvalArgs::held_out(Source::Run(&run_dir), data, &report);
-    let (metrics, _) = eval(&eval_args, device, true)?;
-    let scored = Scored {
-        steps,
-        minutes,
-        metrics,
-        finished: Some(finished),
+    let (train, model) = TrainConfig::read(&out.join("configs").join(run).join("train.toml"))?;
+    let steps = (plan.epochs[0] * plan.train_frames.div_ceil(train.batch_size)) as u64;
+    let at = |dir: &Path| -> Result<Option<mvmp_train::RunState>> {
+        match dir.join("state.json").exists() {
+            true => Ok(mvmp_train::RunDir::open(dir)?.0.state()?),
+            false => Ok(None),
+        }
     };
+    if at(&run_dir)?
+        .is_some_and(|s| s.global_step > steps || s.stage != mvmp_train::Stage::Detection)
+    {
+        return Ok(());
+    }
+    let minutes = train_for(out, run, plan, Some(steps), device)?;
+    if !at(&run_dir)?.is_some_and(|s| s.stage == mvmp_train::Stage::Detection && !s.finished) {
+        return Ok(());
+    }
+    if kept.exists() {
+        std::fs::remove_dir_all(&kept)
+            .with_context(|| format!("removing {} (unfinished)", kept.display()))?;
+    }
+    let from = mvmp_train::RunDir { root: run_dir };
+    let copy = mvmp_train::RunDir::branch(&from, &kept, &train, &model)?;
+    write_atomic(&copy.root.join(PARTIAL), minutes.to_string().as_bytes())?;
+    eprintln!(
+        "[{run}] stage 1 kept for the runs that share it -> {}",
+        kept.display()
+    );
+    Ok(())
+}
+
+/// Start the new run `run` from `donor`'s copy at the end of its stage 1, with the minutes that took;
+/// returns the donor's name. Nothing (the run trains its own stage 1) when the run has begun or the
+/// donor kept no copy (its time guard stopped it first).
+fn take_stage1(out: &Path, donor: &str, run: &str) -> Result<Option<String>> {
+    let (run_dir, kept) = (out.join("runs").join(run), out.join(STAGE1).join(donor));
+    if run_dir.exists() {
+        return Ok(read_json::<Option<String>>(&run_dir.join(SHARED))
+            .ok()
+            .flatten());
+    }
+    if !kept.join(PARTIAL).exists() {
+        eprintln!("[{run}] {donor} kept no stage 1 to share: training its own");
+        return Ok(None);
+    }
+    let (train, model) = TrainConfig::read(&out.join("configs").join(run).join("train.toml"))?;
+    let from = mvmp_train::RunDir { root: kept.clone() };
+    mvmp_train::RunDir::branch(&from, &run_dir, &train, &model)?;
+    std::fs::copy(kept.join(PARTIAL), run_dir.join(PARTIAL))
+        .with_context(|| format!("copying {}", kept.join(PARTIAL).display()))?;
     write_atomic(
-        &run_dir.join(SCORED),
-        serde_json::to_string_pretty(&scored)?.as_bytes(),
+        &run_dir.join(SHARED),
+        serde_json::to_string(&Some(donor))?.as_bytes(),
     )?;
-    Ok(row(scored))
+    eprintln!("[{run}] stage 1 from {donor} (its configs train stage 1 alike)");
+    Ok(Some(donor.to_string()))
 }
 
 /// MPJPE differences smaller than this are called noise: one run per variant, and on the demo three
@@ -667,17 +812,26 @@ fn report(rows: &[Row], plan: &Plan) -> String {
         );
         s += &seed_summary(rows);
     }
-    s += "```\n\n| variant | seed | steps | minutes | schedule |\n|---|---|---|---|---|\n";
+    s += "```\n\n| variant | seed | steps | minutes | schedule | stage 1 |\n|---|---|---|---|---|---|\n";
     for r in rows {
         let schedule = match r.finished {
             Some(true) => "trained",
             Some(false) => "stopped by the time guard",
             None => "not recorded",
         };
+        let stage1 = match &r.stage1_from {
+            Some(run) => format!("{run}'s"),
+            None => "its own".into(),
+        };
         s += &format!(
-            "| {} | {} | {} | {:.1} | {schedule} |\n",
+            "| {} | {} | {} | {:.1} | {schedule} | {stage1} |\n",
             r.name, r.seed, r.steps, r.minutes
         );
+    }
+    if rows.iter().any(|r| r.stage1_from.is_some()) {
+        s += "\nA run whose configs train stage 1 as an earlier run's do (the loss terms it leaves out are \
+              stage 2's) goes on from that run's weights at the end of stage 1 instead of training it \
+              again; its minutes count that run's stage 1.\n";
     }
     s += &format!(
         "\nThe paper's directions (MPJPE, the mean over seeds; differences within {NOISE_MM} mm are noise):\n\n"
@@ -740,6 +894,7 @@ mod tests {
             steps: 10,
             minutes: 1.0,
             finished: Some(true),
+            stage1_from: None,
         }
     }
 
