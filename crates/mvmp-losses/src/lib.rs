@@ -519,6 +519,14 @@ impl Default for LossWeights {
 /// Most points per side of the density loss's cube (the default is 16): each person's density holds
 /// side^3 values, and side^2 per joint on the way.
 pub const MAX_DENSITY_GRID: usize = 64;
+/// Largest loss weight: the paper's are 1 to 100; far larger ones only overflow the loss.
+pub const MAX_WEIGHT: f32 = 1e6;
+/// Largest width of a Gaussian target in metres (a person is about 2 m tall), and of the density
+/// loss's cube.
+pub const MAX_WIDTH_M: f64 = 10.0;
+pub const MAX_EXTENT_M: f64 = 100.0;
+/// Largest width of a 2D heatmap target, in map pixels.
+pub const MAX_WIDTH_PX: f64 = 256.0;
 
 impl LossWeights {
     /// Check values; errors name the key and the value.
@@ -541,42 +549,39 @@ impl LossWeights {
             ("facing", self.facing),
             ("translation", self.translation),
         ] {
-            if !(v.is_finite() && v >= 0.0) {
+            if !(0.0..=MAX_WEIGHT).contains(&v) {
                 return Err(format!(
-                    "loss.{k} = {v}: a weight must be finite and non-negative"
+                    "loss.{k} = {v}: a weight must be from 0 to {MAX_WEIGHT}"
                 ));
             }
         }
-        if !(self.density_sigma.is_finite() && self.density_sigma > 0.0) {
-            return Err(format!(
-                "loss.density_sigma = {}: must be positive",
-                self.density_sigma
-            ));
-        }
-        if !(self.detection_sigma.is_finite() && self.detection_sigma > 0.0) {
-            return Err(format!(
-                "loss.detection_sigma = {}: must be positive",
-                self.detection_sigma
-            ));
-        }
-        for (k, v) in [
-            ("heatmap_sigma", self.heatmap_sigma),
-            ("vit_heatmap_sigma", self.vit_heatmap_sigma),
+        for (k, v, most, unit) in [
+            ("density_sigma", self.density_sigma as f64, MAX_WIDTH_M, "m"),
+            ("detection_sigma", self.detection_sigma, MAX_WIDTH_M, "m"),
+            ("density_extent", self.density_extent, MAX_EXTENT_M, "m"),
+            (
+                "heatmap_sigma",
+                self.heatmap_sigma as f64,
+                MAX_WIDTH_PX,
+                "pixels",
+            ),
+            (
+                "vit_heatmap_sigma",
+                self.vit_heatmap_sigma as f64,
+                MAX_WIDTH_PX,
+                "pixels",
+            ),
         ] {
-            if !(v.is_finite() && v > 0.0) {
-                return Err(format!("loss.{k} = {v}: must be positive"));
+            if !(v > 0.0 && v <= most) {
+                return Err(format!(
+                    "loss.{k} = {v}: must be positive and at most {most} {unit}"
+                ));
             }
         }
         if self.density_grid == 0 || self.density_grid > MAX_DENSITY_GRID {
             return Err(format!(
                 "loss.density_grid = {}: expected 1 to {MAX_DENSITY_GRID} points a side",
                 self.density_grid
-            ));
-        }
-        if !(self.density_extent.is_finite() && self.density_extent > 0.0) {
-            return Err(format!(
-                "loss.density_extent = {}: must be positive",
-                self.density_extent
             ));
         }
         Ok(())

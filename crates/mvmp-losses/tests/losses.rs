@@ -288,6 +288,62 @@ fn weights_default_to_the_paper_and_terms_add_up() {
             .unwrap_err()
             .contains("loss.orientation = -1")
     );
+    // Values far past any use are refused too, naming the key: a weight that overflows the loss, a
+    // Gaussian wider than the scene.
+    let refused = [
+        (
+            "loss.density = 10000000",
+            LossWeights {
+                density: 1e7,
+                ..Default::default()
+            },
+        ),
+        (
+            "loss.detection_sigma = 1000",
+            LossWeights {
+                detection_sigma: 1e3,
+                ..Default::default()
+            },
+        ),
+        (
+            "loss.density_extent = 1000",
+            LossWeights {
+                density_extent: 1e3,
+                ..Default::default()
+            },
+        ),
+        (
+            "loss.heatmap_sigma = 1000",
+            LossWeights {
+                heatmap_sigma: 1e3,
+                ..Default::default()
+            },
+        ),
+        (
+            "loss.density_sigma = 0",
+            LossWeights {
+                density_sigma: 0.0,
+                ..Default::default()
+            },
+        ),
+        (
+            "loss.facing = NaN",
+            LossWeights {
+                facing: f32::NAN,
+                ..Default::default()
+            },
+        ),
+    ];
+    for (key, w) in refused {
+        let e = w.validate().unwrap_err();
+        assert!(e.starts_with(key), "{e}");
+    }
+    let edge = LossWeights {
+        parameters: 1e6,
+        density_sigma: 10.0,
+        ..Default::default()
+    };
+    assert!(edge.validate().is_ok());
     let d = Device::flex();
     let one = |v: f32| Some(t(vec![v], [1], &d));
     let terms = LossTerms {
