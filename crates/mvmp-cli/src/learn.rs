@@ -585,6 +585,7 @@ fn train_for(
             data: (!resumed).then_some(data.as_path()),
             out: Some(&run_dir),
             resume: resumed.then_some(run_dir.as_path()),
+            from_stage1: None,
             stop_after_steps: steps,
             stop_after_minutes: Some((plan.minutes * TIME_GUARD - before).max(0.0)),
             resumable: false,

@@ -155,6 +155,11 @@ enum Command {
         /// Continue the run in this directory from its last checkpoint.
         #[arg(long)]
         resume: Option<PathBuf>,
+        /// With --config: a new run that goes on from this run's stage-1 checkpoint instead of
+        /// training stage 1 again; the two configs must train stage 1 alike (they may differ in
+        /// [stage2] and in the loss terms stage 1 does not read), with the same model.
+        #[arg(long, requires = "config", conflicts_with = "resume")]
+        from_stage1: Option<PathBuf>,
         /// Stop with a checkpoint once the run has made this many optimizer steps.
         #[arg(long, allow_negative_numbers = true, value_parser = clap::builder::RangedU64ValueParser::<u64>::new().range(1..))]
         stop_after_steps: Option<u64>,
@@ -804,6 +809,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             data,
             out,
             resume,
+            from_stage1,
             stop_after_steps,
             stop_after_minutes,
         } => train::train(
@@ -812,6 +818,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 data: data.as_deref(),
                 out: out.as_deref(),
                 resume: resume.as_deref(),
+                from_stage1: from_stage1.as_deref(),
                 stop_after_steps,
                 stop_after_minutes,
                 resumable: true,

@@ -715,6 +715,7 @@ fn demo_steps(out: &Path, cfg_dir: &Path, device: &Device) -> Result<()> {
             data: Some(&data),
             out: Some(&run_dir),
             resume: None,
+            from_stage1: None,
             stop_after_steps: None,
             stop_after_minutes: None,
             resumable: false,

@@ -1,7 +1,7 @@
 //! `mvmp train`: run or resume a training run with a progress bar; Ctrl-C checkpoints and stops.
 use std::path::{Path, PathBuf};
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use burn::tensor::Device;
 use indicatif::ProgressBar;
 
@@ -101,6 +101,8 @@ pub struct TrainArgs<'a> {
     pub data: Option<&'a Path>,
     pub out: Option<&'a Path>,
     pub resume: Option<&'a Path>,
+    /// A new run (`config`) that goes on from this run's stage-1 checkpoint (`RunDir::branch`).
+    pub from_stage1: Option<&'a Path>,
     pub stop_after_steps: Option<u64>,
     /// Stop with a checkpoint once this call has trained this many minutes.
     pub stop_after_minutes: Option<f64>,
@@ -148,6 +150,12 @@ pub fn train(args: TrainArgs, device: &Device, monitor: &mut BarMonitor) -> Resu
             if let Some(d) = args.data {
                 cfg.data = Some(d.to_string_lossy().into_owned());
             }
+            // A run going on from another's stage 1 trains on its dataset unless told otherwise.
+            if let (Some(from), None) = (args.from_stage1, &cfg.data) {
+                let (_, from_cfg, _) = RunDir::open(from)
+                    .with_context(|| format!("--from-stage1 {}", from.display()))?;
+                cfg.data = from_cfg.data;
+            }
             if cfg.data.is_none() && cfg.sources.is_empty() {
                 anyhow::bail!(
                     "training config {}: no training data: set `data` or add [[sources]], or pass --data DIR",
@@ -180,7 +188,24 @@ pub fn train(args: TrainArgs, device: &Device, monitor: &mut BarMonitor) -> Resu
                     PathBuf::from("out/runs").join(stem)
                 }
             };
-            let run = RunDir::create(&out, &cfg, &model, None)?;
+            let run = match args.from_stage1 {
+                Some(from) => {
+                    // Quitting while the copy is made removes the new directory (it has no state yet).
+                    if !out.exists() {
+                        crate::interrupt::new_run(&out);
+                    }
+                    let from = RunDir { root: from.into() };
+                    let run = RunDir::branch(&from, &out, &cfg, &model)
+                        .with_context(|| format!("--from-stage1 {}", from.root.display()))?;
+                    let s = run.state()?.map_or(0, |s| s.global_step);
+                    eprintln!(
+                        "going on from step {s} of {} (stage 1)",
+                        from.root.display()
+                    );
+                    run
+                }
+                None => RunDir::create(&out, &cfg, &model, None)?,
+            };
             eprintln!("run directory {}", out.display());
             let (run2, cfg, model) =
                 RunDir::open(&run.root).map_err(|e| discard_unstarted(&run, true, e.into()))?;

@@ -1001,6 +1001,7 @@ fn train_eval_infer_end_to_end() {
         );
         assert!(!dir.path().join("init-bad").exists(), "{err}");
     }
+    going_on_from_another_runs_stage1(dir.path(), &ds);
     // The diagnostic that zeroes the image-feature volume is recorded in its report, and refused for
     // predictions, whose model is not at hand.
     let z = scored(&["--run", &p("run"), "--zero-volume"], &p("zero.json"));
@@ -1337,6 +1338,51 @@ fn train_eval_infer_end_to_end() {
         saved.contains("[[sources]]") && saved.contains("[validation]"),
         "{saved}"
     );
+}
+
+/// `mvmp train --from-stage1 RUN`: a run of a config that differs only in a stage-2 loss term goes on
+/// from RUN's stage-1 checkpoint (its log begins with RUN's own lines); a config whose stage 1 differs
+/// is refused, leaving no run directory.
+fn going_on_from_another_runs_stage1(dir: &Path, ds: &str) {
+    let p = |name: &str| dir.join(name).to_string_lossy().into_owned();
+    let base = std::fs::read_to_string(p("train.toml")).unwrap();
+    let stage1 = base.clone() + "[init]\nhrnet = \"hrnet.bpk\"\nvit = \"vit.bpk\"\n";
+    let from = |text: String, out: &str| {
+        std::fs::write(p("branch.toml"), text).unwrap();
+        mvmp(&[
+            "train",
+            "--config",
+            &p("branch.toml"),
+            "--from-stage1",
+            &p("init-run"),
+            "--out",
+            &p(out),
+            "--stop-after-steps",
+            "2",
+        ])
+    };
+    let o = from(format!("{stage1}[loss]\ndensity = 0.0\n"), "branched");
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("going on from step 1"),
+        "{}",
+        stderr(&o)
+    );
+    let first = |run: &str| {
+        let log = std::fs::read_to_string(dir.join(run).join("metrics.jsonl")).unwrap();
+        log.lines().next().unwrap().to_string()
+    };
+    assert_eq!(first("init-run"), first("branched"));
+    let train = std::fs::read_to_string(dir.join("branched/train.toml")).unwrap();
+    assert!(train.contains("density = 0.0"), "{train}");
+    let o = from(base.replace("lr = 1e-3\n", "lr = 2e-3\n"), "refused");
+    assert!(!o.status.success());
+    for needle in ["--from-stage1", "stage 1 would not train as"] {
+        assert!(stderr(&o).contains(needle), "{needle:?}: {}", stderr(&o));
+    }
+    assert!(!dir.join("refused").exists());
+    let o = mvmp(&["train", "--from-stage1", &p("init-run"), "--data", ds]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
 }
 
 #[test]

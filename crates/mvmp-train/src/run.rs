@@ -139,8 +139,9 @@ impl RunDir {
                 "has no stage-1 checkpoint to go on from (it has not started, or is past stage 1)",
             ));
         };
-        let data = from_cfg.data.as_deref().map(Path::new);
-        let run = RunDir::create(root, cfg, model, data)?;
+        // A config without a dataset trains on `from`'s.
+        let data = from_cfg.data.as_deref().filter(|_| cfg.data.is_none());
+        let run = RunDir::create(root, cfg, model, data.map(Path::new))?;
         let (_, resolved, _) = RunDir::open(root)?;
         if !resolved.same_stage1(&from_cfg) {
             let _ = std::fs::remove_dir_all(root);
