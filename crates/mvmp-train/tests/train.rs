@@ -401,20 +401,7 @@ fn an_interrupted_run_resumes_to_the_same_weights_and_log() {
     let out = mvmp_train::train(&run_b, &cfg_b, &model_b, &options(None), &mut Quiet).unwrap();
     assert_eq!(out, Outcome::Finished);
     // The logs agree step for step (losses of the same batches with the same weights).
-    let (la, lb) = (step_totals(&run_a), step_totals(&run_b));
-    assert_eq!(la.len(), 8);
-    assert_eq!(
-        la.iter().map(|x| x.0).collect::<Vec<_>>(),
-        lb.iter().map(|x| x.0).collect::<Vec<_>>()
-    );
-    for (a, b) in la.iter().zip(&lb) {
-        assert!(
-            (a.1 - b.1).abs() <= 1e-5 * a.1.abs().max(1.0),
-            "{a:?} vs {b:?}"
-        );
-    }
-    let max = weight_gap(&run_a, &run_b, &model);
-    assert!(max <= 1e-6, "resumed weights differ by up to {max}");
+    trained_alike(&run_a, &run_b, &model);
     // Validation ran every epoch of both stages.
     let log = std::fs::read_to_string(run_a.metrics_path()).unwrap();
     // Gradient norms per module: stage 1's graph holds HRNet and the RootNet only; stage 2's everything.
@@ -492,6 +479,25 @@ fn step_totals(r: &RunDir) -> Vec<(u64, f64)> {
         .collect()
 }
 
+/// Two runs of 8 steps trained alike: the same steps logged with the same losses (to 1e-5), and final
+/// weights within 1e-6.
+fn trained_alike(a: &RunDir, b: &RunDir, model: &ModelConfig) {
+    let (la, lb) = (step_totals(a), step_totals(b));
+    assert_eq!(la.len(), 8);
+    assert_eq!(
+        la.iter().map(|x| x.0).collect::<Vec<_>>(),
+        lb.iter().map(|x| x.0).collect::<Vec<_>>()
+    );
+    for (x, y) in la.iter().zip(&lb) {
+        assert!(
+            (x.1 - y.1).abs() <= 1e-5 * x.1.abs().max(1.0),
+            "{x:?} vs {y:?}"
+        );
+    }
+    let gap = weight_gap(a, b, model);
+    assert!(gap <= 1e-6, "final weights differ by up to {gap}");
+}
+
 /// A run branched from another's stage 1 trains as a run of its own config does, and only a config
 /// whose stage 1 trains alike may branch.
 #[test]
@@ -517,20 +523,7 @@ fn a_branched_run_goes_on_from_another_runs_stage_one() {
     assert_eq!((bcfg.loss.orientation, bcfg.loss.density), (0.0, 0.0));
     let out = mvmp_train::train(&branched, &bcfg, &bmodel, &options(None), &mut Quiet).unwrap();
     assert_eq!(out, Outcome::Finished);
-    let (a, b) = (step_totals(&own), step_totals(&branched));
-    assert_eq!(a.len(), 8);
-    assert_eq!(
-        a.iter().map(|x| x.0).collect::<Vec<_>>(),
-        b.iter().map(|x| x.0).collect::<Vec<_>>()
-    );
-    for (x, y) in a.iter().zip(&b) {
-        assert!(
-            (x.1 - y.1).abs() <= 1e-5 * x.1.abs().max(1.0),
-            "{x:?} vs {y:?}"
-        );
-    }
-    let gap = weight_gap(&own, &branched, &model);
-    assert!(gap <= 1e-6, "branched weights differ by up to {gap}");
+    trained_alike(&own, &branched, &model);
 
     // Refused, leaving nothing: a stage 1 of its own, a run past stage 1, another model.
     let mut other = cfg.clone();
