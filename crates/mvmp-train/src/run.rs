@@ -142,22 +142,32 @@ impl RunDir {
         // A config without a dataset trains on `from`'s.
         let data = from_cfg.data.as_deref().filter(|_| cfg.data.is_none());
         let run = RunDir::create(root, cfg, model, data.map(Path::new))?;
-        let (_, resolved, _) = RunDir::open(root)?;
-        if !resolved.same_stage1(&from_cfg) {
+        // Whatever fails from here leaves no directory behind.
+        let made = run.take_stage1_of(from, &from_cfg, &state);
+        if made.is_err() {
             let _ = std::fs::remove_dir_all(root);
+        }
+        made.map(|()| run)
+    }
+
+    /// This new run's resolved config trains stage 1 as `from_cfg` does: take `from`'s `state`.
+    fn take_stage1_of(
+        &self,
+        from: &RunDir,
+        from_cfg: &TrainConfig,
+        state: &RunState,
+    ) -> Result<(), TrainError> {
+        let (_, resolved, _) = RunDir::open(&self.root)?;
+        if !resolved.same_stage1(from_cfg) {
             return Err(TrainError::file(
-                root,
+                &self.root,
                 format!(
                     "its stage 1 would not train as that of {} (configs differ beyond stage 2)",
                     from.root.display()
                 ),
             ));
         }
-        let copied = run.copy_state_of(from, &state);
-        if copied.is_err() {
-            let _ = std::fs::remove_dir_all(root);
-        }
-        copied.map(|()| run)
+        self.copy_state_of(from, state)
     }
 
     /// `state` of `from` and what it names, with `from`'s model config as written (the same config,
