@@ -7,6 +7,7 @@ use burn::tensor::Device;
 
 use mvmp_data::loader::Split;
 use mvmp_infer::Predictor;
+use mvmp_model::ModelConfig;
 use mvmp_train::RunDir;
 use mvmp_train::decoder_fit::{FitLoss, FitOptions, FitPoint, JointMaps, fit, frames};
 
@@ -19,6 +20,7 @@ pub struct FitArgs<'a> {
     pub lr: Option<f64>,
     pub test_frames: usize,
     pub every: usize,
+    pub decoder: Option<&'a Path>,
     pub out: Option<&'a Path>,
 }
 
@@ -26,6 +28,10 @@ pub fn fit_decoder(args: &FitArgs, device: &Device) -> Result<()> {
     crate::paths::out_dir_exists(args.out)?;
     let (_, tcfg, mcfg) = RunDir::open(args.run)?;
     let (pred, _) = Predictor::from_run(args.run, device)?;
+    let mcfg = match args.decoder {
+        Some(path) => decoder_from(path, &mcfg)?,
+        None => mcfg,
+    };
     let opts = FitOptions {
         maps: args.maps,
         loss: args.loss,
@@ -63,6 +69,9 @@ pub fn fit_decoder(args: &FitArgs, device: &Device) -> Result<()> {
         opts.steps,
         opts.lr
     );
+    if let Some(path) = args.decoder {
+        println!("the decoder of {}", path.display());
+    }
     let points = fit(&mcfg, &train, &test, &opts, |p: FitPoint| {
         println!(
             "step {:>7}: body rotations {:.2} deg from the truth held out, {:.2} on training frames",
@@ -73,11 +82,34 @@ pub fn fit_decoder(args: &FitArgs, device: &Device) -> Result<()> {
         let report = serde_json::json!({
             "run": args.run, "data": args.data, "maps": format!("{:?}", opts.maps).to_lowercase(),
             "loss": format!("{:?}", opts.loss).to_lowercase(), "steps": opts.steps, "lr": opts.lr,
-            "train_frames": train.len(), "test_frames": test.len(), "points": points,
+            "decoder": args.decoder, "train_frames": train.len(), "test_frames": test.len(), "points": points,
         });
         mvmp_io::write_atomic_with(out, |w| {
             serde_json::to_writer_pretty(&mut *w, &report).map_err(std::io::Error::other)
         })?;
     }
     Ok(())
+}
+
+/// The model config at `path`, whose decoder is fitted to volumes made as `run`'s model makes them: it
+/// must have `run`'s grid and heatmap joints.
+fn decoder_from(path: &Path, run: &ModelConfig) -> Result<ModelConfig> {
+    let cfg = ModelConfig::read(path)?;
+    if cfg.grid != run.grid {
+        bail!(
+            "{}: `grid` {:?} is not the run's {:?} (--decoder reads the run's volumes)",
+            path.display(),
+            cfg.grid,
+            run.grid
+        );
+    }
+    if cfg.heatmap_joints != run.heatmap_joints {
+        bail!(
+            "{}: `heatmap_joints` {:?} are not the run's {:?} (--decoder reads the run's volumes)",
+            path.display(),
+            cfg.heatmap_joints,
+            run.heatmap_joints
+        );
+    }
+    Ok(cfg)
 }

@@ -277,6 +277,10 @@ enum ModelCommand {
         /// Score every N steps.
         #[arg(long, allow_negative_numbers = true, default_value_t = 288, value_parser = up_to(10_000_000))]
         every: usize,
+        /// Take the decoder from this model config instead of the run's (the same grid and heatmap
+        /// joints): how a decoder change reads the same maps.
+        #[arg(long)]
+        decoder: Option<PathBuf>,
         /// Also write the scores as JSON here.
         #[arg(long)]
         out: Option<PathBuf>,
@@ -751,6 +755,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             lr,
             test_frames,
             every,
+            decoder,
             out,
         }) => decoder_fit::fit_decoder(
             &decoder_fit::FitArgs {
@@ -769,6 +774,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                 lr,
                 test_frames,
                 every,
+                decoder: decoder.as_deref(),
                 out: out.as_deref(),
             },
             &device,

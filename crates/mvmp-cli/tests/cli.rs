@@ -932,6 +932,20 @@ fn train_eval_infer_end_to_end() {
         &[&fit[..], &["--out", nowhere.as_str()]].concat(),
         &["--out", "missing", "not a directory"],
     );
+    // Another decoder on the same volumes: the run's own config is taken; one on another grid is not.
+    let own = format!("{run}/model.toml");
+    let o = mvmp(&[&fit[..], &["--steps", "2", "--decoder", own.as_str()]].concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("the decoder of"));
+    let mut cfg: toml::Table = std::fs::read_to_string(&own).unwrap().parse().unwrap();
+    let center = &mut cfg["grid"]["center"][0];
+    *center = toml::Value::Float(center.as_float().unwrap() + 0.5);
+    let shifted = p("shifted.toml");
+    std::fs::write(&shifted, toml::to_string(&cfg).unwrap()).unwrap();
+    expect_error(
+        &[&fit[..], &["--decoder", shifted.as_str()]].concat(),
+        &["shifted.toml", "`grid`", "is not the run's"],
+    );
     // A run's backbones extracted start another run (`[init]`); files that do not fit are refused
     // before a run directory is made.
     for (module, file) in [("hrnet", p("hrnet.bpk")), ("vit", p("vit.bpk"))] {

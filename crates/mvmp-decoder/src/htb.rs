@@ -48,7 +48,9 @@ pub struct DecoderOptions {
     /// reading), so that its x axis points where the person faces and its y axis to their left: a
     /// raised left hand then falls on the same lattice points whichever way its owner faces. false (a
     /// lattice along the world's axes) makes the map from the samples to the body pose depend on the
-    /// heading. Needs a heading (`facing = true`) and more than one lattice point.
+    /// heading. The box of `query_joints` turns alike (its samples, or its centroids, which are then
+    /// in the heading frame). Needs a heading (`facing = true`) and more than one lattice point or
+    /// `query_joints`.
     pub heading_lattice: bool,
     /// The query's (normalised) volume sample also reaches the heads directly: projected by
     /// `sample_proj` and added after the final norm, as the height features are. Through the query
@@ -653,22 +655,31 @@ impl Decoder {
 
     /// Each joint's centroid in the box around each root, from a joint heatmap volume `[B, E, X, Y, Z]`:
     /// the lattice's offsets weighted by the squared (non-negative) likelihood there, as fractions of
-    /// the box's half sides -> `[B, K, E * 3]` (0 for a joint with no likelihood in the box).
+    /// the box's half sides -> `[B, K, E * 3]` (0 for a joint with no likelihood in the box). Given a
+    /// `heading` `[B, K, 2]`, the box turns with it and the centroid is in the person's heading frame.
     pub fn joint_centroids(
         &self,
         joints: Tensor<5>,
         roots: Tensor<3>,
+        heading: Option<Tensor<3>>,
         grid: &VoxelGrid,
     ) -> Tensor<3> {
         let [b, k, _] = roots.dims();
-        let s = sample_at(joints, roots.clone(), &self.joint_lattice, grid); // [B, K, L, E]
-        let [_, _, l, e] = s.dims();
+        let device = roots.device();
+        let e = joints.dims()[1];
+        let l = self.joint_lattice.len();
+        let s = match heading {
+            Some(h) => {
+                sample_turned(joints, roots, h, &self.joint_lattice, grid).reshape([b, k, l, e])
+            }
+            None => sample_at(joints, roots, &self.joint_lattice, grid),
+        }; // [B, K, L, E]
         let w = s.clamp_min(0.0).powi_scalar(2).swap_dims(2, 3); // [B, K, E, L]
         let total = w.clone().sum_dim(3).clamp_min(1e-6); // [B, K, E, 1]
         let scaled: Vec<f32> = (self.joint_lattice.iter())
             .flat_map(|o| std::array::from_fn::<f32, 3, _>(|a| o[a] / self.joint_half[a]))
             .collect();
-        let offsets = Tensor::<2>::from_data(TensorData::new(scaled, [l, 3]), &roots.device());
+        let offsets = Tensor::<2>::from_data(TensorData::new(scaled, [l, 3]), &device);
         let centroid = w.reshape([b * k, e, l]).matmul(offsets.unsqueeze::<3>()); // [B*K, E, 3]
         (centroid.reshape([b, k, e, 3]) / total).reshape([b, k, e * 3])
     }
@@ -688,7 +699,10 @@ impl Decoder {
                 sample_turned(joints, roots, h, &self.joint_lattice, grid)
             }
             (true, _) => sample_flat(joints, roots, &self.joint_lattice, grid),
-            (false, _) => self.joint_centroids(joints, roots, grid), // [B, K, E * 3]
+            (false, h) => {
+                let h = h.filter(|_| self.heading_lattice);
+                self.joint_centroids(joints, roots, h, grid) // [B, K, E * 3]
+            }
         };
         // Raw, the centroids (a few tenths of the box) never steered the heads: in the learning test's
         // frames, with each person's bends given only as joint offsets, the bend error stayed at 1.00 of

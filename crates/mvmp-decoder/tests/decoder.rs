@@ -148,7 +148,8 @@ fn a_heading_lattice_turns_with_each_person() {
 
 /// A joint's centroid in the box around a root, by hand: a likelihood that is 1 in one voxel of the
 /// box and 0 elsewhere puts the centroid of the lattice points around that voxel (weights: the squared
-/// trilinear sample) at the voxel's offset; a joint absent from the box gives 0.
+/// trilinear sample) at the voxel's offset; a joint absent from the box gives 0. Turned with a
+/// heading, the offset is in the person's frame.
 #[test]
 fn joint_centroids_find_a_joint_in_the_box() {
     let d = Device::flex();
@@ -169,7 +170,7 @@ fn joint_centroids_find_a_joint_in_the_box() {
     let vol = Tensor::<5>::from_data(TensorData::new(vol, [1, 2, 16, 16, 8]), &d);
     let root = [0.125f32, 0.125, 1.125];
     let roots = Tensor::<3>::from_data(TensorData::new(root.to_vec(), [1, 1, 3]), &d);
-    let c = vals(dec.joint_centroids(vol, roots, &g));
+    let c = vals(dec.joint_centroids(vol.clone(), roots.clone(), None, &g));
     assert_eq!(c.len(), 6);
     // Offsets as fractions of the box's half side (1 m); the lattice (0.25 m apart) is symmetric about
     // the voxel's centre, so the weighted mean is that centre.
@@ -182,6 +183,18 @@ fn joint_centroids_find_a_joint_in_the_box() {
             want[a]
         );
         assert_eq!(c[3 + a], 0.0, "an absent joint");
+    }
+    // Facing +y, the box turns a quarter (onto its own points): forward is world y, left is world -x.
+    let heading = Tensor::<3>::from_data(TensorData::new(vec![0f32, 1.0], [1, 1, 2]), &d);
+    let c = vals(dec.joint_centroids(vol, roots, Some(heading), &g));
+    let turned = [want[1], -want[0], want[2]];
+    for a in 0..3 {
+        assert!(
+            (c[a] - turned[a]).abs() < 1e-4,
+            "turned, axis {a}: {} vs {}",
+            c[a],
+            turned[a]
+        );
     }
 }
 

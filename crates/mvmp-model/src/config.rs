@@ -446,11 +446,11 @@ impl ModelConfig {
             d.joint_lattice,
             d.joint_span,
         )?;
-        let turns = d.query_lattice.iter().product::<usize>() > 1 || d.joint_samples;
+        let turns = d.query_lattice.iter().product::<usize>() > 1 || d.query_joints;
         if d.heading_lattice && !(self.facing && turns) {
             return Err((
                 "decoder.heading_lattice",
-                "true: the lattice turns with the facing head's heading, so it needs `facing = true` and a query_lattice of more than one point (or joint_samples)".into(),
+                "true: the lattice turns with the facing head's heading, so it needs `facing = true` and a query_lattice of more than one point (or query_joints)".into(),
             ));
         }
         if d.joint_samples && !d.query_joints {
