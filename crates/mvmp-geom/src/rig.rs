@@ -18,7 +18,8 @@
 //! `R` and `t` map world to camera (`x_cam = R x_world + t`, OpenCV). `units` is the unit of `t` and of the
 //! world: `m`, `cm` or `mm`; the reader converts to metres, so everything inside mvmp is in metres. `K` is in
 //! pixels of the image of size `resolution`; `dist` follows OpenCV (`[k1, k2, p1, p2, k3]`, tangential with
-//! the factor 2); `dist` may be omitted for an ideal pinhole.
+//! the factor 2); `dist` may be omitted for an ideal pinhole, or given as `[k1, k2, p1, p2]` (k3 = 0), or
+//! as OpenCV's longer vectors when their further terms are zero.
 use std::path::Path;
 
 use nalgebra::{Matrix3, Vector3};
@@ -54,9 +55,32 @@ struct CameraEntry {
     #[serde(rename = "R")]
     r: [[f64; 3]; 3],
     t: [f64; 3],
+    /// Any length OpenCV writes (4, 5, 8, 12 or 14); see [`distortion`].
     #[serde(default)]
-    dist: [f64; 5],
+    dist: Vec<f64>,
     resolution: [u32; 2],
+}
+
+/// OpenCV's distortion vector as the five terms the camera model has: `[k1, k2, p1, p2]` (as many
+/// calibration tools write it) gets `k3 = 0`; the longer vectors of OpenCV's rational, thin-prism and
+/// tilted models are read when the terms beyond the fifth are zero, and refused otherwise (naming
+/// them) rather than projected without them. None at all is an ideal pinhole.
+fn distortion(dist: &[f64]) -> Result<[f64; 5], String> {
+    match dist.len() {
+        0 => Ok([0.0; 5]),
+        4 | 5 | 8 | 12 | 14 => {
+            if let Some(i) = (5..dist.len()).find(|&i| dist[i] != 0.0) {
+                return Err(format!(
+                    "`dist` term {i} is {} but only [k1, k2, p1, p2, k3] are modelled: the terms of OpenCV's rational, thin-prism and tilted models must be 0",
+                    dist[i]
+                ));
+            }
+            Ok(std::array::from_fn(|i| dist.get(i).copied().unwrap_or(0.0)))
+        }
+        n => Err(format!(
+            "`dist` has {n} values; expected OpenCV's 4, 5, 8, 12 or 14 ([k1, k2, p1, p2, k3, ...])"
+        )),
+    }
 }
 
 fn mat(rows: &[[f64; 3]; 3]) -> Matrix3<f64> {
@@ -138,12 +162,14 @@ impl Rig {
             }
         }
         for (i, c) in file.cameras.into_iter().enumerate() {
+            let dist = distortion(&c.dist)
+                .map_err(|e| GeomError::file(path, format!("cameras[{i}] ({:?}): {e}", c.name)))?;
             let cam = Camera::new(
                 c.name.clone(),
                 mat(&c.k),
                 mat(&c.r),
                 Vector3::from(c.t) * scale,
-                c.dist,
+                dist,
                 c.resolution[0],
                 c.resolution[1],
             )
@@ -176,7 +202,7 @@ impl Rig {
                     k: rows(&c.k),
                     r: rows(&c.r),
                     t: c.t.into(),
-                    dist: c.dist,
+                    dist: c.dist.to_vec(),
                     resolution: [c.width, c.height],
                 })
                 .collect(),

@@ -159,6 +159,23 @@ fn rig_round_trip_and_errors() {
             .replacen("\"name\": \"a\"", "\"name\": \"c\"", 1),
         "cameras[1] (\"a\") repeats cameras[0] (\"c\")",
     );
+    // OpenCV's distortion vectors: four terms are k3 = 0; longer ones only with their extra terms zero.
+    let dist =
+        "[\n        0.1,\n        -0.01,\n        0.001,\n        0.002,\n        0.0\n      ]";
+    let json = rig.to_json_string();
+    assert!(json.contains(dist), "{json}");
+    let four = json.replace(dist, "[0.1, -0.01, 0.001, 0.002]");
+    assert_eq!(Rig::from_json_str(&four, &p).unwrap(), rig);
+    let eight = json.replace(dist, "[0.1, -0.01, 0.001, 0.002, 0, 0, 0, 0]");
+    assert_eq!(Rig::from_json_str(&eight, &p).unwrap(), rig);
+    check(
+        json.replace(dist, "[0.1, -0.01, 0.001, 0.002, 0, 0.5, 0, 0]"),
+        "cameras[0] (\"a\"): `dist` term 5 is 0.5",
+    );
+    check(
+        json.replace(dist, "[0.1, -0.01, 0.001]"),
+        "`dist` has 3 values",
+    );
     let e = Rig::read(&dir.path().join("missing.json")).unwrap_err();
     assert!(matches!(e, GeomError::Io { .. }) && e.to_string().contains("missing.json"));
 }
