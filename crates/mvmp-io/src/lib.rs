@@ -386,9 +386,14 @@ pub fn parse_json<T: serde::de::DeserializeOwned>(text: &str) -> Result<T, Strin
     let de = &mut serde_json::Deserializer::from_str(text);
     serde_path_to_error::deserialize(de).map_err(|e| {
         let key = e.path().to_string();
+        let inner = e.into_inner().to_string();
         match key.as_str() {
-            "" | "." => e.into_inner().to_string(),
-            _ => format!("key `{key}`: {}", e.into_inner()),
+            "" | "." => inner,
+            // serde_json's word for a fixed-length array given more elements than it holds.
+            _ if inner.starts_with("trailing characters") => {
+                format!("key `{key}`: more elements than it takes ({inner})")
+            }
+            _ => format!("key `{key}`: {inner}"),
         }
     })
 }

@@ -139,6 +139,12 @@ fn a_json_error_names_the_key_path() {
     );
     let e = mvmp_io::parse_json::<Frame>("{").unwrap_err();
     assert!(e.contains("line 1"), "{e}");
+    // A fixed-length array given too many values says so, not only "trailing characters".
+    let e = mvmp_io::parse_json::<Frame>(r#"{"people": [{"pelvis": [0, 1, 2, 3]}]}"#).unwrap_err();
+    assert!(
+        e.starts_with("key `people[0].pelvis`: more elements than it takes"),
+        "{e}"
+    );
 }
 
 #[test]
