@@ -1,7 +1,7 @@
 //! `mvmp bench train`: seconds per training step of a config, per stage, and where they go (the phases
-//! every step logs in `metrics.jsonl`: load, forward, backward, gradient norms, optimizer). Each stage
-//! trains on its own in a temporary run (the other stage set to 0 epochs), stopped after the warm-up and
-//! the timed steps; nothing is left behind. The last column is the peak of host memory allocated while
+//! every step logs in `metrics.jsonl`: load, forward, backward, gradient norms, optimizer, the weight
+//! average's update). Each stage trains on its own in a temporary run (the other stage set to 0
+//! epochs), stopped after the warm-up and the timed steps; nothing is left behind. The last column is the peak of host memory allocated while
 //! the stage ran (model, optimizer state, data, steps and the one-frame validation), for CPU devices.
 use std::path::Path;
 
@@ -14,7 +14,16 @@ use crate::run::write_demo_configs;
 
 /// Steps of each stage run before the timed ones (allocations, caches, autotuning).
 const WARM_UP: usize = 2;
-const PHASES: [&str; 5] = ["load", "forward", "backward", "grad_norm", "optimizer"];
+/// The phases of a step, as `metrics.jsonl` names them; `average` (the weight average's update) only
+/// where the stage keeps one.
+const PHASES: [&str; 6] = [
+    "load",
+    "forward",
+    "backward",
+    "grad_norm",
+    "optimizer",
+    "average",
+];
 
 pub struct BenchTrainArgs<'a> {
     /// A training config (default: the demo's on a synthetic set made for the run).
@@ -93,7 +102,8 @@ pub fn bench_train(args: &BenchTrainArgs, device: &Device) -> Result<()> {
 }
 
 /// The training passes with their own backward on flex (fusion, SMPL-X, convolution columns and
-/// products, batch, group and layer norm, linear layers, attention, residual joins, GELU), on or off.
+/// products, batch, group and layer norm, linear layers, attention, residual joins, GELU) and Adam's
+/// one-pass step, on or off.
 fn set_fused_passes(on: bool) {
     mvmp_fusion::set_fused_backward(on);
     mvmp_smplx::set_fused_backward(on);
@@ -105,6 +115,7 @@ fn set_fused_passes(on: bool) {
     mvmp_kernels::layer_norm::set_fused_layer_norm(on);
     mvmp_kernels::attention::set_host_attention(on);
     mvmp_kernels::gelu::set_parallel_gelu(on);
+    mvmp_train::adam::set_fused_adam(on);
 }
 
 /// Median seconds per step of each stage of `cfg` on `device`, from `steps` timed steps after the
@@ -204,7 +215,10 @@ fn row(log: &Path) -> Result<(String, f64)> {
     for p in PHASES {
         let width = p.len().max(5);
         let m = med(&|v| v["phase_seconds"][p].as_f64());
-        line += &format!("  {m:>width$.3}");
+        line += &match m.is_nan() {
+            true => format!("  {:>width$}", "-"),
+            false => format!("  {m:>width$.3}"),
+        };
     }
     Ok((line, seconds))
 }

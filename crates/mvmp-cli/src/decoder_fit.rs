@@ -77,7 +77,7 @@ pub fn fit_decoder(args: &FitArgs, device: &Device) -> Result<()> {
             "step {:>7}: body rotations {:.2} deg from the truth held out, {:.2} on training frames",
             p.step, p.held_out_deg, p.train_deg
         );
-    });
+    })?;
     if let Some(out) = args.out {
         let report = serde_json::json!({
             "run": args.run, "data": args.data, "maps": format!("{:?}", opts.maps).to_lowercase(),

@@ -194,6 +194,7 @@ pub fn eval(args: &EvalArgs, device: &Device, quiet: bool) -> Result<(Metrics, s
     }
     check_save_predictions(args)?;
     check_outputs(args)?;
+    check_meshes(args)?;
     match args.format {
         SourceFormat::Mvmp => {
             if args.stride.is_some() {
@@ -902,6 +903,28 @@ fn demo_infer(data: &Path, run_dir: &Path, infer_dir: &Path, device: &Device) ->
         device,
         true,
     )
+}
+
+/// Refuses the mesh options where nothing would read them: `--pseudo-gt` on an mvmp dataset (its
+/// annotations are SMPL-X already), `--body-model` where neither stored predictions nor fits are posed
+/// (a run poses its predictions with its own body model, the mean pose with the dataset's).
+fn check_meshes(args: &EvalArgs) -> Result<()> {
+    if let (Some(dir), SourceFormat::Mvmp) = (args.pseudo_gt, args.format) {
+        bail!(
+            "--pseudo-gt {}: fits apply to --format panoptic and h36m; an mvmp dataset's annotations \
+             are SMPL-X already",
+            dir.display()
+        );
+    }
+    let posed = args.pseudo_gt.is_some() || matches!(args.source, Source::Predictions(_));
+    if let (Some(model), false) = (args.body_model, posed) {
+        bail!(
+            "--body-model {model}: it poses stored predictions (--predictions) or the fits of \
+             --pseudo-gt; a run poses its predictions with its own body model, the mean pose with the \
+             dataset's"
+        );
+    }
+    Ok(())
 }
 
 /// The pseudo-ground-truth meshes of a joint-annotated evaluation, posed with `--body-model` (default: the

@@ -928,6 +928,20 @@ fn train_eval_infer_end_to_end() {
         &[&fit[..], &["--lr", "-1"]].concat(),
         &["--lr", "-1", "not a positive learning rate"],
     );
+    // A rate at which the weights overflow stops the fit, naming the step, and writes no report.
+    let diverged = p("diverged.json");
+    expect_error(
+        &[
+            &fit[..],
+            &["--lr", "1e30", "--steps", "3", "--out", &diverged],
+        ]
+        .concat(),
+        &[
+            "decoder fit, step",
+            "learning rate (1000000000000000000000000000000) is too high",
+        ],
+    );
+    assert!(!std::path::Path::new(&diverged).exists());
     expect_error(
         &[&fit[..], &["--out", nowhere.as_str()]].concat(),
         &["--out", "missing", "not a directory"],
@@ -1288,6 +1302,17 @@ fn train_eval_infer_end_to_end() {
         ],
         &["--stride", "panoptic and h36m"],
     );
+    let (run, ds, fits) = (p("run"), p("ds"), p("fits"));
+    let run_ds = ["eval", "--run", &run, "--data", &ds];
+    expect_error(
+        &[&run_ds[..], &["--pseudo-gt", &fits]].concat(),
+        &["--pseudo-gt", "fits", "panoptic and h36m"],
+    );
+    // A body model given where nothing is posed with it (a run's predictions on the mvmp set).
+    expect_error(
+        &[&run_ds[..], &["--body-model", "standin:3"]].concat(),
+        &["--body-model standin:3", "--predictions"],
+    );
 
     // Training on MVMP-HMR (--data) plus this Human3.6M tree as a second source, validated on it: the
     // sources are listed with their frame counts, and a wrong validation path stops before a run exists.
@@ -1481,11 +1506,14 @@ fn the_training_benchmark_splits_each_stage() {
             let mut cols = lines[3 * i + j].split_whitespace();
             assert_eq!(cols.next(), Some(stage.to_string().as_str()), "{out}");
             assert_eq!(cols.next(), Some(path), "{out}");
-            let r: Vec<f64> = cols.map(|x| x.parse().unwrap()).collect();
-            assert_eq!((r[0], r.len()), (1.0, 8), "{out}");
-            let phases: f64 = r[2..7].iter().sum();
+            // A phase the stage has not (stage 1 keeps no weight average) reads "-".
+            let r: Vec<f64> = cols.map(|x| x.parse().unwrap_or(0.0)).collect();
+            assert_eq!((r[0], r.len()), (1.0, 9), "{out}");
+            let average = lines[3 * i + j].split_whitespace().nth(9).unwrap();
+            assert_eq!(average == "-", stage == 1, "{out}");
+            let phases: f64 = r[2..8].iter().sum();
             // The model alone is 15 MB; training holds it several times over, and far less than 10 GB.
-            assert!(r[7] > 30.0 && r[7] < 10000.0, "peak MiB: {out}");
+            assert!(r[8] > 30.0 && r[8] < 10000.0, "peak MiB: {out}");
             assert!(r[1] > 0.0 && phases <= r[1] + 2e-3, "{out}");
         }
         let ratio = lines[3 * i + 2];

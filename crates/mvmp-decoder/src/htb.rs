@@ -224,13 +224,28 @@ impl HumanTransformerBlock {
 
     /// `queries [B, K, D]`, `padding [B, K]` (true = no person), `tokens [B, P, D]` -> `[B, K, D]`.
     pub fn forward(&self, q: Tensor<3>, padding: Tensor<2, Bool>, tokens: Tensor<3>) -> Tensor<3> {
+        let q = self.self_attention(q, padding);
+        let q = self.cross_attention(q, tokens);
+        self.feed_forward(q)
+    }
+
+    /// The block's first residual: pre-norm self-attention among the people (padded ones masked).
+    pub fn self_attention(&self, q: Tensor<3>, padding: Tensor<2, Bool>) -> Tensor<3> {
         let h = self.norm_sa.forward(q.clone());
-        let q = q + self
+        q + self
             .self_attn
             .forward(MhaInput::new(h.clone(), h.clone(), h).mask_pad(padding))
-            .context;
+            .context
+    }
+
+    /// The block's second residual: pre-norm cross-attention of the queries to the volume's tokens.
+    pub fn cross_attention(&self, q: Tensor<3>, tokens: Tensor<3>) -> Tensor<3> {
         let h = self.norm_ca.forward(q.clone());
-        let q = q + cross_attend(&self.cross_attn, h, tokens, self.tile);
+        q + cross_attend(&self.cross_attn, h, tokens, self.tile)
+    }
+
+    /// The block's third residual: the pre-norm feed-forward layers.
+    pub fn feed_forward(&self, q: Tensor<3>) -> Tensor<3> {
         let h = self.norm_ffn.forward(q.clone());
         q + self.fc2.forward(gelu(self.fc1.forward(h)))
     }

@@ -328,9 +328,8 @@ impl TrainConfig {
     /// Read and validate a config; returns it with the model config it names.
     pub fn read(path: &Path) -> Result<(TrainConfig, ModelConfig), TrainError> {
         let text = std::fs::read_to_string(path).map_err(|e| TrainError::io(path, e))?;
-        let mut cfg: TrainConfig = toml::from_str(&text).map_err(|e| TrainError::Config {
+        let mut cfg: TrainConfig = toml::from_str(&text).map_err(|e| TrainError::Parse {
             path: path.into(),
-            key: "(parse)".into(),
             what: e.to_string(),
         })?;
         cfg.validate(path)?;

@@ -9,7 +9,7 @@ use std::path::Path;
 
 use burn::data::dataloader::batcher::Batcher;
 use burn::module::Module;
-use burn::optim::{AdamConfig, GradientsParams};
+use burn::optim::GradientsParams;
 use burn::tensor::{Bool, Device, Tensor, TensorData};
 
 use mvmp_data::dataset::FrameDataset;
@@ -242,18 +242,19 @@ fn angle_deg(trace: f64) -> f64 {
 }
 
 /// A fresh decoder of `cfg` (drawn from `opts.seed`) trained on `train` as `opts` says, scored on `test`
-/// and on `train`'s first frames before the first step and every `opts.every` steps.
+/// and on `train`'s first frames before the first step and every `opts.every` steps. A loss or a score
+/// that is not finite (a rate too high for the decoder) stops the fit with an error naming the step.
 pub fn fit(
     cfg: &ModelConfig,
     train: &[FitFrame],
     test: &[FitFrame],
     opts: &FitOptions,
     mut report: impl FnMut(FitPoint),
-) -> Vec<FitPoint> {
+) -> Result<Vec<FitPoint>, TrainError> {
     let d = Device::flex().autodiff();
     d.seed(opts.seed);
     let mut dec = cfg.decoder_config().init(&d);
-    let mut optim = AdamConfig::new().init();
+    let mut optim = crate::adam::adam();
     let plain = Device::flex();
     let seen = &train[..train.len().min(test.len().max(1))];
     let mut score = |dec: &Decoder, step: usize| {
@@ -266,17 +267,33 @@ pub fn fit(
         report(p);
         p
     };
+    let diverged = |step: usize, what: String| TrainError::Diverged {
+        step,
+        what,
+        lr: opts.lr,
+    };
     let mut points = vec![score(&dec, 0)];
     for s in 0..opts.steps {
         let f = &train[order(s, train.len())];
         let l = loss(&dec, cfg, f, opts.loss, &d);
+        let value = l.clone().into_scalar::<f32>();
+        if !value.is_finite() {
+            return Err(diverged(s + 1, format!("the loss is {value}")));
+        }
         let grads = GradientsParams::from_grads(l.backward(), &dec);
         dec = optim.step(opts.lr, dec, grads);
         if (s + 1) % opts.every.max(1) == 0 || s + 1 == opts.steps {
-            points.push(score(&dec, s + 1));
+            let p = score(&dec, s + 1);
+            if !(p.held_out_deg.is_finite() && p.train_deg.is_finite()) {
+                return Err(diverged(
+                    s + 1,
+                    "the decoder's rotations are not finite".into(),
+                ));
+            }
+            points.push(p);
         }
     }
-    points
+    Ok(points)
 }
 
 /// The frame of step `s` among `n`: a fixed stride coprime with any `n` below it walks every frame once

@@ -11,6 +11,10 @@ pub enum TrainError {
     },
     #[error("{path}: {what}")]
     File { path: PathBuf, what: String },
+    /// A config that does not parse (TOML syntax, an unknown key, a value of the wrong type): the
+    /// parser's message names the line, the column and the key.
+    #[error("training config {path}: {what}")]
+    Parse { path: PathBuf, what: String },
     #[error("training config {path}: key `{key}`: {what}")]
     Config {
         path: PathBuf,
@@ -28,6 +32,9 @@ pub enum TrainError {
         value: f32,
         checkpoint: String,
     },
+    /// A decoder fit (`decoder_fit::fit`) whose weights left the finite numbers.
+    #[error("decoder fit, step {step}: {what}; the learning rate ({lr}) is too high for it")]
+    Diverged { step: usize, what: String, lr: f64 },
     #[error(transparent)]
     Data(#[from] mvmp_data::DataError),
     #[error(transparent)]

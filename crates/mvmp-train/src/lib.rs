@@ -1,5 +1,6 @@
 //! Training MVMP-HMR: configs, run directories, the two-stage training loop, its logs and curves.
 //! Inference lives in `mvmp_infer`, the evaluation drivers in `mvmp_eval::drivers`.
+pub mod adam;
 pub mod average;
 pub mod config;
 pub mod curves;

@@ -9,7 +9,7 @@ use std::time::Instant;
 
 use burn::data::dataloader::batcher::Batcher;
 use burn::module::{Module, ModuleVisitor, Param};
-use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
+use burn::optim::{GradientsParams, ModuleOptimizer};
 use burn::tensor::Gradients;
 use burn::tensor::{Device, Tensor};
 use rand::SeedableRng;
@@ -732,7 +732,7 @@ impl<'a> Trainer<'a> {
     fn optimizer(&mut self) -> Result<ModuleOptimizer, TrainError> {
         // Clipping is the trainer's own (`scale_gradients`): burn's clips each parameter's gradient
         // apart, not the norm of all of them.
-        let optim: ModuleOptimizer = AdamConfig::new().init();
+        let optim = crate::adam::adam();
         match self.resume_optim.take() {
             Some(p) => optim
                 .load(&p)
