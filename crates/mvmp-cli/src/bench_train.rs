@@ -102,8 +102,8 @@ pub fn bench_train(args: &BenchTrainArgs, device: &Device) -> Result<()> {
 }
 
 /// The training passes with their own backward on flex (fusion, SMPL-X, convolution columns and
-/// products, batch, group and layer norm, linear layers, attention, residual joins, GELU) and Adam's
-/// one-pass step, on or off.
+/// products, batch, group and layer norm, linear layers, attention, residual joins, GELU) and the
+/// one-pass weight updates (Adam's step, the weight average's), on or off.
 fn set_fused_passes(on: bool) {
     mvmp_fusion::set_fused_backward(on);
     mvmp_smplx::set_fused_backward(on);
@@ -116,6 +116,7 @@ fn set_fused_passes(on: bool) {
     mvmp_kernels::attention::set_host_attention(on);
     mvmp_kernels::gelu::set_parallel_gelu(on);
     mvmp_train::adam::set_fused_adam(on);
+    mvmp_kernels::blend::set_host_blend(on);
 }
 
 /// Median seconds per step of each stage of `cfg` on `device`, from `steps` timed steps after the

@@ -4,12 +4,14 @@
 //! block recomputed in its backward, a convolution's columns (im2col, with col2im as its backward),
 //! a 3D convolution whose gradients are tiled products (`wgrad`), the weight's product that ends every
 //! product convolution (`product`), batch and group norm (with the ReLU that follows them), the
-//! residual join `relu(a + b)` and GELU on flex.
+//! residual join `relu(a + b)` and GELU on flex. `blend` is the weight average's update on flex in one
+//! pass (no backward: it runs outside autodiff).
 //! `conv` holds convolutions written as matrix products for training. `cpu` and `panel` hold what the fused CPU passes
 //! share: instruction-set dispatch, the pointer of their parallel writes, and the SMPL-X panel products.
 
 pub mod attention;
 mod attention_host;
+pub mod blend;
 pub mod conv;
 pub mod cpu;
 pub mod gelu;

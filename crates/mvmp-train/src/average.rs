@@ -40,9 +40,11 @@ impl WeightAverage {
             self.values.len(),
             "the averaged model changed shape"
         );
-        for (avg, w) in self.values.iter_mut().zip(new) {
-            *avg = avg.clone().mul_scalar(r) + w.mul_scalar(1.0 - r);
-        }
+        // Moved out, so that each average's buffer is its own to update in place.
+        let old = std::mem::take(&mut self.values);
+        self.values = (old.into_iter().zip(new))
+            .map(|(avg, w)| mvmp_kernels::blend::blend(avg, w, r, 1.0 - r))
+            .collect();
         self.steps += 1;
     }
 
