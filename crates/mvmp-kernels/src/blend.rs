@@ -7,7 +7,6 @@
 //! are burn-flex's bit for bit: the same float32 products and sum in the same order.
 use std::sync::atomic::{AtomicBool, Ordering};
 
-use burn::backend::ops::FloatTensorOps;
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Backend, Dispatch, Flex, TensorMetadata, backend_extension};
 use burn::tensor::{Device, Tensor, TensorData};
@@ -63,12 +62,17 @@ pub trait BlendBackend: Backend {
         keep: f32,
         take: f32,
     ) -> FloatTensor<Self> {
-        let device = avg.device();
-        let shape = avg.shape().to_vec();
-        let mut a = HostF32::read::<Self>(avg).to_vec();
-        mix(&mut a, &HostF32::read::<Self>(w), keep, take);
-        Self::float_from_data(TensorData::new(a, shape), &device)
+        into_new::<Self>(avg, &HostF32::read::<Self>(w), keep, take)
     }
+}
+
+/// The blend written to a new buffer (the average's own is shared or not whole).
+fn into_new<B: Backend>(avg: FloatTensor<B>, w: &[f32], keep: f32, take: f32) -> FloatTensor<B> {
+    let device = avg.device();
+    let shape = avg.shape().to_vec();
+    let mut a = HostF32::read::<B>(avg).to_vec();
+    mix(&mut a, w, keep, take);
+    B::float_from_data(TensorData::new(a, shape), &device)
 }
 
 impl BlendBackend for Flex {
@@ -86,13 +90,7 @@ impl BlendBackend for Flex {
                 mix(a, &w, keep, take);
                 avg
             }
-            _ => {
-                let device = avg.device();
-                let shape = avg.shape().to_vec();
-                let mut a = HostF32::read::<Flex>(avg).to_vec();
-                mix(&mut a, &w, keep, take);
-                Flex::float_from_data(TensorData::new(a, shape), &device)
-            }
+            _ => into_new::<Flex>(avg, &w, keep, take),
         }
     }
 }

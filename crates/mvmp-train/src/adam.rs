@@ -92,13 +92,14 @@ impl Optimizer for FusedAdam {
             ),
             None => (1, None),
         };
-        let mut p = owned(tensor);
+        // Flex hands a unique contiguous buffer over as it is, without a copy.
+        let mut p = tensor.into_data();
         let g = grad.into_data();
         let g = g
             .as_slice::<f32>()
             .expect("float32 gradients beside float32 weights");
         let (mut m1, mut m2, fresh) = match moments {
-            Some((a, b)) => (owned(a), owned(b), false),
+            Some((a, b)) => (a.into_data(), b.into_data(), false),
             None => (
                 zeros_like(g.len(), &shape),
                 zeros_like(g.len(), &shape),
@@ -122,11 +123,6 @@ impl Optimizer for FusedAdam {
     fn to_device<const D: usize>(state: Self::State<D>, device: &Device) -> Self::State<D> {
         <Adam as Optimizer>::to_device(state, device)
     }
-}
-
-/// A tensor's values as data of its own: flex hands a unique contiguous buffer over as it is.
-fn owned<const D: usize>(t: Tensor<D>) -> TensorData {
-    t.into_data()
 }
 
 /// A float32 buffer's values, to update in place.
