@@ -117,6 +117,7 @@ fn set_fused_passes(on: bool) {
     mvmp_kernels::gelu::set_parallel_gelu(on);
     mvmp_train::adam::set_fused_adam(on);
     mvmp_kernels::blend::set_host_blend(on);
+    mvmp_losses::set_fused_mesh_2d(on);
 }
 
 /// Median seconds per step of each stage of `cfg` on `device`, from `steps` timed steps after the

@@ -9,7 +9,11 @@
 use burn::tensor::activation::log_softmax;
 use burn::tensor::{Device, Int, Tensor, TensorData};
 
-use mvmp_geom::CameraTensors;
+use mvmp_geom::{Camera, CameraTensors, Letterbox};
+
+pub mod mesh_2d;
+
+pub use mesh_2d::{fused_mesh_2d, set_fused_mesh_2d};
 
 /// Elements per row when [`sum_all`] splits a long reduction.
 const SUM_ROW: usize = 1024;
@@ -223,6 +227,66 @@ pub fn mesh_2d_loss_weighted(
     let w = inside * weight.reshape([b, k, n, 1]);
     let err = sum_all((uv - gt_uv).abs() * w.clone());
     err / (sum_all(w) * 2.0).clamp_min(1.0)
+}
+
+/// The 2D mesh loss of predicted world points `[B, K, N, 3]` summed over the views: in each view, the
+/// predictions and the true points `[B, K, N, 3]` projected with `rigs[b]`'s camera and letterbox, and
+/// [`mesh_2d_loss_weighted`] between them (the truth's projection a constant). `rigs[b]` holds batch
+/// item `b`'s cameras and letterboxes, as many views for each.
+///
+/// On flex one pass over the points ([`mesh_2d`]); otherwise, and under autodiff with
+/// [`set_fused_mesh_2d`] off, one view at a time as tensor ops. Both give the same values and gradients
+/// (tested to 1e-5).
+pub fn mesh_2d_loss_views(
+    points: Tensor<4>,
+    truth: Tensor<4>,
+    rigs: &[(&[Camera], &[Letterbox])],
+    size: f32,
+    weight: Tensor<3>,
+) -> Tensor<1> {
+    if mesh_2d::applies(&points.device()) {
+        let host = |t: TensorData| {
+            t.convert::<f32>()
+                .try_into_vec::<f32>()
+                .expect("float32 after convert")
+        };
+        let cameras = rigs
+            .iter()
+            .map(|(cams, lbs)| {
+                cams.iter()
+                    .zip(lbs.iter())
+                    .map(|(c, l)| mesh_2d::HostCamera::new(c, Some(l)))
+                    .collect()
+            })
+            .collect();
+        let plan = mesh_2d::Mesh2dPlan::new(
+            cameras,
+            &host(truth.into_data()),
+            &host(weight.into_data()),
+            size,
+        );
+        return mesh_2d::loss(points, plan);
+    }
+    let [b, k, n, _] = truth.dims();
+    let device = points.device();
+    let views = rigs.first().map_or(0, |r| r.0.len());
+    let mut sum: Option<Tensor<1>> = None;
+    for v in 0..views {
+        let cams: Vec<CameraTensors> = rigs
+            .iter()
+            .map(|(c, l)| CameraTensors::new(&c[v..v + 1], Some(&l[v..v + 1]), &device))
+            .collect();
+        let uv: Vec<Tensor<3>> = (0..b)
+            .map(|bi| {
+                let pts = truth.clone().narrow(0, bi, 1).reshape([k * n, 3]);
+                cams[bi].project(pts).uv.reshape([1, k * n, 2])
+            })
+            .collect();
+        let truth_uv = Tensor::cat(uv, 0).reshape([b, k, n, 2]).detach();
+        let l = mesh_2d_loss_weighted(points.clone(), truth_uv, &cams, size, weight.clone());
+        sum = Some(sum.take().map_or(l.clone(), |s| s + l));
+    }
+    sum.unwrap_or_else(|| Tensor::zeros([1], &device))
 }
 
 /// The orientation vector `O = (J_lhip - J_rhip) x (J_spine1 - J_pelvis)` of joints `[B, K, J, 3]` in SMPL-X

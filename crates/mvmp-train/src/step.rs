@@ -5,12 +5,12 @@ use burn::tensor::{Device, Int, Tensor, TensorData};
 use mvmp_data::loader::FrameBatch;
 use mvmp_fusion::roots::{gaussian_target, root_voxel_and_offset};
 use mvmp_fusion::{FusionMode, Root, SamplingGrid, fuse_views};
-use mvmp_geom::CameraTensors;
 use mvmp_geom::rotation::axis_angle_to_matrix;
+use mvmp_geom::{Camera, Letterbox};
 use mvmp_losses::{
     LossTerms, LossWeights, MeshFrame, body_pose_l2_loss, density_axis, density_loss,
     detection_loss_weighted, detection_positive_loss, facing_bin_loss, facing_loss, heatmap_loss,
-    heatmap_target, mesh_2d_loss_weighted, mesh_3d_loss_weighted, orientation_loss, parameter_loss,
+    heatmap_target, mesh_2d_loss_views, mesh_3d_loss_weighted, orientation_loss, parameter_loss,
     to_body_frame, translation_loss,
 };
 use mvmp_model::facing::{bin_labels, facing_readout, relative_heading};
@@ -624,7 +624,7 @@ pub fn stage2_loss(
         parameters: (on(weights.parameters) || on(weights.parameters_body_l2))
             .then(|| parameters_term(&out, batch, &t, weights, device)),
         mesh: (on(weights.mesh_3d) || on(weights.mesh_2d) || on(weights.translation))
-            .then(|| mesh_term(&out, batch, &t, frames.as_ref(), weights, device))
+            .then(|| mesh_term(&out, batch, &t, frames.as_ref(), weights))
             .flatten(),
         orientation: on(weights.orientation)
             .then(|| orientation_term(&out, &t) * weights.orientation),
@@ -820,7 +820,6 @@ fn mesh_term(
     t: &QueryTargets,
     frames: Option<&BodyFrames>,
     weights: &LossWeights,
-    device: &Device,
 ) -> Option<Tensor<1>> {
     let points = mesh_points(out, batch, t);
     let mut mesh: Option<Tensor<1>> = None;
@@ -835,7 +834,7 @@ fn mesh_term(
         }
     }
     if weights.mesh_2d > 0.0
-        && let Some(s) = mesh_2d_sum(batch, &points, t, device)
+        && let Some(s) = mesh_2d_sum(batch, &points)
     {
         let views = batch.cameras[0].len();
         add(s * (weights.mesh_2d / views as f32));
@@ -943,41 +942,22 @@ impl BodyFrames {
     }
 }
 
-/// The 2D mesh loss summed over views and point sets: predictions and ground truth projected into each
-/// view (the ground truth's projection is a constant target).
+/// The 2D mesh loss summed over views and point sets ([`mesh_2d_loss_views`]).
 fn mesh_2d_sum(
     batch: &FrameBatch,
     points: &[(Tensor<4>, Tensor<4>, Tensor<3>)],
-    t: &QueryTargets,
-    device: &Device,
 ) -> Option<Tensor<1>> {
-    let (b, k) = (t.at.b, t.at.k);
     let size = batch.images.dims()[3] as f32;
-    let mut sum: Option<Tensor<1>> = None;
-    for v in 0..batch.cameras[0].len() {
-        let cams: Vec<CameraTensors> = (0..b)
-            .map(|bi| {
-                CameraTensors::new(
-                    &batch.cameras[bi][v..v + 1],
-                    Some(&batch.letterboxes[bi][v..v + 1]),
-                    device,
-                )
-            })
-            .collect();
-        for (pred, g, wt) in points {
-            let [_, _, n, _] = g.dims();
-            let uv: Vec<Tensor<3>> = (0..b)
-                .map(|bi| {
-                    let pts = g.clone().narrow(0, bi, 1).reshape([k * n, 3]);
-                    cams[bi].project(pts).uv.reshape([1, k * n, 2])
-                })
-                .collect();
-            let gt_uv = Tensor::cat(uv, 0).reshape([b, k, n, 2]).detach();
-            let l = mesh_2d_loss_weighted(pred.clone(), gt_uv, &cams, size, wt.clone());
-            sum = Some(sum.take().map_or(l.clone(), |s| s + l));
-        }
-    }
-    sum
+    let rigs: Vec<(&[Camera], &[Letterbox])> = batch
+        .cameras
+        .iter()
+        .zip(&batch.letterboxes)
+        .map(|(c, l)| (c.as_slice(), l.as_slice()))
+        .collect();
+    points
+        .iter()
+        .map(|(pred, g, wt)| mesh_2d_loss_views(pred.clone(), g.clone(), &rigs, size, wt.clone()))
+        .reduce(|a, b| a + b)
 }
 
 /// The orientation loss on the joints that define a body's facing.
