@@ -16,8 +16,23 @@ use mvmp_model::summary::summarize;
 use mvmp_model::{ModelConfig, MvmpHmr, RigGrids};
 use mvmp_smplx::{SmplxLayer, Translation, regressed_to_full_pose};
 
-/// flex's measured float32 GEMM speed on the 2-core development machine (GFLOP/s, 1024^3).
-const FLEX_GEMM_GFLOPS: f64 = 161.0;
+/// flex's float32 GEMM speed on this machine (GFLOP/s), the speed the stages' shares are of: the median
+/// of 7 products of two 1024 x 1024 matrices after one, the product summed to a scalar so that it has
+/// finished (a pass over 4 MB, under 1% of the product). Measured, not a constant: the GEMM's kernels
+/// are chosen at run time (AVX-512, AVX2 + FMA), so machines of one core count differ by 2x.
+fn flex_gemm_gflops() -> f64 {
+    let d = Device::flex();
+    let n = 1024;
+    let m = |seed: usize| {
+        let v: Vec<f32> = (0..n * n)
+            .map(|i| ((i * 7 + seed) % 251) as f32 / 251.0)
+            .collect();
+        Tensor::<2>::from_data(TensorData::new(v, [n, n]), &d)
+    };
+    let (a, b) = (m(0), m(1));
+    let (_, t) = time(7, || a.clone().matmul(b.clone()));
+    2.0 * (n * n * n) as f64 / t / 1e9
+}
 
 /// `mvmp model extract`: the run's HRNet (`hrnet`) or ViT weights alone, as `[init]` reads them.
 pub fn extract(run: &Path, hrnet: bool, out: &Path) -> Result<()> {
@@ -443,7 +458,8 @@ fn print_stage_times(header: &str, t_grids: f64, backward: bool, rows: &[(&str, 
         true => ("forward + backward, at 3x the forward's MACs", 3.0),
         false => ("forward", 1.0),
     };
-    println!("{what}:");
+    let gemm = flex_gemm_gflops();
+    println!("{what}; flex's 1024^3 GEMM here: {gemm:.0} GFLOP/s:");
     println!(
         "{:<11} {:>10} {:>10} {:>12}",
         "stage", "ms", "GFLOP/s", "% of GEMM"
@@ -452,7 +468,7 @@ fn print_stage_times(header: &str, t_grids: f64, backward: bool, rows: &[(&str, 
     for (name, t, m) in rows {
         let gflops = 2.0 * work * m / t / 1e9;
         let pct = if *m > 0.0 {
-            format!("{:.0}%", 100.0 * gflops / FLEX_GEMM_GFLOPS)
+            format!("{:.0}%", 100.0 * gflops / gemm)
         } else {
             "-".into()
         };
