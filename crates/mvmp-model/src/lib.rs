@@ -8,4 +8,4 @@ pub mod summary;
 
 pub use body::BodyLayers;
 pub use config::{ModelConfig, ModelConfigError};
-pub use model::{Detection, MvmpHmr, MvmpOutput, RigGrids, roots_tensor};
+pub use model::{Detection, MvmpHmr, MvmpOutput, RigGrids, Upstream, roots_tensor};

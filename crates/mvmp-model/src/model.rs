@@ -213,6 +213,38 @@ pub struct Detection {
     pub facing: Option<Tensor<5>>,
 }
 
+/// What the network computes before the decoder ([`MvmpHmr::upstream`]). With the backbones and the
+/// detection branch frozen it depends on the frame alone, so a stage that trains the decoder alone can
+/// keep it per frame instead of computing it again.
+#[derive(Debug, Clone)]
+pub struct Upstream {
+    /// `[B, Cf, X, Y, Z]` the fused image features.
+    pub volume: Tensor<5>,
+    pub detection: Detection,
+    /// `[B, J, X, Y, Z]` the fused heatmaps the RootNet read.
+    pub joints: Tensor<5>,
+    /// See [`MvmpOutput::vit_heatmaps`].
+    pub vit_heatmaps: Option<Tensor<5>>,
+}
+
+impl Upstream {
+    /// The same values, out of any autodiff graph.
+    pub fn detach(self) -> Self {
+        let d = self.detection;
+        Upstream {
+            volume: self.volume.detach(),
+            detection: Detection {
+                heatmaps: d.heatmaps.detach(),
+                likelihood: d.likelihood.detach(),
+                offset: d.offset.detach(),
+                facing: d.facing.map(Tensor::detach),
+            },
+            joints: self.joints.detach(),
+            vit_heatmaps: self.vit_heatmaps.map(Tensor::detach),
+        }
+    }
+}
+
 impl MvmpHmr {
     /// The network with the body model its forward poses people with.
     pub fn with_body(mut self, body: Arc<BodyModel>) -> Self {
@@ -380,8 +412,13 @@ impl MvmpHmr {
         select: impl FnOnce(&[Vec<Root>]) -> (Tensor<3>, Tensor<2, Bool>),
         pose_grad: bool,
     ) -> MvmpOutput {
-        let cfg = &self.config;
-        let layer = self.body_layer(&images.device());
+        let up = self.upstream(images, grids);
+        self.decode_posed(up, grids, select, pose_grad)
+    }
+
+    /// Everything the forward computes before the decoder: the image-feature volume, the detection
+    /// branch and the heatmap volume its RootNet read.
+    pub fn upstream(&self, images: Tensor<5>, grids: &[RigGrids]) -> Upstream {
         let [b, v, _, s, _] = images.dims();
         let x = images.clone().reshape([b * v, 3, s, s]);
         let feats = self.view_features(x); // [B*V, Cf, h, w]
@@ -390,15 +427,39 @@ impl MvmpHmr {
             false => None,
         };
         let volume = self.fuse_features(feats, grids, [b, v]);
-        let (
-            Detection {
-                heatmaps,
-                likelihood,
-                offset,
-                facing,
-            },
-            hvol,
-        ) = self.detect_with_volume(images, grids);
+        let (detection, joints) = self.detect_with_volume(images, grids);
+        Upstream {
+            volume,
+            detection,
+            joints,
+            vit_heatmaps,
+        }
+    }
+
+    /// The rest of [`MvmpHmr::forward_posed`]: the roots `select` chooses, the decoder and the body
+    /// layer on what [`MvmpHmr::upstream`] gave.
+    pub fn decode_posed(
+        &self,
+        up: Upstream,
+        grids: &[RigGrids],
+        select: impl FnOnce(&[Vec<Root>]) -> (Tensor<3>, Tensor<2, Bool>),
+        pose_grad: bool,
+    ) -> MvmpOutput {
+        let cfg = &self.config;
+        let Upstream {
+            volume,
+            detection:
+                Detection {
+                    heatmaps,
+                    likelihood,
+                    offset,
+                    facing,
+                },
+            joints: hvol,
+            vit_heatmaps,
+        } = up;
+        let layer = self.body_layer(&volume.device());
+        let b = volume.dims()[0];
         let detections = self.detect_roots(likelihood.clone().detach(), offset.clone().detach());
         let (roots, present) = select(&detections);
         let kk = roots.dims()[1];

@@ -138,6 +138,15 @@ pub struct StageConfig {
     /// form).
     #[serde(default)]
     pub pose_fit_frames: usize,
+    /// Keep each training frame's image-feature volume, detection and heatmap volume from the first time
+    /// the stage decodes it, and decode from them after (stage 2 only; needs `freeze_backbone`,
+    /// `freeze_detection` and `batch_size = 1`). Everything before the decoder is then fixed: the ViT's
+    /// channel reduction and a learned fusion too. So that what is kept is what a fresh forward would
+    /// give, every epoch of the stage draws each frame's views and colour jitter as its first does.
+    /// A step then runs the decoder, the body layer and the losses alone; the kept tensors take about
+    /// 2.7 MB a frame in the tiny config (docs/architecture.md, Training).
+    #[serde(default)]
+    pub cache_volumes: bool,
 }
 
 impl StageConfig {
@@ -531,6 +540,31 @@ impl TrainConfig {
                 ),
             );
         }
+        if self.stage1.cache_volumes {
+            return bad(
+                "stage1.cache_volumes".into(),
+                "true: stage 1 trains what the volumes come from; set it in stage2".into(),
+            );
+        }
+        if self.stage2.cache_volumes
+            && !(self.stage2.freeze_backbone && self.stage2.freeze_detection)
+        {
+            return bad(
+                "stage2.cache_volumes".into(),
+                "true without freeze_backbone = true and freeze_detection = true: the volumes it keeps \
+                 would go stale as those modules train"
+                    .into(),
+            );
+        }
+        if self.stage2.cache_volumes && self.batch_size != 1 {
+            return bad(
+                "stage2.cache_volumes".into(),
+                format!(
+                    "true with batch_size = {}: it keeps one frame per step (batch_size = 1)",
+                    self.batch_size
+                ),
+            );
+        }
         if self.stage2.freeze_detection && self.stage2.detection_lr.is_some() {
             return bad(
                 "stage2.detection_lr".into(),
@@ -715,6 +749,7 @@ mod tests {
             freeze_detection: false,
             average_decay: 0.0,
             pose_fit_frames: 0,
+            cache_volumes: false,
         }
     }
 

@@ -84,7 +84,7 @@ pub fn batch_rows(
     let Some(read) = &model.decoder.pose_read else {
         return PoseRows::default();
     };
-    let (out, slots) = forward_at_queries(model, batch, (mode, gate), true, device);
+    let (out, slots) = forward_at_queries(model, batch, None, (mode, gate), true, device);
     let Some(x) = out.pose_inputs else {
         return PoseRows::default();
     };

@@ -14,7 +14,7 @@ use mvmp_losses::{
     to_body_frame, translation_loss,
 };
 use mvmp_model::facing::{bin_labels, facing_readout, relative_heading};
-use mvmp_model::{Detection, ModelConfig, MvmpHmr, MvmpOutput, RigGrids, roots_tensor};
+use mvmp_model::{Detection, ModelConfig, MvmpHmr, MvmpOutput, RigGrids, Upstream, roots_tensor};
 use mvmp_smplx::names::{NUM_JOINTS, NUM_REGRESSED, REGRESSED_TO_JOINT};
 
 use crate::config::QueryMode;
@@ -600,6 +600,18 @@ pub fn stage2_loss(
     setup: &Stage2,
     device: &Device,
 ) -> StepLoss {
+    stage2_loss_with(model, batch, None, setup, device)
+}
+
+/// [`stage2_loss`] on what [`MvmpHmr::upstream`] gave for `batch` when `up` holds it (the stage that
+/// keeps it per frame), else computing it.
+pub fn stage2_loss_with(
+    model: &MvmpHmr,
+    batch: &FrameBatch,
+    up: Option<Upstream>,
+    setup: &Stage2,
+    device: &Device,
+) -> StepLoss {
     let cfg = &model.config;
     let Stage2 {
         weights,
@@ -607,7 +619,8 @@ pub fn stage2_loss(
         gate,
     } = *setup;
     let gt = HostGt::new(batch);
-    let (out, slots) = forward_at_queries(model, batch, (mode, gate), weights.mesh_pose, device);
+    let queries = (mode, gate);
+    let (out, slots) = forward_at_queries(model, batch, up, queries, weights.mesh_pose, device);
     let queries: usize = slots.iter().map(Vec::len).sum();
     let t = QueryTargets::new(batch, &slots, out.roots.dims()[1], device);
     let det = Detection {
@@ -666,10 +679,12 @@ pub type Query = ([f64; 3], usize);
 
 /// The model's forward at the queries `mode` chooses (detections matched to the ground truth within
 /// `gate` metres, see [`choose_queries`]), posed as [`MvmpHmr::forward_posed`] with `pose_grad`, and each
-/// query's (root, ground-truth index) per item.
+/// query's (root, ground-truth index) per item. `up`: what [`MvmpHmr::upstream`] gave for `batch`, when
+/// it is at hand.
 pub fn forward_at_queries(
     model: &MvmpHmr,
     batch: &FrameBatch,
+    up: Option<Upstream>,
     (mode, gate): (QueryMode, f64),
     pose_grad: bool,
     device: &Device,
@@ -684,7 +699,8 @@ pub fn forward_at_queries(
         let k = slots.iter().map(Vec::len).max().unwrap_or(0);
         roots_tensor(&roots, k, device)
     };
-    let out = model.forward_posed(batch.images.clone(), &grids, select, pose_grad);
+    let up = up.unwrap_or_else(|| model.upstream(batch.images.clone(), &grids));
+    let out = model.decode_posed(up, &grids, select, pose_grad);
     (out, slots)
 }
 

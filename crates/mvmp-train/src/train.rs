@@ -2,6 +2,7 @@
 //! stage 2 (the whole model), with checkpoints every epoch and on interruption, validation every epoch,
 //! exact resume and a stop on non-finite losses.
 use std::borrow::Cow;
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -18,11 +19,11 @@ use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use serde_json::json;
 
-use mvmp_data::loader::{FrameBatcher, FrameSample, ViewChoice};
+use mvmp_data::loader::{FrameBatch, FrameBatcher, FrameSample, ViewChoice};
 use mvmp_data::sequence::covered_slots;
 use mvmp_data::sources::{SourceFormat, SourceSpec, TrainingSet};
 use mvmp_losses::LossWeights;
-use mvmp_model::{ModelConfig, MvmpHmr};
+use mvmp_model::{ModelConfig, MvmpHmr, Upstream};
 use mvmp_smplx::{BodyModel, SmplxLayer};
 
 use crate::TrainError;
@@ -30,7 +31,7 @@ use crate::average::WeightAverage;
 use crate::config::{Stage, StageConfig, TrainConfig};
 use crate::pose_fit::{PoseFit, ReadWeights, fit_pose_read, set_read};
 use crate::run::{RunDir, RunState, STATE_FORMAT, file_hash};
-use crate::step::{Stage2, StepLoss, stage1_loss, stage2_loss};
+use crate::step::{Stage2, StepLoss, batch_grids, stage1_loss, stage2_loss_with};
 use crate::validation::{check_validation_source, source_cameras, validate};
 use mvmp_eval::drivers::PseudoGt;
 use mvmp_infer::load_weights;
@@ -506,6 +507,8 @@ struct Trainer<'a> {
     resume_average: Option<PathBuf>,
     /// The current stage's weight average, when it keeps one (`average_decay`).
     average: Option<WeightAverage>,
+    /// What the model computes before the decoder, per training frame, under `cache_volumes`.
+    kept: HashMap<usize, Upstream>,
     last_checkpoint: String,
 }
 
@@ -581,6 +584,7 @@ impl<'a> Trainer<'a> {
             resume_optim,
             resume_average,
             average: None,
+            kept: HashMap::new(),
             last_checkpoint,
         };
         Ok((trainer, model))
@@ -711,6 +715,13 @@ impl<'a> Trainer<'a> {
             model.rootnet = model.rootnet.clone().freeze();
             model.facing = model.facing.clone().map(|f| f.freeze());
         }
+        self.kept.clear();
+        if stage == Stage::Whole && sc.cache_volumes {
+            // The rest of what the kept volumes come from.
+            model.reduce = model.reduce.clone().no_grad();
+            model.deformable = model.deformable.clone().map(|d| d.no_grad());
+            model.vit_joints = model.vit_joints.clone().map(|c| c.no_grad());
+        }
         let spe = self.steps_per_epoch();
         let done = self.cursor.epoch * spe + self.cursor.step_in_epoch;
         mon.stage(stage, sc.epochs, spe, done);
@@ -779,7 +790,9 @@ impl<'a> Trainer<'a> {
         mon: &mut dyn Monitor,
     ) -> Result<(MvmpHmr, Option<Outcome>), TrainError> {
         let Cursor { stage, epoch, .. } = self.cursor;
-        self.data.set_epoch(epoch_key(stage, epoch));
+        // Kept volumes are those of the stage's first draws, so every epoch draws as the first does.
+        let draws = if sc.cache_volumes { 0 } else { epoch };
+        self.data.set_epoch(epoch_key(stage, draws));
         let order = self.frame_order(stage, epoch);
         let skip = self.cursor.step_in_epoch;
         let chunks: Vec<&[usize]> = order.chunks(self.cfg.batch_size).skip(skip).collect();
@@ -798,7 +811,7 @@ impl<'a> Trainer<'a> {
                 let items = loading.join().expect("the loading thread does not panic")?;
                 next = chunks.get(k + 1).map(|c| prefetch(c));
                 let rec;
-                (model, rec) = self.step(model, sc, optim, skip + k, items)?;
+                (model, rec) = self.step(model, sc, optim, (skip + k, chunks[k]), items)?;
                 mon.step(&rec);
                 if self.stop_requested() {
                     let global = self.cursor.global;
@@ -824,14 +837,26 @@ impl<'a> Trainer<'a> {
                 .is_some_and(|d| self.started.elapsed() >= d)
     }
 
-    /// One optimizer step on the loaded frames `items` (batch `bi` of the epoch), logged to
-    /// `metrics.jsonl`.
+    /// What the model computes before the decoder for training frame `frame` of `batch`: kept from the
+    /// first time the stage decoded it (`cache_volumes`).
+    fn kept_upstream(&mut self, model: &MvmpHmr, frame: usize, batch: &FrameBatch) -> Upstream {
+        if let Some(up) = self.kept.get(&frame) {
+            return up.clone();
+        }
+        let grids = batch_grids(&model.config, batch, &self.ad);
+        let up = model.upstream(batch.images.clone(), &grids).detach();
+        self.kept.insert(frame, up.clone());
+        up
+    }
+
+    /// One optimizer step on the loaded frames `items` (batch `bi` of the epoch, the training frames
+    /// `frames`), logged to `metrics.jsonl`.
     fn step(
         &mut self,
         model: MvmpHmr,
         sc: &StageConfig,
         optim: &mut ModuleOptimizer,
-        bi: usize,
+        (bi, frames): (usize, &[usize]),
         items: Vec<FrameSample>,
     ) -> Result<(MvmpHmr, StepRecord), TrainError> {
         let t0 = Instant::now();
@@ -839,6 +864,11 @@ impl<'a> Trainer<'a> {
         let Cursor { stage, epoch, .. } = self.cursor;
         let batch = self.batcher.batch(items, &self.ad);
         clock.lap("load");
+        let kept = (stage == Stage::Whole && sc.cache_volumes).then(|| {
+            let up = self.kept_upstream(&model, frames[0], &batch);
+            clock.lap("volumes");
+            up
+        });
         let (cfg, ad) = (self.cfg, &self.ad);
         let stage2_weights = stage2_weights(&cfg.loss, sc);
         let loss_of = |model: &MvmpHmr| match stage {
@@ -849,7 +879,7 @@ impl<'a> Trainer<'a> {
                     queries: cfg.queries,
                     gate: cfg.match_gate,
                 };
-                stage2_loss(model, &batch, &setup, ad)
+                stage2_loss_with(model, &batch, kept.clone(), &setup, ad)
             }
         };
         if cfg.term_gradients && bi == 0 {

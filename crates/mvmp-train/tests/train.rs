@@ -997,6 +997,27 @@ fn bad_configs_name_the_key() {
             ),
             "stage2.detection_lr",
         ),
+        (
+            ("lr = 1e-3", "lr = 1e-3\ncache_volumes = true"),
+            "stage1.cache_volumes",
+        ),
+        // The volumes would go stale while the ViT trains.
+        (
+            (
+                "[stage2]\n",
+                "[stage2]\ncache_volumes = true\nfreeze_detection = true\n",
+            ),
+            "stage2.cache_volumes",
+        ),
+        // One frame a step.
+        (
+            (
+                "keep_checkpoints = 2\n[stage1]\nepochs = 1\nlr = 1e-3\n[stage2]\n",
+                "keep_checkpoints = 2\nbatch_size = 2\n[stage1]\nepochs = 1\nlr = 1e-3\n[stage2]\n\
+                 cache_volumes = true\nfreeze_detection = true\nfreeze_backbone = true\n",
+            ),
+            "stage2.cache_volumes",
+        ),
         // The model (tiny.toml's) has no ViT heatmap head for this loss to train.
         (
             ("[stage1]", "[loss]\nvit_heatmap = 10.0\n[stage1]"),
@@ -2247,6 +2268,50 @@ fn stage_two_can_keep_detection_fixed() {
         assert!(s.get("facing").is_none(), "{s}");
         assert!(s.get("mesh").is_some(), "{s}");
     }
+}
+
+/// A stage 2 that keeps each frame's volumes (`cache_volumes`) trains the decoder alone, and a run
+/// stopped in its second epoch resumes to the same weights: the volumes kept again after the resume are
+/// the first epoch's, because every epoch draws each frame's views and colours as the first did.
+#[test]
+fn stage_two_can_keep_each_frames_volumes() {
+    let dir = tempfile::tempdir().unwrap();
+    let edit = |t: String| {
+        t.replace("[stage1]\nepochs = 1", "[stage1]\nepochs = 0")
+            .replace(
+                "[stage2]\nepochs = 1\n",
+                "[stage2]\nepochs = 2\nfreeze_backbone = true\nfreeze_detection = true\ncache_volumes = true\n",
+            )
+            + "[augment]\nbrightness = 0.5\ncolor = 0.2\n"
+    };
+    let (run_a, cfg, model_cfg) = new_run(dir.path(), "a", &edit);
+    assert!(cfg.stage2.cache_volumes && cfg.stage2.epochs == 2);
+    let out = mvmp_train::train(&run_a, &cfg, &model_cfg, &options(None), &mut Quiet).unwrap();
+    assert_eq!(out, Outcome::Finished);
+    let start = mvmp_train::seeded_init(&model_cfg, &Device::flex(), cfg.seed);
+    let mut end = mvmp_train::seeded_init(&model_cfg, &Device::flex(), 0);
+    load_weights(&mut end, &run_a.root.join("model.bpk")).unwrap();
+    assert_eq!(weights(&end.vit), weights(&start.vit));
+    assert_eq!(weights(&end.reduce), weights(&start.reduce));
+    assert_eq!(weights(&end.hrnet), weights(&start.hrnet));
+    assert_eq!(weights(&end.rootnet), weights(&start.rootnet));
+    assert_eq!(weights(&end.facing), weights(&start.facing));
+    assert_ne!(weights(&end.decoder), weights(&start.decoder));
+    // The kept volumes' time is a phase of its own.
+    let log = std::fs::read_to_string(run_a.metrics_path()).unwrap();
+    let mut steps = log.lines().filter(|l| l.contains("\"kind\":\"step\""));
+    assert!(steps.clone().count() == 8 && steps.all(|l| l.contains("\"volumes\":")));
+    // 4 training frames an epoch: stopped two steps into the second.
+    let (run_b, cfg_b, model_b) = new_run(dir.path(), "b", &edit);
+    let stopped = mvmp_train::train(&run_b, &cfg_b, &model_b, &options(Some(6)), &mut Quiet);
+    assert!(matches!(
+        stopped,
+        Ok(Outcome::Interrupted { global_step: 6, .. })
+    ));
+    let (run_b, cfg_b, model_b) = RunDir::open(&run_b.root).unwrap();
+    let out = mvmp_train::train(&run_b, &cfg_b, &model_b, &options(None), &mut Quiet).unwrap();
+    assert_eq!(out, Outcome::Finished);
+    trained_alike(&run_a, &run_b, &model_cfg);
 }
 
 /// A stage 2 with a rate of its own for detection steps HRNet, the RootNet and the facing head at that
