@@ -14,10 +14,12 @@ use crate::run::write_demo_configs;
 
 /// Steps of each stage run before the timed ones (allocations, caches, autotuning).
 const WARM_UP: usize = 2;
-/// The phases of a step, as `metrics.jsonl` names them; `average` (the weight average's update) only
-/// where the stage keeps one.
-const PHASES: [&str; 6] = [
+/// The phases of a step, as `metrics.jsonl` names them; `volumes` (what the step computes for a stage
+/// that keeps it, `cache_volumes`) and `average` (the weight average's update) only where the stage
+/// has them.
+const PHASES: [&str; 7] = [
     "load",
+    "volumes",
     "forward",
     "backward",
     "grad_norm",
@@ -81,13 +83,20 @@ pub fn bench_train(args: &BenchTrainArgs, device: &Device) -> Result<()> {
             set_fused_passes(fused);
             let timed = time_stage(stage, &cfg, &model, tmp.path(), args.steps, device);
             set_fused_passes(true);
-            let (mut line, s_per_step, peak) = timed?;
+            let (mut line, s_per_step, peak, kept) = timed?;
             line += &match args.host {
                 true => format!("  {:>8.0}", peak as f64 / (1 << 20) as f64),
                 false => format!("  {:>8}", "-"),
             };
             let path = if fused { "fused" } else { "tensor-ops" };
             println!("{:>5}  {path:<10} {line}", stage.number());
+            if cfg.stage(stage).cache_volumes {
+                println!(
+                    "{:>5}  each timed step computed the volumes the stage keeps; a step that reads \
+                     them takes about {kept:.3} s (s/step less `volumes`)",
+                    stage.number()
+                );
+            }
             times.push(s_per_step);
         }
         if let [fused, ops] = times[..] {
@@ -137,7 +146,8 @@ pub fn step_seconds(
 }
 
 /// One stage trained alone for the warm-up and `steps` timed steps: its table line (without the stage,
-/// the path and the peak), its median seconds per step and the peak of host memory allocated, bytes.
+/// the path and the peak), its median seconds per step, the peak of host memory allocated, bytes, and
+/// the median of a step's seconds less its `volumes` phase.
 fn time_stage(
     stage: Stage,
     cfg: &TrainConfig,
@@ -145,7 +155,7 @@ fn time_stage(
     tmp: &Path,
     steps: usize,
     device: &Device,
-) -> Result<(String, f64, usize)> {
+) -> Result<(String, f64, usize, f64)> {
     let mut c = cfg.clone();
     // Only this stage trains, one epoch of exactly the steps timed whatever the set's size (frames
     // repeat when the set is smaller), and validation at its end reads one frame.
@@ -171,8 +181,8 @@ fn time_stage(
     let base = crate::GLOBAL.reset_peak();
     mvmp_train::train(&run, &c, &m, &opts, &mut mvmp_train::Quiet)?;
     let peak = crate::GLOBAL.peak().saturating_sub(base);
-    let (line, s_per_step) = row(&run.metrics_path())?;
-    Ok((line, s_per_step, peak))
+    let (line, s_per_step, kept) = row(&run.metrics_path())?;
+    Ok((line, s_per_step, peak, kept))
 }
 
 /// The demo's configs and synthetic set (with `scenes` scenes) under `dir`: (training config, dataset).
@@ -195,9 +205,9 @@ fn demo_setup(
     Ok((dir.join("train.toml"), Some(data)))
 }
 
-/// One stage's line of the table (from the steps column on) and its median seconds per step: the
-/// medians of the steps after the warm-up in its log.
-fn row(log: &Path) -> Result<(String, f64)> {
+/// One stage's line of the table (from the steps column on), its median seconds per step and the median
+/// of a step's seconds less its `volumes` phase: the medians of the steps after the warm-up in its log.
+fn row(log: &Path) -> Result<(String, f64, f64)> {
     let text =
         std::fs::read_to_string(log).with_context(|| format!("reading {}", log.display()))?;
     let steps: Vec<Value> = text
@@ -222,7 +232,11 @@ fn row(log: &Path) -> Result<(String, f64)> {
             false => format!("  {m:>width$.3}"),
         };
     }
-    Ok((line, seconds))
+    let kept = med(&|v| {
+        let volumes = v["phase_seconds"]["volumes"].as_f64().unwrap_or(0.0);
+        Some(v["seconds"].as_f64()? - volumes)
+    });
+    Ok((line, seconds, kept))
 }
 
 fn median(mut x: Vec<f64>) -> f64 {

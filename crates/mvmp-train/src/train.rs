@@ -839,14 +839,29 @@ impl<'a> Trainer<'a> {
 
     /// What the model computes before the decoder for training frame `frame` of `batch`: kept from the
     /// first time the stage decoded it (`cache_volumes`).
-    fn kept_upstream(&mut self, model: &MvmpHmr, frame: usize, batch: &FrameBatch) -> Upstream {
+    /// The first one kept must leave room for all of them ([`check_room`]).
+    fn kept_upstream(
+        &mut self,
+        model: &MvmpHmr,
+        frame: usize,
+        batch: &FrameBatch,
+    ) -> Result<Upstream, TrainError> {
         if let Some(up) = self.kept.get(&frame) {
-            return up.clone();
+            return Ok(up.clone());
         }
         let grids = batch_grids(&model.config, batch, &self.ad);
         let up = model.upstream(batch.images.clone(), &grids).detach();
+        if self.kept.is_empty() {
+            check_room(kept_bytes(&up), self.data.total(), &self.plain).map_err(
+                |(key, what)| TrainError::Config {
+                    path: self.run.root.join("train.toml"),
+                    key,
+                    what,
+                },
+            )?;
+        }
         self.kept.insert(frame, up.clone());
-        up
+        Ok(up)
     }
 
     /// One optimizer step on the loaded frames `items` (batch `bi` of the epoch, the training frames
@@ -864,11 +879,14 @@ impl<'a> Trainer<'a> {
         let Cursor { stage, epoch, .. } = self.cursor;
         let batch = self.batcher.batch(items, &self.ad);
         clock.lap("load");
-        let kept = (stage == Stage::Whole && sc.cache_volumes).then(|| {
-            let up = self.kept_upstream(&model, frames[0], &batch);
-            clock.lap("volumes");
-            up
-        });
+        let kept = match stage == Stage::Whole && sc.cache_volumes {
+            true => {
+                let up = self.kept_upstream(&model, frames[0], &batch)?;
+                clock.lap("volumes");
+                Some(up)
+            }
+            false => None,
+        };
         let (cfg, ad) = (self.cfg, &self.ad);
         let stage2_weights = stage2_weights(&cfg.loss, sc);
         let loss_of = |model: &MvmpHmr| match stage {
@@ -1198,17 +1216,64 @@ fn prune_checkpoints(
 }
 
 /// Stage 2's loss weights: without the detection, heatmap and facing terms when the stage keeps detection
-/// fixed.
+/// fixed, and without the ViT heatmap term when it keeps the volumes (the head is fixed then and its maps
+/// kept: the term would train nothing).
 fn stage2_weights(w: &LossWeights, sc: &StageConfig) -> LossWeights {
-    match sc.freeze_detection {
-        true => LossWeights {
-            detection: 0.0,
-            facing: 0.0,
-            heatmap_2d_stage2: 0.0,
-            ..w.clone()
-        },
-        false => w.clone(),
+    let mut out = w.clone();
+    if sc.freeze_detection {
+        out.detection = 0.0;
+        out.facing = 0.0;
+        out.heatmap_2d_stage2 = 0.0;
     }
+    if sc.cache_volumes {
+        out.vit_heatmap = 0.0;
+    }
+    out
+}
+
+/// Bytes a kept [`Upstream`] holds.
+fn kept_bytes(up: &Upstream) -> u64 {
+    let d = &up.detection;
+    let tensors = [
+        &up.volume,
+        &up.joints,
+        &d.heatmaps,
+        &d.likelihood,
+        &d.offset,
+    ];
+    let optional = [d.facing.as_ref(), up.vit_heatmaps.as_ref()];
+    (tensors.into_iter().chain(optional.into_iter().flatten()))
+        .map(|t| (t.shape().num_elements() * t.dtype().size()) as u64)
+        .sum()
+}
+
+/// Whether `frames` kept upstreams of `per_frame` bytes fit in the host's available memory, with half
+/// of it left for the steps; devices with memory of their own are not checked. The offending key and
+/// why, when they do not.
+fn check_room(per_frame: u64, frames: usize, device: &Device) -> Result<(), (String, String)> {
+    // burn-ndarray is deprecated, but `--device ndarray` still runs on the host.
+    #[allow(deprecated)]
+    let host = *device == Device::flex() || *device == Device::ndarray();
+    if !host {
+        return Ok(());
+    }
+    let mut sys = sysinfo::System::new();
+    sys.refresh_memory();
+    let (need, free) = (per_frame * frames as u64, sys.available_memory());
+    if free == 0 || need <= free / 2 {
+        return Ok(());
+    }
+    let gib = |b: u64| b as f64 / f64::from(1u32 << 30);
+    Err((
+        "stage2.cache_volumes".into(),
+        format!(
+            "true, but keeping {frames} frames at {:.1} MB each takes {:.1} GiB, more than half of the \
+             {:.1} GiB of memory available",
+            per_frame as f64 / 1e6,
+            gib(need),
+            gib(free)
+        ),
+    ))
 }
 
 #[cfg(test)]
@@ -1218,6 +1283,18 @@ mod tests {
 
     /// Epochs smaller than the set take successive frames of shuffled passes: every frame once per pass
     /// before any repeats, passes in different orders, an epoch straddling two passes included.
+    #[test]
+    fn kept_volumes_must_leave_half_the_memory() {
+        let d = Device::flex();
+        assert!(check_room(0, 1000, &d).is_ok());
+        let (key, what) = check_room(1 << 40, 1000, &d).unwrap_err();
+        assert_eq!(key, "stage2.cache_volumes");
+        assert!(
+            what.contains("1000 frames") && what.contains("1099511.6 MB"),
+            "{what}"
+        );
+    }
+
     #[test]
     fn short_epochs_see_every_frame_once_a_pass() {
         let (n, e) = (10, 4);
