@@ -58,7 +58,7 @@ pub fn module_grad_norms(model: &MvmpHmr, grads: &Gradients) -> Vec<(&'static st
 }
 
 /// For each loss term of a step, the module gradient norms of that term alone, as a JSON object
-/// `{term: {module: norm}}`. `loss_of` recomputes the step's loss (a backward consumes its graph), once
+/// `{term: {module: norm}}` (empty for a term that reaches no trained module). `loss_of` recomputes the step's loss (a backward consumes its graph), once
 /// per term.
 pub fn term_grad_norms(model: &MvmpHmr, loss_of: impl Fn(&MvmpHmr) -> StepLoss) -> Value {
     let mut first = Some(loss_of(model));
@@ -75,6 +75,11 @@ pub fn term_grad_norms(model: &MvmpHmr, loss_of: impl Fn(&MvmpHmr) -> StepLoss) 
             .nth(i)
             .expect("the same terms every time")
             .1;
+        // A term no trained module feeds (its inputs fixed) has no graph to go back through.
+        if !term.is_tracked() {
+            out.insert(name.to_string(), json!({}));
+            continue;
+        }
         let norms = module_grad_norms(model, &term.backward());
         let obj: serde_json::Map<String, Value> = norms
             .into_iter()

@@ -2277,7 +2277,8 @@ fn stage_two_can_keep_detection_fixed() {
 fn stage_two_can_keep_each_frames_volumes() {
     let dir = tempfile::tempdir().unwrap();
     let edit = |t: String| {
-        t.replace("[stage1]\nepochs = 1", "[stage1]\nepochs = 0")
+        t.replace("seed = 3\n", "seed = 3\nterm_gradients = true\n")
+            .replace("[stage1]\nepochs = 1", "[stage1]\nepochs = 0")
             .replace(
                 "[stage2]\nepochs = 1\n",
                 "[stage2]\nepochs = 2\nfreeze_backbone = true\nfreeze_detection = true\ncache_volumes = true\n",
@@ -2301,6 +2302,21 @@ fn stage_two_can_keep_each_frames_volumes() {
     let log = std::fs::read_to_string(run_a.metrics_path()).unwrap();
     let mut steps = log.lines().filter(|l| l.contains("\"kind\":\"step\""));
     assert!(steps.clone().count() == 8 && steps.all(|l| l.contains("\"volumes\":")));
+    // Each term's gradients reach the decoder alone.
+    let terms = log
+        .lines()
+        .find(|l| l.contains("\"kind\":\"grad_terms\""))
+        .unwrap();
+    let terms: serde_json::Value = serde_json::from_str(terms).unwrap();
+    let mut decoder = 0.0;
+    for (name, norms) in terms["terms"].as_object().unwrap() {
+        for (module, n) in norms.as_object().unwrap() {
+            let n = n.as_f64().unwrap();
+            assert!(module == "decoder" || n == 0.0, "{name}: {module} {n}");
+            decoder += n;
+        }
+    }
+    assert!(decoder > 0.0, "{terms}");
     // 4 training frames an epoch: stopped two steps into the second.
     let (run_b, cfg_b, model_b) = new_run(dir.path(), "b", &edit);
     let stopped = mvmp_train::train(&run_b, &cfg_b, &model_b, &options(Some(6)), &mut Quiet);
