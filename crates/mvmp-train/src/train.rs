@@ -838,8 +838,8 @@ impl<'a> Trainer<'a> {
     }
 
     /// What the model computes before the decoder for training frame `frame` of `batch`: kept from the
-    /// first time the stage decoded it (`cache_volumes`).
-    /// The first one kept must leave room for all of them ([`check_room`]).
+    /// first time the stage decoded it (`cache_volumes`). The first one kept must leave room for all of
+    /// them ([`check_room`]).
     fn kept_upstream(
         &mut self,
         model: &MvmpHmr,
