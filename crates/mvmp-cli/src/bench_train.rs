@@ -130,7 +130,8 @@ fn set_fused_passes(on: bool) {
 }
 
 /// Median seconds per step of each stage of `cfg` on `device`, from `steps` timed steps after the
-/// warm-up (runs in a temporary directory under `tmp`).
+/// warm-up (runs in a temporary directory under `tmp`); of a stage that keeps volumes, a step that
+/// reads them (the first epoch's steps, which compute them, cost more).
 pub fn step_seconds(
     cfg: &TrainConfig,
     model: &mvmp_model::ModelConfig,
@@ -140,7 +141,12 @@ pub fn step_seconds(
 ) -> Result<[f64; 2]> {
     let mut out = [0.0; 2];
     for (i, stage) in Stage::ALL.into_iter().enumerate() {
-        out[i] = time_stage(stage, cfg, model, tmp, steps, device)?.1;
+        let (_, s_per_step, _, kept) = time_stage(stage, cfg, model, tmp, steps, device)?;
+        // A stage that keeps volumes computes them in its first epoch alone.
+        out[i] = match cfg.stage(stage).cache_volumes {
+            true => kept,
+            false => s_per_step,
+        };
     }
     Ok(out)
 }

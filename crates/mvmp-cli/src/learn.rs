@@ -92,6 +92,8 @@ pub struct LearnArgs<'a> {
     /// HRNet weights every variant starts from (`[init] hrnet`), as the paper's comparisons all start
     /// from one pretrained backbone.
     pub init_hrnet: Option<&'a Path>,
+    /// Every variant trains by [`kept_volumes_recipe`].
+    pub kept_volumes: bool,
 }
 
 /// What a benchmark trains, fixed once it has measured its step times (`OUT/plan.json`): a stopped
@@ -116,6 +118,10 @@ struct Plan {
     /// The HRNet weights every variant starts from (absolute; absent: from scratch).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     init_hrnet: Option<String>,
+    /// Whether every variant trains by [`kept_volumes_recipe`] (absent in plans of earlier versions:
+    /// not).
+    #[serde(default)]
+    kept_volumes: bool,
 }
 
 const PLAN: &str = "plan.json";
@@ -146,6 +152,28 @@ fn label(name: &str, seed: u64, seeds: &[u64]) -> String {
         [_] => name.to_string(),
         _ => format!("{name}-s{seed}"),
     }
+}
+
+/// The decoder-alone recipe (`--kept-volumes`): the decoder's `pose_trunk`, and a stage 2 that keeps
+/// the ViT and detection fixed and each training frame's volumes from its first decoding
+/// (`freeze_backbone`, `freeze_detection`, `cache_volumes`; no `detection_lr`, which would train
+/// nothing). A kept-volumes step costs about a fifth of a whole-model one, so the same minutes buy the
+/// decoder four times the steps (docs/learning.md, The decoder alone on kept volumes).
+fn kept_volumes_recipe(t: &mut TrainConfig, m: &mut ModelConfig) {
+    m.decoder.pose_trunk = true;
+    t.stage2.freeze_backbone = true;
+    t.stage2.freeze_detection = true;
+    t.stage2.cache_volumes = true;
+    t.stage2.detection_lr = None;
+}
+
+/// The benchmark's base configs (`OUT/configs`), with the plan's recipe.
+fn base_configs(out: &Path, kept_volumes: bool) -> Result<(TrainConfig, ModelConfig)> {
+    let (mut t, mut m) = TrainConfig::read(&out.join("configs").join("train.toml"))?;
+    if kept_volumes {
+        kept_volumes_recipe(&mut t, &mut m);
+    }
+    Ok((t, m))
 }
 
 fn select(list: Option<&str>) -> Result<Vec<&'static Variant>> {
@@ -309,7 +337,7 @@ fn plan_and_run(args: &LearnArgs, device: &Device) -> Result<()> {
     let cfg_dir = out.join("configs");
     std::fs::create_dir_all(&cfg_dir).with_context(|| format!("creating {}", cfg_dir.display()))?;
     write_demo_configs(&cfg_dir, args.scenes)?;
-    let (base_train, base_model) = TrainConfig::read(&cfg_dir.join("train.toml"))?;
+    let (base_train, base_model) = base_configs(out, args.kept_volumes)?;
     let init_hrnet = args
         .init_hrnet
         .map(|f| checked_hrnet(f, &base_model))
@@ -344,6 +372,7 @@ fn plan_and_run(args: &LearnArgs, device: &Device) -> Result<()> {
         step_seconds: step_s,
         fixed_epochs: fixed.is_some(),
         init_hrnet,
+        kept_volumes: args.kept_volumes,
     };
     write_atomic(
         &out.join(PLAN),
@@ -356,7 +385,7 @@ fn plan_and_run(args: &LearnArgs, device: &Device) -> Result<()> {
 
 fn run_plan(out: &Path, plan: &Plan, variants: &[&'static Variant], device: &Device) -> Result<()> {
     let cfg_dir = out.join("configs");
-    let (base_train, base_model) = TrainConfig::read(&cfg_dir.join("train.toml"))?;
+    let (base_train, base_model) = base_configs(out, plan.kept_volumes)?;
     let [e1, e2] = plan.epochs;
     eprintln!(
         "each variant: {e1} + {e2} epochs of {} frames (about {:.1} min for the full model at {:.3} and \
@@ -781,13 +810,17 @@ fn report(rows: &[Row], plan: &Plan) -> String {
             "sized so that the full model takes about",
         )
     };
-    let start = match &plan.init_hrnet {
+    let mut start = match &plan.init_hrnet {
         Some(f) => {
             command += &format!(" --init-hrnet {f}");
             format!("starts from the HRNet weights of {f} and ")
         }
         None => String::new(),
     };
+    if plan.kept_volumes {
+        command += " --kept-volumes";
+        start += "with the decoder's `pose_trunk`, its stage 2 the decoder alone on kept volumes, ";
+    }
     let mut s = format!(
         "# Learning benchmark\n\n`mvmp bench learn {command} --scenes {}`: the tiny model on a synthetic set of {} \
          one-frame scenes ({frames} for training, the rest held out). Every variant {start}trains the same schedule, \
@@ -996,6 +1029,7 @@ mod tests {
             step_seconds: [0.3, 0.55],
             fixed_epochs: true,
             init_hrnet: None,
+            kept_volumes: false,
         };
         let far = [
             row("full", 0, Some(150.0)),

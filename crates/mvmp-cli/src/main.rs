@@ -591,13 +591,20 @@ enum BenchCommand {
         /// model's `tiny` HRNet with 17 joints, as `mvmp model extract` or `mvmp import hrnet` write it.
         #[arg(long)]
         init_hrnet: Option<PathBuf>,
+        /// Every variant trains by the decoder-alone recipe: the decoder's `pose_trunk`, and a stage 2
+        /// that keeps the ViT and detection fixed and each frame's volumes from its first decoding
+        /// (`[stage2] freeze_backbone`, `freeze_detection`, `cache_volumes`), so that its steps cost
+        /// about a fifth. Meant with --init-hrnet: maps trained from scratch give the decoder little
+        /// to read (docs/learning.md).
+        #[arg(long)]
+        kept_volumes: bool,
         #[arg(long, default_value = "out/learn")]
         out: PathBuf,
         /// Go on with the benchmark stopped in --out (by Ctrl-C or an error once its schedule was
         /// planned), or add to one that finished: runs scored stay, a stopped run resumes from its
         /// checkpoint, the rest train as planned; its minutes, scenes and seeds are the plan's. With
         /// --variants, those variants join the plan and train on its schedule.
-        #[arg(long, conflicts_with_all = ["minutes", "scenes", "seeds", "epochs", "init_hrnet"])]
+        #[arg(long, conflicts_with_all = ["minutes", "scenes", "seeds", "epochs", "init_hrnet", "kept_volumes"])]
         resume: bool,
     },
     /// Seconds per training step of each stage and their split (load, forward, backward, gradient
@@ -947,6 +954,7 @@ fn bench_command(cmd: BenchCommand, device: &Device, host: bool) -> anyhow::Resu
             seeds,
             epochs,
             init_hrnet,
+            kept_volumes,
             out,
             resume: false,
         } => learn::bench_learn(
@@ -958,6 +966,7 @@ fn bench_command(cmd: BenchCommand, device: &Device, host: bool) -> anyhow::Resu
                 seeds: &seeds,
                 epochs: epochs.as_deref(),
                 init_hrnet: init_hrnet.as_deref(),
+                kept_volumes,
             },
             device,
         ),

@@ -1738,7 +1738,8 @@ fn the_learning_benchmark_trains_a_given_schedule() {
 }
 
 /// `--init-hrnet`: every variant starts from the HRNet weights given (here the benchmark run's own,
-/// extracted); a file that does not fit is named before anything is made.
+/// extracted); a file that does not fit is named before anything is made. With `--kept-volumes` every
+/// variant's stage 2 trains the decoder alone on kept volumes, with the decoder's `pose_trunk`.
 fn learning_from_a_pretrained_hrnet(dir: &Path, run: &Path) {
     let file = |name: &str| dir.join(name).to_string_lossy().into_owned();
     for (module, out) in [("hrnet", file("hrnet.bpk")), ("vit", file("vit.bpk"))] {
@@ -1752,7 +1753,15 @@ fn learning_from_a_pretrained_hrnet(dir: &Path, run: &Path) {
     let args = |init: &str| {
         let (out, init) = (out.to_str().unwrap().to_string(), init.to_string());
         let fixed = ["bench", "learn", "--epochs", "1,1", "--scenes", "3"];
-        let given = ["--variants", "full", "--init-hrnet", &init, "--out", &out];
+        let given = [
+            "--variants",
+            "full",
+            "--init-hrnet",
+            &init,
+            "--kept-volumes",
+            "--out",
+            &out,
+        ];
         mvmp(&[&fixed[..], &given[..]].concat())
     };
     let o = args(&file("vit.bpk"));
@@ -1772,9 +1781,29 @@ fn learning_from_a_pretrained_hrnet(dir: &Path, run: &Path) {
         train.contains("[init]") && train.contains(&file("hrnet.bpk")),
         "{train}"
     );
+    let (plan, stage2) = (
+        plan.replace(' ', ""),
+        train.split("[stage2]").nth(1).unwrap(),
+    );
+    assert!(plan.contains("\"kept_volumes\":true"), "{plan}");
+    for key in ["freeze_backbone", "freeze_detection", "cache_volumes"] {
+        assert!(stage2.contains(&format!("{key} = true")), "{train}");
+    }
+    let model = std::fs::read_to_string(out.join("configs/full/model.toml")).unwrap();
+    assert!(model.contains("pose_trunk = true"), "{model}");
+    // Stage 2 read the volumes it kept.
+    let log = std::fs::read_to_string(out.join("runs/full/metrics.jsonl")).unwrap();
+    let stage2: Vec<&str> = log
+        .lines()
+        .filter(|l| l.contains("\"kind\":\"step\"") && l.contains("\"stage\":2"))
+        .collect();
+    assert!(!stage2.is_empty() && stage2.iter().all(|l| l.contains("\"volumes\":")));
     let report = std::fs::read_to_string(out.join("learning.md")).unwrap();
     assert!(
-        report.contains(&format!("--init-hrnet {}", file("hrnet.bpk"))),
+        report.contains(&format!(
+            "--init-hrnet {} --kept-volumes",
+            file("hrnet.bpk")
+        )),
         "{report}"
     );
 }

@@ -436,6 +436,15 @@ impl MvmpHmr {
         }
     }
 
+    /// `up` with the RootNet run again on its heatmap volume: what training decodes from when it keeps
+    /// the volumes of a fixed HRNet but goes on training the RootNet.
+    pub fn rerun_rootnet(&self, mut up: Upstream) -> Upstream {
+        let (likelihood, offset) = self.rootnet.forward(up.joints.clone());
+        up.detection.likelihood = likelihood;
+        up.detection.offset = offset;
+        up
+    }
+
     /// The rest of [`MvmpHmr::forward_posed`]: the roots `select` chooses, the decoder and the body
     /// layer on what [`MvmpHmr::upstream`] gave.
     pub fn decode_posed(

@@ -712,7 +712,9 @@ impl<'a> Trainer<'a> {
             // Frozen rather than only without gradients: HRNet's batch norms then keep the running
             // statistics stage 1 left instead of updating them in every forward.
             model.hrnet = model.hrnet.clone().freeze();
-            model.rootnet = model.rootnet.clone().freeze();
+            if !sc.train_rootnet {
+                model.rootnet = model.rootnet.clone().freeze();
+            }
             model.facing = model.facing.clone().map(|f| f.freeze());
         }
         self.kept.clear();
@@ -897,7 +899,11 @@ impl<'a> Trainer<'a> {
                     queries: cfg.queries,
                     gate: cfg.match_gate,
                 };
-                stage2_loss_with(model, &batch, kept.clone(), &setup, ad)
+                let kept = match sc.train_rootnet {
+                    true => kept.clone().map(|up| model.rerun_rootnet(up)),
+                    false => kept.clone(),
+                };
+                stage2_loss_with(model, &batch, kept, &setup, ad)
             }
         };
         if cfg.term_gradients && bi == 0 {
@@ -1215,13 +1221,15 @@ fn prune_checkpoints(
     Ok(())
 }
 
-/// Stage 2's loss weights: without the detection, heatmap and facing terms when the stage keeps detection
-/// fixed, and without the ViT heatmap term when it keeps the volumes (the head is fixed then and its maps
+/// Stage 2's loss weights: without the detection (unless the RootNet trains), heatmap and facing terms
+/// when the stage keeps detection fixed, and without the ViT heatmap term when it keeps the volumes (the head is fixed then and its maps
 /// kept: the term would train nothing).
 fn stage2_weights(w: &LossWeights, sc: &StageConfig) -> LossWeights {
     let mut out = w.clone();
     if sc.freeze_detection {
-        out.detection = 0.0;
+        if !sc.train_rootnet {
+            out.detection = 0.0;
+        }
         out.facing = 0.0;
         out.heatmap_2d_stage2 = 0.0;
     }

@@ -1001,6 +1001,15 @@ fn bad_configs_name_the_key() {
             ("lr = 1e-3", "lr = 1e-3\ncache_volumes = true"),
             "stage1.cache_volumes",
         ),
+        (
+            ("lr = 1e-3", "lr = 1e-3\ntrain_rootnet = true"),
+            "stage1.train_rootnet",
+        ),
+        // Without freeze_detection the RootNet trains anyway.
+        (
+            ("[stage2]\n", "[stage2]\ntrain_rootnet = true\n"),
+            "stage2.train_rootnet",
+        ),
         // The volumes would go stale while the ViT trains.
         (
             (
@@ -2328,6 +2337,61 @@ fn stage_two_can_keep_each_frames_volumes() {
     let out = mvmp_train::train(&run_b, &cfg_b, &model_b, &options(None), &mut Quiet).unwrap();
     assert_eq!(out, Outcome::Finished);
     trained_alike(&run_a, &run_b, &model_cfg);
+}
+
+/// With `train_rootnet` beside kept volumes, stage 2 trains the RootNet on each frame's kept heatmap
+/// volume and the decoder: HRNet, the facing head and the ViT stay where they were, the detection term
+/// stays in the loss and its gradient reaches the RootNet.
+#[test]
+fn stage_two_can_train_the_rootnet_on_kept_volumes() {
+    let dir = tempfile::tempdir().unwrap();
+    let edit = |t: String| {
+        t.replace("seed = 3\n", "seed = 3\nterm_gradients = true\n")
+            .replace("[stage1]\nepochs = 1", "[stage1]\nepochs = 0")
+            .replace(
+                "[stage2]\nepochs = 1\n",
+                "[stage2]\nepochs = 2\nfreeze_backbone = true\nfreeze_detection = true\n\
+                 cache_volumes = true\ntrain_rootnet = true\ndetection_lr = 2e-3\n",
+            )
+    };
+    let (run, cfg, model_cfg) = new_run(dir.path(), "r", &edit);
+    assert!(cfg.stage2.train_rootnet && cfg.stage2.epochs == 2);
+    let out = mvmp_train::train(&run, &cfg, &model_cfg, &options(None), &mut Quiet).unwrap();
+    assert_eq!(out, Outcome::Finished);
+    let start = mvmp_train::seeded_init(&model_cfg, &Device::flex(), cfg.seed);
+    let mut end = mvmp_train::seeded_init(&model_cfg, &Device::flex(), 0);
+    load_weights(&mut end, &run.root.join("model.bpk")).unwrap();
+    assert_eq!(weights(&end.vit), weights(&start.vit));
+    assert_eq!(weights(&end.hrnet), weights(&start.hrnet));
+    assert_eq!(weights(&end.facing), weights(&start.facing));
+    assert_ne!(kernels(&end.rootnet), kernels(&start.rootnet));
+    assert_ne!(weights(&end.decoder), weights(&start.decoder));
+    let log = std::fs::read_to_string(run.metrics_path()).unwrap();
+    let steps: Vec<serde_json::Value> = log
+        .lines()
+        .filter(|l| l.contains("\"kind\":\"step\""))
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(steps.len(), 8);
+    for s in &steps {
+        assert!(s.get("detection").is_some(), "{s}");
+        assert!(s.get("facing").is_none(), "{s}");
+        assert!(s["detection_lr"].as_f64().is_some(), "{s}");
+    }
+    let terms = log
+        .lines()
+        .find(|l| l.contains("\"kind\":\"grad_terms\""))
+        .unwrap();
+    let terms: serde_json::Value = serde_json::from_str(terms).unwrap();
+    let rootnet = terms["terms"]["detection"]["rootnet"].as_f64().unwrap();
+    assert!(rootnet > 0.0, "{terms}");
+    for (name, norms) in terms["terms"].as_object().unwrap() {
+        for (module, n) in norms.as_object().unwrap() {
+            let n = n.as_f64().unwrap();
+            let trained = module == "decoder" || module == "rootnet";
+            assert!(trained || n == 0.0, "{name}: {module} {n}");
+        }
+    }
 }
 
 /// A stage 2 with a rate of its own for detection steps HRNet, the RootNet and the facing head at that
