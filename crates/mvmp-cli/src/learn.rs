@@ -94,6 +94,9 @@ pub struct LearnArgs<'a> {
     pub init_hrnet: Option<&'a Path>,
     /// Every variant trains by [`kept_volumes_recipe`].
     pub kept_volumes: bool,
+    /// Pretrain the HRNet every variant starts from: the pretraining set's scenes and stage 1's epochs
+    /// (`crate::pretrain`).
+    pub pretrain: Option<&'a [usize]>,
 }
 
 /// What a benchmark trains, fixed once it has measured its step times (`OUT/plan.json`): a stopped
@@ -122,6 +125,10 @@ struct Plan {
     /// not).
     #[serde(default)]
     kept_volumes: bool,
+    /// The pretraining set's scenes and stage 1's epochs when the benchmark pretrains the HRNet that
+    /// `init_hrnet` names (absent: given, or none).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pretrain: Option<[usize; 2]>,
 }
 
 const PLAN: &str = "plan.json";
@@ -329,6 +336,7 @@ fn plan_and_run(args: &LearnArgs, device: &Device) -> Result<()> {
     let out = args.out;
     let variants = select(args.variants)?;
     let fixed = args.epochs.map(fixed_epochs).transpose()?;
+    let pretrain = args.pretrain.map(crate::pretrain::parse).transpose()?;
     for (i, seed) in args.seeds.iter().enumerate() {
         if args.seeds[..i].contains(seed) {
             bail!("--seeds: seed {seed} is given twice");
@@ -338,10 +346,17 @@ fn plan_and_run(args: &LearnArgs, device: &Device) -> Result<()> {
     std::fs::create_dir_all(&cfg_dir).with_context(|| format!("creating {}", cfg_dir.display()))?;
     write_demo_configs(&cfg_dir, args.scenes)?;
     let (base_train, base_model) = base_configs(out, args.kept_volumes)?;
-    let init_hrnet = args
-        .init_hrnet
-        .map(|f| checked_hrnet(f, &base_model))
-        .transpose()?;
+    let init_hrnet = match pretrain {
+        Some(_) => Some(
+            crate::pretrain::hrnet_file(out)?
+                .to_string_lossy()
+                .into_owned(),
+        ),
+        None => args
+            .init_hrnet
+            .map(|f| checked_hrnet(f, &base_model))
+            .transpose()?,
+    };
     let data = out.join("data");
     eprintln!(
         "synthetic dataset ({} scenes) -> {}",
@@ -373,6 +388,7 @@ fn plan_and_run(args: &LearnArgs, device: &Device) -> Result<()> {
         fixed_epochs: fixed.is_some(),
         init_hrnet,
         kept_volumes: args.kept_volumes,
+        pretrain,
     };
     write_atomic(
         &out.join(PLAN),
@@ -384,6 +400,9 @@ fn plan_and_run(args: &LearnArgs, device: &Device) -> Result<()> {
 }
 
 fn run_plan(out: &Path, plan: &Plan, variants: &[&'static Variant], device: &Device) -> Result<()> {
+    if let Some(pretrain) = plan.pretrain {
+        crate::pretrain::pretrain_hrnet(out, pretrain, device)?;
+    }
     let cfg_dir = out.join("configs");
     let (base_train, base_model) = base_configs(out, plan.kept_volumes)?;
     let [e1, e2] = plan.epochs;
@@ -810,12 +829,19 @@ fn report(rows: &[Row], plan: &Plan) -> String {
             "sized so that the full model takes about",
         )
     };
-    let mut start = match &plan.init_hrnet {
-        Some(f) => {
+    let mut start = match (&plan.init_hrnet, plan.pretrain) {
+        (_, Some([scenes, epochs])) => {
+            command += &format!(" --pretrain-hrnet {scenes},{epochs}");
+            format!(
+                "starts from the HRNet the benchmark pretrained ({epochs} stage-1 epochs on {scenes} \
+                 scenes of the next seed; `pretrain/hrnet.bpk`) and "
+            )
+        }
+        (Some(f), None) => {
             command += &format!(" --init-hrnet {f}");
             format!("starts from the HRNet weights of {f} and ")
         }
-        None => String::new(),
+        (None, None) => String::new(),
     };
     if plan.kept_volumes {
         command += " --kept-volumes";
@@ -1030,6 +1056,7 @@ mod tests {
             fixed_epochs: true,
             init_hrnet: None,
             kept_volumes: false,
+            pretrain: None,
         };
         let far = [
             row("full", 0, Some(150.0)),
@@ -1070,6 +1097,22 @@ mod tests {
         );
         assert!(
             text.contains("Every variant starts from the HRNet weights of /w/hrnet.bpk and trains"),
+            "{text}"
+        );
+        // One that pretrains its HRNet names the pretraining in its command, not the file.
+        let plan = Plan {
+            pretrain: Some([1152, 12]),
+            ..plan
+        };
+        let text = report(&rows, &plan);
+        assert!(
+            text.contains("`mvmp bench learn --epochs 3,3 --pretrain-hrnet 1152,12 --scenes 864`"),
+            "{text}"
+        );
+        assert!(
+            text.contains(
+                "starts from the HRNet the benchmark pretrained (12 stage-1 epochs on 1152"
+            ),
             "{text}"
         );
     }

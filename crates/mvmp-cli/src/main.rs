@@ -24,6 +24,7 @@ mod interrupt;
 mod learn;
 mod model;
 mod paths;
+mod pretrain;
 mod probe;
 mod progress;
 mod report;
@@ -598,13 +599,18 @@ enum BenchCommand {
         /// to read (docs/learning.md).
         #[arg(long)]
         kept_volumes: bool,
+        /// Pretrain the HRNet every variant starts from, as `SCENES,EPOCHS` (e.g. 1152,12): stage 1
+        /// alone for EPOCHS epochs on a synthetic set of the benchmark's recipe with SCENES scenes and
+        /// the next seed, before the variants (OUT/pretrain; a stopped benchmark goes on from it).
+        #[arg(long, value_delimiter = ',', conflicts_with = "init_hrnet")]
+        pretrain_hrnet: Option<Vec<usize>>,
         #[arg(long, default_value = "out/learn")]
         out: PathBuf,
         /// Go on with the benchmark stopped in --out (by Ctrl-C or an error once its schedule was
         /// planned), or add to one that finished: runs scored stay, a stopped run resumes from its
         /// checkpoint, the rest train as planned; its minutes, scenes and seeds are the plan's. With
         /// --variants, those variants join the plan and train on its schedule.
-        #[arg(long, conflicts_with_all = ["minutes", "scenes", "seeds", "epochs", "init_hrnet", "kept_volumes"])]
+        #[arg(long, conflicts_with_all = ["minutes", "scenes", "seeds", "epochs", "init_hrnet", "kept_volumes", "pretrain_hrnet"])]
         resume: bool,
     },
     /// Seconds per training step of each stage and their split (load, forward, backward, gradient
@@ -955,6 +961,7 @@ fn bench_command(cmd: BenchCommand, device: &Device, host: bool) -> anyhow::Resu
             epochs,
             init_hrnet,
             kept_volumes,
+            pretrain_hrnet,
             out,
             resume: false,
         } => learn::bench_learn(
@@ -967,6 +974,7 @@ fn bench_command(cmd: BenchCommand, device: &Device, host: bool) -> anyhow::Resu
                 epochs: epochs.as_deref(),
                 init_hrnet: init_hrnet.as_deref(),
                 kept_volumes,
+                pretrain: pretrain_hrnet.as_deref(),
             },
             device,
         ),

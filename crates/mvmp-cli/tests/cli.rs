@@ -1808,6 +1808,71 @@ fn learning_from_a_pretrained_hrnet(dir: &Path, run: &Path) {
     );
 }
 
+/// `--pretrain-hrnet SCENES,EPOCHS`: the benchmark pretrains the HRNet every variant starts from (stage
+/// 1 alone on a set of the next seed) before the variants, and its plan, configs and report say so;
+/// counts that are not a set of at least 3 scenes and a positive number of epochs are named before
+/// anything is made, and it cannot go with --init-hrnet.
+#[test]
+fn the_learning_benchmark_pretrains_its_hrnet() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("learn");
+    let o = mvmp(&[
+        "bench",
+        "learn",
+        "--epochs",
+        "1,1",
+        "--scenes",
+        "3",
+        "--variants",
+        "full",
+        "--pretrain-hrnet",
+        "3,2",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stderr(&o).contains("(3 scenes, seed 1)"), "{}", stderr(&o));
+    let hrnet = std::path::absolute(out.join("pretrain/hrnet.bpk")).unwrap();
+    let hrnet = hrnet.to_str().unwrap();
+    assert!(std::path::Path::new(hrnet).metadata().unwrap().len() > 1000);
+    // Two epochs of the set's two training frames, stage 1 alone.
+    let state = std::fs::read_to_string(out.join("pretrain/run/state.json")).unwrap();
+    let state: serde_json::Value = serde_json::from_str(&state).unwrap();
+    assert_eq!(state["stage"], serde_json::json!(1), "{state}");
+    assert_eq!(state["global_step"], serde_json::json!(4), "{state}");
+    assert_eq!(state["finished"], serde_json::json!(true), "{state}");
+    let plan = std::fs::read_to_string(out.join("plan.json")).unwrap();
+    let plan: serde_json::Value = serde_json::from_str(&plan).unwrap();
+    assert_eq!(plan["pretrain"], serde_json::json!([3, 2]), "{plan}");
+    assert_eq!(plan["init_hrnet"], serde_json::json!(hrnet), "{plan}");
+    let train = std::fs::read_to_string(out.join("configs/full/train.toml")).unwrap();
+    assert!(train.contains("[init]") && train.contains(hrnet), "{train}");
+    let report = std::fs::read_to_string(out.join("learning.md")).unwrap();
+    assert!(
+        report.contains("`mvmp bench learn --epochs 1,1 --pretrain-hrnet 3,2 --scenes 3`"),
+        "{report}"
+    );
+    for bad in ["2,1", "3,0", "3"] {
+        let target = dir.path().join(format!("bad-{}", bad.replace(',', "-")));
+        let args = ["bench", "learn", "--pretrain-hrnet", bad, "--out"];
+        expect_error(
+            &[&args[..], &[target.to_str().unwrap()]].concat(),
+            &["--pretrain-hrnet", "SCENES,EPOCHS"],
+        );
+        assert!(!target.exists(), "{}", target.display());
+    }
+    let o = mvmp(&[
+        "bench",
+        "learn",
+        "--pretrain-hrnet",
+        "3,1",
+        "--init-hrnet",
+        hrnet,
+    ]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(stderr(&o).contains("--init-hrnet"), "{}", stderr(&o));
+}
+
 /// The density ablation's configs train stage 1 as the full model's do (the term is stage 2's), so
 /// its runs go on from the full model's copy at the end of stage 1 (or where the time guard stopped
 /// it): the copy's stage-1 log lines are the two runs' own, times and all, not trained again, and
