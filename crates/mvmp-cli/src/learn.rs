@@ -829,7 +829,7 @@ fn report(rows: &[Row], plan: &Plan) -> String {
             "sized so that the full model takes about",
         )
     };
-    let mut start = match (&plan.init_hrnet, plan.pretrain) {
+    let start = match (&plan.init_hrnet, plan.pretrain) {
         (_, Some([scenes, epochs])) => {
             command += &format!(" --pretrain-hrnet {scenes},{epochs}");
             format!(
@@ -843,13 +843,16 @@ fn report(rows: &[Row], plan: &Plan) -> String {
         }
         (None, None) => String::new(),
     };
-    if plan.kept_volumes {
-        command += " --kept-volumes";
-        start += "with the decoder's `pose_trunk`, its stage 2 the decoder alone on kept volumes, ";
-    }
+    let recipe = match plan.kept_volumes {
+        true => {
+            command += " --kept-volumes";
+            " (the decoder's `pose_trunk`; stage 2 trains the decoder alone, on kept volumes)"
+        }
+        false => "",
+    };
     let mut s = format!(
         "# Learning benchmark\n\n`mvmp bench learn {command} --scenes {}`: the tiny model on a synthetic set of {} \
-         one-frame scenes ({frames} for training, the rest held out). Every variant {start}trains the same schedule, \
+         one-frame scenes ({frames} for training, the rest held out). Every variant {start}trains the same schedule{recipe}, \
          {e1} + {e2} epochs ({sized} {:.1} minutes at the {:.3} and {:.3} s \
          per step of stage 1 and 2 measured on this machine; a variant is stopped at {:.1} minutes), then is \
          scored on the held-out scenes. Errors in mm.\n\n```text\n",
@@ -1113,6 +1116,19 @@ mod tests {
             text.contains(
                 "starts from the HRNet the benchmark pretrained (12 stage-1 epochs on 1152"
             ),
+            "{text}"
+        );
+        let plan = Plan {
+            kept_volumes: true,
+            ..plan
+        };
+        let text = report(&rows, &plan);
+        assert!(
+            text.contains("--pretrain-hrnet 1152,12 --kept-volumes --scenes 864`"),
+            "{text}"
+        );
+        assert!(
+            text.contains("trains the same schedule (the decoder's `pose_trunk`; stage 2 trains"),
             "{text}"
         );
     }
