@@ -481,6 +481,21 @@ fn step_totals(r: &RunDir) -> Vec<(u64, f64)> {
 
 /// Two runs of 8 steps trained alike: the same steps logged with the same losses (to 1e-5), and final
 /// weights within 1e-6.
+/// Train `run` to its end; the model it started from (its seed's initialisation) and the one it ended
+/// with.
+fn trained_from_start(
+    run: &RunDir,
+    cfg: &TrainConfig,
+    model_cfg: &ModelConfig,
+) -> (MvmpHmr, MvmpHmr) {
+    let out = mvmp_train::train(run, cfg, model_cfg, &options(None), &mut Quiet).unwrap();
+    assert_eq!(out, Outcome::Finished);
+    let start = mvmp_train::seeded_init(model_cfg, &Device::flex(), cfg.seed);
+    let mut end = mvmp_train::seeded_init(model_cfg, &Device::flex(), 0);
+    load_weights(&mut end, &run.root.join("model.bpk")).unwrap();
+    (start, end)
+}
+
 fn trained_alike(a: &RunDir, b: &RunDir, model: &ModelConfig) {
     let (la, lb) = (step_totals(a), step_totals(b));
     assert_eq!(la.len(), 8);
@@ -2256,11 +2271,7 @@ fn stage_two_can_keep_detection_fixed() {
             .replace("[stage2]\n", "[stage2]\nfreeze_detection = true\n")
     });
     assert!(cfg.stage2.freeze_detection && cfg.stage1.epochs == 0);
-    let out = mvmp_train::train(&run, &cfg, &model_cfg, &options(None), &mut Quiet).unwrap();
-    assert_eq!(out, Outcome::Finished);
-    let start = mvmp_train::seeded_init(&model_cfg, &Device::flex(), cfg.seed);
-    let mut end = mvmp_train::seeded_init(&model_cfg, &Device::flex(), 0);
-    load_weights(&mut end, &run.root.join("model.bpk")).unwrap();
+    let (start, end) = trained_from_start(&run, &cfg, &model_cfg);
     assert_eq!(weights(&end.hrnet), weights(&start.hrnet));
     assert_eq!(weights(&end.rootnet), weights(&start.rootnet));
     assert_eq!(weights(&end.facing), weights(&start.facing));
@@ -2296,11 +2307,7 @@ fn stage_two_can_keep_each_frames_volumes() {
     };
     let (run_a, cfg, model_cfg) = new_run(dir.path(), "a", &edit);
     assert!(cfg.stage2.cache_volumes && cfg.stage2.epochs == 2);
-    let out = mvmp_train::train(&run_a, &cfg, &model_cfg, &options(None), &mut Quiet).unwrap();
-    assert_eq!(out, Outcome::Finished);
-    let start = mvmp_train::seeded_init(&model_cfg, &Device::flex(), cfg.seed);
-    let mut end = mvmp_train::seeded_init(&model_cfg, &Device::flex(), 0);
-    load_weights(&mut end, &run_a.root.join("model.bpk")).unwrap();
+    let (start, end) = trained_from_start(&run_a, &cfg, &model_cfg);
     assert_eq!(weights(&end.vit), weights(&start.vit));
     assert_eq!(weights(&end.reduce), weights(&start.reduce));
     assert_eq!(weights(&end.hrnet), weights(&start.hrnet));
@@ -2356,11 +2363,7 @@ fn stage_two_can_train_the_rootnet_on_kept_volumes() {
     };
     let (run, cfg, model_cfg) = new_run(dir.path(), "r", &edit);
     assert!(cfg.stage2.train_rootnet && cfg.stage2.epochs == 2);
-    let out = mvmp_train::train(&run, &cfg, &model_cfg, &options(None), &mut Quiet).unwrap();
-    assert_eq!(out, Outcome::Finished);
-    let start = mvmp_train::seeded_init(&model_cfg, &Device::flex(), cfg.seed);
-    let mut end = mvmp_train::seeded_init(&model_cfg, &Device::flex(), 0);
-    load_weights(&mut end, &run.root.join("model.bpk")).unwrap();
+    let (start, end) = trained_from_start(&run, &cfg, &model_cfg);
     assert_eq!(weights(&end.vit), weights(&start.vit));
     assert_eq!(weights(&end.hrnet), weights(&start.hrnet));
     assert_eq!(weights(&end.facing), weights(&start.facing));
