@@ -5,8 +5,10 @@
 //! blocks the time is in (a row is one call of a block; its name says how often the V2V calls it).
 //!
 //! `cargo run --release -p mvmp-cli --example rootnet_parts` (median and fastest of 9 runs). The whole
-//! RootNet is timed with burn's norms and the front as a 3D product, and with the fused norms
-//! (`mvmp_kernels::norm`) and the front's depth folded into its channels (`mvmp_kernels::conv`), in turn.
+//! RootNet is timed with burn's norms and the front as a 3D product, with the fused norms
+//! (`mvmp_kernels::norm`) and the front's depth folded into its channels (`mvmp_kernels::conv`), and
+//! with the 3x3x3 blocks computed directly besides (`mvmp_kernels::direct`), in turn. The residual
+//! blocks' rows take the direct path where it applies (full and half resolution).
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
@@ -45,20 +47,25 @@ fn run() -> std::io::Result<()> {
     timing::print(format_args!(
         "tiny RootNet on a [1, 17, 32, 32, 8] heatmap volume: forward and backward"
     ))?;
-    // Burn's norms and the front as a 3D product, then the fused norms and the folded front, in turn,
-    // so that the rows share the machine's state.
-    for fused in [false, true, false, true, false, true] {
-        mvmp_kernels::norm::set_fused_norm(fused);
-        mvmp_kernels::conv::set_fold_depth(fused);
-        let how = match fused {
-            true => "fused norms, folded front",
-            false => "burn's norms, 3D front",
-        };
-        time(&format!("the whole RootNet, {how}"), || {
-            let (likelihood, offset) = rootnet.forward(heatmaps.clone());
-            drop((likelihood.sum() + offset.sum()).backward());
-        })?;
+    // Burn's norms, the front and the 3x3x3 blocks as 3D products; the fused norms and the folded
+    // front; and the 3x3x3 blocks direct besides, in turn, so that the rows share the machine's state.
+    for _ in 0..3 {
+        for (fused, direct) in [(false, false), (true, false), (true, true)] {
+            mvmp_kernels::norm::set_fused_norm(fused);
+            mvmp_kernels::conv::set_fold_depth(fused);
+            mvmp_kernels::direct::set_direct_conv3d(direct);
+            let how = match (fused, direct) {
+                (false, _) => "burn's norms, 3D front",
+                (true, false) => "fused norms, folded front",
+                (true, true) => "the same, direct 3x3x3",
+            };
+            time(&format!("the whole RootNet, {how}"), || {
+                let (likelihood, offset) = rootnet.forward(heatmaps.clone());
+                drop((likelihood.sum() + offset.sum()).backward());
+            })?;
+        }
     }
+    mvmp_kernels::direct::set_direct_conv3d(true);
     let front = Basic3DBlock::new(17, 8, 7, n, &d);
     // Its depth folded into the channels and not, in turn.
     for fold in [false, true, false, true] {

@@ -110,6 +110,12 @@ pub fn conv3d(conv: &Conv3d, x: Tensor<5>) -> Tensor<5> {
     if pad == [0; 3] && pointwise(&conv.kernel_size, &conv.stride) {
         return pointwise_conv(&conv.weight.val(), conv.bias.as_ref(), x);
     }
+    if conv.stride == [1; 3] {
+        let bias = conv.bias.as_ref().map(|b| b.val());
+        if let Some(y) = crate::direct::conv3d(x.clone(), conv.weight.val(), bias, pad) {
+            return y;
+        }
+    }
     if let Some(y) = folded_conv3d(conv, x.clone()) {
         return y;
     }

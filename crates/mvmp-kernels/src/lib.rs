@@ -2,7 +2,8 @@
 //! each backend runs the forward in its own ops, and under autodiff the backward is the one written
 //! here rather than the one burn would derive from the forward's ops: tiled attention, a transformer
 //! block recomputed in its backward, a convolution's columns (im2col, with col2im as its backward),
-//! a 3D convolution whose gradients are tiled products (`wgrad`), the weight's product that ends every
+//! a 3D convolution whose gradients are tiled products (`wgrad`), a "same" 3D convolution
+//! of few channels computed directly, forward and backward (`direct`), the weight's product that ends every
 //! product convolution (`product`), batch and group norm (with the ReLU that follows them), the
 //! residual join `relu(a + b)` and GELU on flex. `blend` is the weight average's update on flex in one
 //! pass (no backward: it runs outside autodiff).
@@ -14,6 +15,7 @@ mod attention_host;
 pub mod blend;
 pub mod conv;
 pub mod cpu;
+pub mod direct;
 pub mod gelu;
 pub mod host;
 pub mod im2col;

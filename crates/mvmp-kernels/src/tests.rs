@@ -714,6 +714,98 @@ fn tiled_weight_gradients_are_the_convolutions() {
     }
 }
 
+/// Output and the gradients of input, weight and bias of a stride-1 3D convolution of `x` padded by
+/// `pad`, under a fixed random weighting of the output: directly (whatever share of its work is output)
+/// or burn's.
+fn direct_outputs(
+    x: &Tensor<5>,
+    weight: &Tensor<5>,
+    bias: Option<&Tensor<1>>,
+    pad: [usize; 3],
+    direct: bool,
+) -> Vec<Tensor<1>> {
+    use burn::tensor::ops::ConvOptions;
+    let (xi, wi, bi) = (x.clone(), weight.clone(), bias.cloned());
+    let y = match direct {
+        true => crate::direct::convolution(xi, wi, bi),
+        false => burn::tensor::module::conv3d(xi, wi, bi, ConvOptions::new([1; 3], pad, [1; 3], 1)),
+    };
+    seed(12);
+    let probe = normal(y.dims(), 1.0, &x.device());
+    let grads = (y.clone() * probe).sum().backward();
+    let mut out = vec![
+        y.detach().flatten::<1>(0, 4),
+        x.grad(&grads).unwrap().flatten::<1>(0, 4),
+        weight.grad(&grads).unwrap().flatten::<1>(0, 4),
+    ];
+    out.extend(bias.map(|b| b.grad(&grads).unwrap()));
+    out
+}
+
+/// The direct convolution equals burn's: values and the gradients of input, weight and bias, for the
+/// RootNet's 3x3x3 blocks (8 -> 16, 16 -> 16 and 64 -> 64 channels at its three resolutions, the
+/// last two axes 4 and 2 deep), channels that fill neither a tile nor a register (3 -> 5, 9 -> 20),
+/// uneven odd kernels with a side of 1, volumes thinner than the kernel, a row of one voxel, and two
+/// batch items.
+#[test]
+fn direct_convolutions_are_the_convolutions() {
+    let d = Device::flex().autodiff();
+    seed(21);
+    for (x_dims, co, kernel, bias) in [
+        ([1, 8, 6, 5, 8], 16, [3, 3, 3], true),
+        ([1, 16, 4, 4, 4], 16, [3, 3, 3], false),
+        ([1, 64, 3, 3, 2], 64, [3, 3, 3], true),
+        ([2, 3, 5, 6, 7], 5, [3, 3, 3], true),
+        ([1, 9, 4, 7, 3], 20, [1, 3, 5], false),
+        ([2, 4, 2, 1, 5], 3, [5, 3, 1], true),
+        ([1, 2, 1, 1, 1], 17, [3, 3, 3], true),
+    ] {
+        let x = normal(x_dims, 1.0, &d).require_grad();
+        let w = normal([co, x_dims[1], kernel[0], kernel[1], kernel[2]], 0.5, &d).require_grad();
+        let b = bias.then(|| normal([co], 1.0, &d).require_grad());
+        let pad = kernel.map(|k| k / 2);
+        assert_close(
+            direct_outputs(&x, &w, b.as_ref(), pad, true),
+            direct_outputs(&x, &w, b.as_ref(), pad, false),
+            &format!("input {x_dims:?} kernel {kernel:?} -> {co}"),
+        );
+    }
+}
+
+/// The direct convolution gives the same bits on one thread as on four, and takes only "same"
+/// paddings of odd kernels: other paddings, even kernels and a single tap are left to the caller.
+#[test]
+fn the_direct_convolution_does_not_depend_on_the_thread_count() {
+    use crate::direct::takes;
+    let d = Device::flex().autodiff();
+    seed(22);
+    let x = normal([2, 16, 9, 8, 8], 1.0, &d).require_grad();
+    let w = normal([16, 16, 3, 3, 3], 0.5, &d).require_grad();
+    let run = || bits_of(direct_outputs(&x, &w, None, [1; 3], true));
+    assert_eq!(in_pool(1, run), in_pool(4, run));
+    assert!(takes([3, 3, 3], [1, 1, 1]) && takes([1, 3, 5], [0, 1, 2]));
+    assert!(!takes([3, 3, 3], [0, 1, 1]) && !takes([2, 3, 3], [1, 1, 1]) && !takes([1; 3], [0; 3]));
+}
+
+/// The direct path is taken where most of what it computes is output: the tiny RootNet's full and
+/// half resolutions (256 of 324 and 64 of 96 positions, counted by hand), not its quarter one (16 of
+/// 36), and not without autodiff.
+#[test]
+fn the_direct_convolution_is_taken_where_it_pays() {
+    use crate::direct::{conv3d, useful};
+    assert_eq!(useful([32, 32, 8], [3; 3]), 256.0 / 324.0);
+    assert_eq!(useful([16, 16, 4], [3; 3]), 64.0 / 96.0);
+    assert_eq!(useful([8, 8, 2], [3; 3]), 16.0 / 36.0);
+    let d = Device::flex().autodiff();
+    let w = normal([4, 4, 3, 3, 3], 0.5, &d);
+    let taken = |n: [usize; 3], d: &Device| {
+        let x = normal([1, 4, n[0], n[1], n[2]], 1.0, d);
+        conv3d(x, w.clone().to_device(d), None, [1; 3]).is_some()
+    };
+    assert!(taken([16, 16, 4], &d) && !taken([8, 8, 2], &d));
+    assert!(!taken([16, 16, 4], &Device::flex()));
+}
+
 /// The fused group norm against burn's: output and the gradients of input, gamma and beta under a
 /// random weighting of the output, for groups of one channel, of several and of all channels, 4D (the
 /// facing head) and 5D (the RootNet), a permuted input, and a batch whose count of item-groups equals
