@@ -94,8 +94,10 @@ fn pointwise_product<const K: usize>(
     }
 }
 
-/// `conv.forward(x)` for a 3D convolution: in training on flex, as a product of the columns
-/// ([`crate::im2col`]) and the weight when small enough; otherwise burn's own.
+/// `conv.forward(x)` for a 3D convolution: in training on flex, directly where [`crate::direct`]
+/// takes it (a "same" kernel over a volume most of whose run is output), else folded
+/// ([`folded_conv3d`]) or as a product of the columns ([`crate::im2col`]) and the weight when small
+/// enough; otherwise burn's own.
 pub fn conv3d(conv: &Conv3d, x: Tensor<5>) -> Tensor<5> {
     let pad = match conv.padding {
         PaddingConfig3d::Valid => [0; 3],
