@@ -102,13 +102,7 @@ pub(crate) fn convolution(x: Tensor<5>, weight: Tensor<5>, bias: Option<Tensor<1
         x.into_dispatch(),
         weight.into_dispatch(),
     ));
-    match bias {
-        Some(b) => {
-            let co = b.dims()[0];
-            y + b.reshape([1, co, 1, 1, 1])
-        }
-        None => y,
-    }
+    crate::wgrad::with_bias(y, bias)
 }
 
 /// The backend side of [`conv3d`]; autodiff adds the backward.

@@ -48,6 +48,11 @@ pub fn conv3d(
         weight.into_dispatch(),
         options,
     ));
+    with_bias(y, bias)
+}
+
+/// `y [B, Co, ...]` plus the bias `[Co]` of each output channel, when there is one.
+pub(crate) fn with_bias(y: Tensor<5>, bias: Option<Tensor<1>>) -> Tensor<5> {
     match bias {
         Some(b) => {
             let co = b.dims()[0];
