@@ -16,6 +16,7 @@ mod alloc;
 mod bench_attention;
 mod bench_train;
 mod body;
+mod compare;
 mod data;
 mod decoder_fit;
 mod device;
@@ -115,6 +116,26 @@ enum Command {
     Bench(BenchCommand),
     /// Score a run (or stored predictions, or the mean-pose reference) on a dataset split.
     Eval(EvalCli),
+    /// Runs side by side: the figures their evaluations stored (`RUN/eval-<split>.json`, from
+    /// `mvmp eval --run`) as one table, and their validation curves in one picture.
+    Compare {
+        /// Run directory made by `mvmp train` (repeat for each run).
+        #[arg(long = "run", required = true)]
+        runs: Vec<PathBuf>,
+        /// A name per run, comma-separated, in --run order (default: each directory's name).
+        #[arg(long, value_delimiter = ',')]
+        names: Option<Vec<String>>,
+        /// The split whose stored evaluation is read.
+        #[arg(long, default_value = "test")]
+        split: String,
+        /// The stage whose curves are drawn: 1 (detection: root error and recall) or 2 (the whole
+        /// model: MPJPE and recall@500).
+        #[arg(long, default_value_t = 2)]
+        stage: u8,
+        /// Draw the runs' loss totals and validation curves into this PNG.
+        #[arg(long)]
+        plot: Option<PathBuf>,
+    },
     /// Recover every person's SMPL-X mesh from calibrated views of a frame (or a sequence of frames).
     Infer {
         /// Run directory made by `mvmp train`.
@@ -805,6 +826,20 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             out,
         }) => import::hrnet(variant, joints, &from, &out),
         Command::Eval(e) => eval_command(e, &device),
+        Command::Compare {
+            runs,
+            names,
+            split,
+            stage,
+            plot,
+        } => compare::compare(&compare::CompareArgs {
+            runs: &runs,
+            names: names.as_deref(),
+            split: &split,
+            stage,
+            plot: plot.as_deref(),
+        })
+        .map(|_| ()),
         Command::Infer {
             run,
             rig,

@@ -88,6 +88,10 @@ fn bad_inputs_give_clear_errors() {
         ],
         &["missing.json"],
     );
+    expect_error(
+        &["compare", "--run", &d("never_scored")],
+        &["never_scored/eval-test.json: not found", "mvmp eval --run"],
+    );
     // A flag with a bad value is refused before the (missing) run and data are read.
     let (run, data) = (d("run"), d("data"));
     let eval_with = |flag: &str, value: &str, needles: &[&str]| {
