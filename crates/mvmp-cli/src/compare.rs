@@ -16,6 +16,9 @@ pub struct CompareArgs<'a> {
     pub split: &'a str,
     /// The stage whose curves are drawn (1: detection, 2: the whole model).
     pub stage: u8,
+    /// The validation error drawn, a `*_mm` key of the runs' logs (default: the stage's headline,
+    /// `root_mm` or `mpjpe_mm`).
+    pub error: Option<&'a str>,
     /// Where the picture goes (none: the table alone).
     pub plot: Option<&'a Path>,
 }
@@ -33,10 +36,11 @@ pub fn compare(args: &CompareArgs) -> Result<String> {
         rows.push((name.clone(), stored_metrics(dir, args.split)?));
     }
     if let Some(plot) = args.plot {
-        let (error, recall) = match args.stage {
+        let (headline, recall) = match args.stage {
             1 => ("root_mm", "root_recall"),
             _ => ("mpjpe_mm", "recall_500"),
         };
+        let error = args.error.unwrap_or(headline);
         let mut curves = Vec::new();
         for (dir, name) in args.runs.iter().zip(&names) {
             let log = dir.join("metrics.jsonl");
@@ -45,6 +49,7 @@ pub fn compare(args: &CompareArgs) -> Result<String> {
             curves.push((name.clone(), Curves::from_log(&text)));
         }
         let s = args.stage;
+        drawn(&curves, &format!("stage {s} {error}"))?;
         let picture = Curves::compare(
             &curves,
             &format!("stage {s} total"),
@@ -64,6 +69,21 @@ pub fn compare(args: &CompareArgs) -> Result<String> {
     }
     print!("{s}");
     Ok(s)
+}
+
+/// Refuses a validation error that no run logged, naming those they did.
+fn drawn(curves: &[(String, Curves)], name: &str) -> Result<()> {
+    let logged = |c: &Curves| c.errors.iter().map(|s| s.name.clone()).collect::<Vec<_>>();
+    if curves
+        .iter()
+        .any(|(_, c)| logged(c).iter().any(|n| n == name))
+    {
+        return Ok(());
+    }
+    let mut known: Vec<String> = curves.iter().flat_map(|(_, c)| logged(c)).collect();
+    known.sort();
+    known.dedup();
+    bail!("no run logged validation {name:?}; they logged {known:?}")
 }
 
 /// The runs' names: given (one per run) or their directories' own, each once.
@@ -172,6 +192,7 @@ mod tests {
             names: None,
             split: "test",
             stage: 2,
+            error: None,
             plot: Some(&plot),
         };
         let s = compare(&args).unwrap();
@@ -206,6 +227,7 @@ mod tests {
             names: None,
             split: "test",
             stage: 2,
+            error: None,
             plot: None,
         };
         let s = compare(&base).unwrap();
@@ -233,6 +255,18 @@ mod tests {
         assert!(e.contains("two runs are named \"a\""), "{e}");
         let e = err(&CompareArgs { stage: 3, ..base });
         assert!(e.contains("--stage 3"), "{e}");
+        let plot = tmp.path().join("p.png");
+        let e = err(&CompareArgs {
+            error: Some("pve"),
+            plot: Some(&plot),
+            ..base
+        });
+        assert!(
+            e.contains("no run logged validation \"stage 2 pve\"")
+                && e.contains("stage 2 mpjpe_mm"),
+            "{e}"
+        );
+        assert!(!plot.exists());
         std::fs::write(b.join("eval-test.json"), "{\"format\": \"other\"}").unwrap();
         let e = err(&base);
         assert!(e.contains("eval-test.json: format \"other\""), "{e}");

@@ -132,6 +132,10 @@ enum Command {
         /// model: MPJPE and recall@500).
         #[arg(long, default_value_t = 2)]
         stage: u8,
+        /// The validation error drawn: a `*_mm` key of the runs' `metrics.jsonl`, e.g. pa_pve_mm
+        /// (default: root_mm in stage 1, mpjpe_mm in stage 2).
+        #[arg(long, requires = "plot")]
+        error: Option<String>,
         /// Draw the runs' loss totals and validation curves into this PNG.
         #[arg(long)]
         plot: Option<PathBuf>,
@@ -831,12 +835,14 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             names,
             split,
             stage,
+            error,
             plot,
         } => compare::compare(&compare::CompareArgs {
             runs: &runs,
             names: names.as_deref(),
             split: &split,
             stage,
+            error: error.as_deref(),
             plot: plot.as_deref(),
         })
         .map(|_| ()),
