@@ -1,10 +1,10 @@
-//! The tiny HRNet's forward and backward on the autodiff flex device, timed part by part: each row
+//! An HRNet's forward and backward on the autodiff flex device (the tiny one unless named), timed part by part: each row
 //! runs the network up to the end of one part (stem, layer1, the transitions and stages, the final
 //! layer) and back-propagates the sum of what it has so far, so a part's cost is its row less the row
 //! before. `mvmp bench model --backward` times HRNet whole; this says which of its parts the time is in.
 //!
-//! `cargo run --release -p mvmp-cli --example hrnet_parts [-- VIEWS SIZE]` (4 views of 224 x 224 unless
-//! given; median and fastest of 7 runs).
+//! `cargo run --release -p mvmp-cli --example hrnet_parts [-- VIEWS SIZE [VARIANT]]` (4 views of 224 x
+//! 224 unless given; VARIANT tiny, small, hrnet_w32 or hrnet_w48; median and fastest of 7 runs).
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
@@ -12,7 +12,8 @@ static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 mod timing;
 
 use burn::tensor::{Device, Tensor, TensorData};
-use mvmp_backbone::hrnet::{HRNet, HRNetConfig};
+use mvmp_backbone::HrnetVariant;
+use mvmp_backbone::hrnet::HRNet;
 use mvmp_kernels::conv::conv2d;
 use mvmp_kernels::norm::batch_norm_relu;
 
@@ -90,15 +91,21 @@ fn run() -> std::io::Result<()> {
     let views = argument(1, "VIEWS, a count of at least 1", 4, |n| n >= 1)?;
     let side = "SIZE, a multiple of 4 of at least 32 pixels";
     let size = argument(2, side, 224, |n| n >= 32 && n.is_multiple_of(4))?;
+    let variant: HrnetVariant = match std::env::args().nth(3) {
+        Some(name) => name.parse().map_err(|e: String| {
+            std::io::Error::new(std::io::ErrorKind::InvalidInput, format!("argument 3: {e}"))
+        })?,
+        None => HrnetVariant::Tiny,
+    };
     let d = Device::flex().autodiff();
-    let net = HRNetConfig::tiny(17).init(&d);
+    let net = variant.config(17).init(&d);
     let n = views * 3 * size * size;
     let img: Vec<f32> = (0..n)
         .map(|i| ((i * 7919) % 255) as f32 / 255.0 - 0.5)
         .collect();
     let x = Tensor::<4>::from_data(TensorData::new(img, [views, 3, size, size]), &d);
     timing::print(format_args!(
-        "tiny HRNet, {views} views of {size} x {size}: forward and backward through each part"
+        "HRNet {variant}, {views} views of {size} x {size}: forward and backward through each part"
     ))?;
     let mut before = 0.0;
     for (upto, name) in PARTS.iter().enumerate() {
