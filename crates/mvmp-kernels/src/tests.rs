@@ -806,6 +806,72 @@ fn the_direct_convolution_is_taken_where_it_pays() {
     assert!(!taken([16, 16, 4], &Device::flex()));
 }
 
+/// HRNet's stride-1 "same" 2D convolutions go the direct way in training on flex (as 3D ones of depth
+/// one) and equal burn's there: values and the gradients of input, weight and bias for the tiny HRNet's
+/// 3x3s (8 -> 8 channels at 56 x 56 and 64 -> 64 on its lowest branch's 7 x 7, four views; 16 -> 16 at
+/// 28 x 28), a 5x5 over a
+/// rectangle with a bias, channels that fill neither a tile nor a register (3 -> 5). A stride-2 3x3, a
+/// padding other than half the kernel, a 1x1 (a pointwise product) and an even kernel are not taken.
+#[test]
+fn same_2d_convolutions_are_taken_directly() {
+    use burn::nn::PaddingConfig2d;
+    use burn::nn::conv::{Conv2d, Conv2dConfig};
+    let d = Device::flex().autodiff();
+    seed(23);
+    let conv = |[ci, co]: [usize; 2], k: usize, stride: usize, pad: [usize; 4], bias: bool| {
+        Conv2dConfig::new([ci, co], [k, k])
+            .with_stride([stride, stride])
+            .with_padding(PaddingConfig2d::Explicit(pad[0], pad[1], pad[2], pad[3]))
+            .with_bias(bias)
+            .init(&d)
+    };
+    let outputs = |c: &Conv2d, x: &Tensor<4>, direct: bool| {
+        let y = match direct {
+            true => crate::conv::direct2d(c, x.clone(), [c.kernel_size[0] / 2; 4]).unwrap(),
+            false => c.forward(x.clone()),
+        };
+        seed(24);
+        let probe = normal(y.dims(), 1.0, &d);
+        let grads = (y.clone() * probe).sum().backward();
+        let mut out = vec![
+            y.detach().flatten::<1>(0, 3),
+            x.grad(&grads).unwrap().flatten::<1>(0, 3),
+            c.weight.val().grad(&grads).unwrap().flatten::<1>(0, 3),
+        ];
+        out.extend(c.bias.as_ref().map(|b| b.val().grad(&grads).unwrap()));
+        out
+    };
+    for (x_dims, co, k, bias) in [
+        ([4, 8, 56, 56], 8, 3, false),
+        ([1, 16, 28, 28], 16, 3, false),
+        ([4, 64, 7, 7], 64, 3, false),
+        ([2, 6, 9, 13], 8, 5, true),
+        ([2, 3, 5, 6], 5, 3, true),
+    ] {
+        let c = conv([x_dims[1], co], k, 1, [k / 2; 4], bias);
+        let x = normal(x_dims, 1.0, &d).require_grad();
+        assert_close(
+            outputs(&c, &x, true),
+            outputs(&c, &x, false),
+            &format!("input {x_dims:?} kernel {k} -> {co}"),
+        );
+    }
+    let x = normal([1, 4, 8, 8], 1.0, &d);
+    let taken = |c: Conv2d, pad: [usize; 4]| crate::conv::direct2d(&c, x.clone(), pad).is_some();
+    assert!(taken(conv([4, 4], 3, 1, [1; 4], false), [1; 4]));
+    assert!(!taken(conv([4, 4], 3, 2, [1; 4], false), [1; 4]));
+    assert!(!taken(
+        conv([4, 4], 3, 1, [0, 2, 1, 0], false),
+        [0, 2, 1, 0]
+    ));
+    assert!(!taken(conv([4, 4], 3, 1, [0; 4], false), [0; 4]));
+    assert!(!taken(conv([4, 4], 1, 1, [0; 4], false), [0; 4]));
+    assert!(!taken(conv([4, 4], 2, 1, [1; 4], false), [1; 4]));
+    let inference = conv([4, 4], 3, 1, [1; 4], false);
+    let plain = normal([1, 4, 8, 8], 1.0, &Device::flex());
+    assert!(crate::conv::direct2d(&inference, plain, [1; 4]).is_none());
+}
+
 /// The fused group norm against burn's: output and the gradients of input, gamma and beta under a
 /// random weighting of the output, for groups of one channel, of several and of all channels, 4D (the
 /// facing head) and 5D (the RootNet), a permuted input, and a batch whose count of item-groups equals
