@@ -170,7 +170,7 @@ pub(crate) fn forward(x: Inputs, out: Layout, len: usize, dm: Dims) -> (Vec<f32>
             let mut sums = vec![0f32; t];
             for (i, row) in p.chunks_exact_mut(nk).enumerate() {
                 let m = row.iter().fold(f32::NEG_INFINITY, |a, &b| a.max(b));
-                row.iter_mut().for_each(|x| *x = (*x - m).exp());
+                crate::vmath::exp_shifted(row, m);
                 sums[i] = row.iter().sum();
                 // SAFETY: row s + i of head h is this task's alone.
                 unsafe { *lse_ptr.get().add(h * nq + s + i) = m + sums[i].ln() };
@@ -242,7 +242,7 @@ unsafe fn head_backward(s: &Saved, dout: &[f32], dm: &Dims, h: usize, g: &Grads)
         scores(&s.x, dm, h, (st, t), &mut p);
         for (i, row) in p.chunks_exact_mut(nk).enumerate() {
             let l = s.lse[h * dm.nq + st + i];
-            row.iter_mut().for_each(|x| *x = (*x - l).exp());
+            crate::vmath::exp_shifted(row, l);
         }
         let do_t = dout.rows(dm, h, st);
         // SAFETY (all four products): each destination is head h's own (the caller's buffers) or a

@@ -1,9 +1,10 @@
 //! GELU on flex, forward and backward over both cores.
 //!
-//! Flex computes GELU and its backward as one element-wise pass each, but on the calling thread alone:
-//! in a `perf` profile of `mvmp bench train` the error function was the largest leaf of the thread that
-//! runs a step's serial work. Here the same formulas (burn-flex's, with the same `erff`) run over
-//! chunks in parallel: `gelu(x) = x / 2 * (1 + erf(x / sqrt 2))`, `gelu'(x) = cdf(x) + x * pdf(x)`.
+//! Flex computes GELU and its backward as one element-wise pass each, but on the calling thread alone,
+//! with libm's scalar `erff`: in a `perf` profile of `mvmp bench train` the error function was the
+//! largest leaf of the thread that runs a step's serial work. Here `gelu(x) = x / 2 * (1 + erf(x /
+//! sqrt 2))` and `gelu'(x) = cdf(x) + x * pdf(x)` run over chunks in parallel, vectorised
+//! ([`crate::vmath`]: within 1e-5 relative of the libm forms for |x| <= 10, and of burn's values).
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
@@ -28,8 +29,8 @@ pub fn set_parallel_gelu(on: bool) {
     PARALLEL_GELU.store(on, Ordering::Relaxed);
 }
 
-/// `burn::tensor::activation::gelu(x)`: on flex in parallel, in training and outside it (the values
-/// are burn-flex's bit for bit); otherwise burn's own.
+/// `burn::tensor::activation::gelu(x)`: on flex in parallel and vectorised, in training and outside
+/// it (the values within 1e-5 relative of burn-flex's); otherwise burn's own.
 pub fn gelu<const D: usize>(x: Tensor<D>) -> Tensor<D> {
     let parallel = x.device() == Device::flex() && PARALLEL_GELU.load(Ordering::Relaxed);
     if !parallel {
@@ -46,11 +47,9 @@ pub trait GeluBackend: Backend {
         let device = x.device();
         let shape = x.shape().to_vec();
         let x = HostF32::read::<Self>(x);
-        let v: Vec<f32> = x
-            .par_iter()
-            .with_min_len(CHUNK)
-            .map(|&x| value(x))
-            .collect();
+        let mut v = vec![0f32; x.len()];
+        (v.par_chunks_mut(CHUNK).zip(x.par_chunks(CHUNK)))
+            .for_each(|(out, x)| crate::vmath::gelu_into(x, out));
         Self::float_from_data(TensorData::new(v, shape), &device)
     }
 }
@@ -69,17 +68,6 @@ impl<B: Backend + GeluBackend, C: CheckpointStrategy> GeluBackend for Autodiff<B
     }
 }
 
-fn value(x: f32) -> f32 {
-    0.5 * x * (1.0 + libm::erff(x / std::f32::consts::SQRT_2))
-}
-
-fn slope(x: f32) -> f32 {
-    let inv_sqrt_2pi: f32 = 1.0 / (2.0 * std::f32::consts::PI).sqrt();
-    let cdf = 0.5 * (1.0 + libm::erff(x / std::f32::consts::SQRT_2));
-    let pdf = inv_sqrt_2pi * (-0.5 * x * x).exp();
-    cdf + x * pdf
-}
-
 #[derive(Debug)]
 struct GeluBackward;
 
@@ -95,13 +83,13 @@ impl<B: Backend> Backward<B, 1> for GeluBackward {
         let shape = ops.state.shape().to_vec();
         let x = HostF32::read::<B>(ops.state);
         let g = HostF32::read::<B>(grad);
-        let g: Vec<f32> = (g.par_iter().zip(x.par_iter()))
-            .with_min_len(CHUNK)
-            .map(|(&g, &x)| g * slope(x))
-            .collect();
+        let mut dx = vec![0f32; x.len()];
+        (dx.par_chunks_mut(CHUNK)
+            .zip(g.par_chunks(CHUNK).zip(x.par_chunks(CHUNK))))
+        .for_each(|(out, (g, x))| crate::vmath::gelu_backward_into(g, x, out));
         grads.register::<B>(
             node.id,
-            B::float_from_data(TensorData::new(g, shape), &device),
+            B::float_from_data(TensorData::new(dx, shape), &device),
         );
     }
 }

@@ -5,8 +5,9 @@
 //! a 3D convolution whose gradients are tiled products (`wgrad`), a "same" 3D convolution
 //! of few channels computed directly, forward and backward (`direct`), the weight's product that ends every
 //! product convolution (`product`), batch and group norm (with the ReLU that follows them), the
-//! residual join `relu(a + b)` and GELU on flex. `blend` is the weight average's update on flex in one
-//! pass (no backward: it runs outside autodiff).
+//! residual join `relu(a + b)` and GELU on flex (with `vmath`'s vectorised `exp` and error
+//! function). `blend` is the weight average's update on flex in one pass (no backward: it runs
+//! outside autodiff).
 //! `conv` holds convolutions written as matrix products for training. `cpu` and `panel` hold what the fused CPU passes
 //! share: instruction-set dispatch, the pointer of their parallel writes, and the SMPL-X panel products.
 
@@ -26,6 +27,7 @@ pub mod panel;
 pub mod product;
 pub mod recompute;
 pub mod residual;
+pub mod vmath;
 pub mod wgrad;
 
 pub use attention::{DEFAULT_BLOCK, attention, packed_self_attention, plain_attention};
