@@ -1577,8 +1577,11 @@ fn the_attention_benchmark_shows_the_tiled_memory_growing_slower() {
         large[4] > 3.0 * small[4],
         "plain memory should grow about 4x: {out}"
     );
+    // The tiled peak at these sizes is a few hundred KiB, and how many tiles' buffers are live at once
+    // depends on the threads' timing (0.8-2.0 MiB at 512 tokens, measured on a loaded machine): so its
+    // growth is held against the plain one's, not against its own size at 256 tokens.
     assert!(
-        large[2] < 3.0 * small[2] && large[2] < large[4] / 2.0,
+        large[2] - small[2] < (large[4] - small[4]) / 4.0 && large[2] < large[4] / 4.0,
         "{out}"
     );
     let huge = mvmp(&["bench", "attention", "--tokens", "100000000"]);
