@@ -370,6 +370,27 @@ fn products_are_convolutions(d: &Device) {
     }
 }
 
+/// A convolution's output `y` of `x` and the gradients of `x`, `weight` and `bias` under a fixed random
+/// weighting of the output (drawn with `probe_seed`), each flattened.
+fn outputs_and_gradients<const D: usize>(
+    y: Tensor<D>,
+    x: &Tensor<D>,
+    weight: &Tensor<D>,
+    bias: Option<&Tensor<1>>,
+    probe_seed: u64,
+) -> Vec<Tensor<1>> {
+    seed(probe_seed);
+    let probe = normal(y.dims(), 1.0, &x.device());
+    let grads = (y.clone() * probe).sum().backward();
+    let mut out = vec![
+        y.detach().flatten::<1>(0, D - 1),
+        x.grad(&grads).unwrap().flatten::<1>(0, D - 1),
+        weight.grad(&grads).unwrap().flatten::<1>(0, D - 1),
+    ];
+    out.extend(bias.map(|b| b.grad(&grads).unwrap()));
+    out
+}
+
 /// A 3D convolution's output and its gradients in the input, weight and bias under a fixed random
 /// weighting of the output (seeded), computed by `f`.
 fn conv3d_outputs(
@@ -379,16 +400,8 @@ fn conv3d_outputs(
 ) -> Vec<Tensor<1>> {
     let x = x.clone().require_grad();
     let y = f(conv, x.clone());
-    seed(99);
-    let w = normal(y.dims(), 1.0, &x.device());
-    let grads = (y.clone() * w).sum().backward();
-    let mut out = vec![
-        y.detach().flatten::<1>(0, 4),
-        x.grad(&grads).unwrap().flatten::<1>(0, 4),
-        conv.weight.val().grad(&grads).unwrap().flatten::<1>(0, 4),
-    ];
-    out.extend(conv.bias.as_ref().map(|b| b.val().grad(&grads).unwrap()));
-    out
+    let bias = conv.bias.as_ref().map(|b| b.val());
+    outputs_and_gradients(y, &x, &conv.weight.val(), bias.as_ref(), 99)
 }
 
 /// 3D convolutions as products of columns equal burn's: values and the gradients of input, weight and
@@ -798,16 +811,7 @@ fn direct_outputs(
         true => crate::direct::convolution(xi, wi, bi),
         false => burn::tensor::module::conv3d(xi, wi, bi, ConvOptions::new([1; 3], pad, [1; 3], 1)),
     };
-    seed(12);
-    let probe = normal(y.dims(), 1.0, &x.device());
-    let grads = (y.clone() * probe).sum().backward();
-    let mut out = vec![
-        y.detach().flatten::<1>(0, 4),
-        x.grad(&grads).unwrap().flatten::<1>(0, 4),
-        weight.grad(&grads).unwrap().flatten::<1>(0, 4),
-    ];
-    out.extend(bias.map(|b| b.grad(&grads).unwrap()));
-    out
+    outputs_and_gradients(y, x, weight, bias, 12)
 }
 
 /// The direct convolution equals burn's: values and the gradients of input, weight and bias, for the
@@ -898,16 +902,8 @@ fn same_2d_convolutions_are_taken_directly() {
             true => crate::conv::direct2d(c, x.clone(), [c.kernel_size[0] / 2; 4]).unwrap(),
             false => c.forward(x.clone()),
         };
-        seed(24);
-        let probe = normal(y.dims(), 1.0, &d);
-        let grads = (y.clone() * probe).sum().backward();
-        let mut out = vec![
-            y.detach().flatten::<1>(0, 3),
-            x.grad(&grads).unwrap().flatten::<1>(0, 3),
-            c.weight.val().grad(&grads).unwrap().flatten::<1>(0, 3),
-        ];
-        out.extend(c.bias.as_ref().map(|b| b.val().grad(&grads).unwrap()));
-        out
+        let bias = c.bias.as_ref().map(|b| b.val());
+        outputs_and_gradients(y, x, &c.weight.val(), bias.as_ref(), 24)
     };
     for (x_dims, co, k, bias) in [
         ([4, 8, 56, 56], 8, 3, false),
